@@ -1,0 +1,199 @@
+"""Inverse laws: the coil current (A) that makes the damper produce F_des (N).
+
+Each law keeps its own copy of the LuGre state z, advanced with the current it
+commanded on the previous tick (the tick protocol of
+:class:`mrctl.model.lugre.LuGreModel`), and is called once per tick with the
+measured velocity and the desired force. All laws return a current already in
+[0, I_max]; :mod:`mrctl.safety` clamps again, independently.
+
+Laws, by the name used in YAML (``inverse.law``):
+
+``paper``
+    Eq (12) exactly as published: Fc lagged one sample, ż computed with the
+    previous current, then clamped. Its denominator ∂F/∂I (with ż frozen)
+    crosses zero when the force changes sign, hence the current spikes.
+``smooth``
+    The improved law (see :class:`SmoothInverse`): eq (12)'s force model,
+    solved as a regularised least-squares problem that holds the current
+    where ∂F/∂I vanishes, inside the driver's slew bound. No spikes; the
+    design study and measured figures are in ``docs/inverse-laws.md``.
+``constant``
+    A fixed current, open loop (identification runs).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Protocol
+
+from mrctl.model.lugre import LuGreModel
+from mrctl.model.params import LuGreParams
+from mrctl.safety import clamp_current as _clamp  # NaN (0/0 in eq 12) → 0 A
+
+
+class InverseLaw(Protocol):
+    """What the controller needs from an inverse law."""
+
+    name: str
+    I_max: float
+
+    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None: ...
+
+    def current(self, v: float, F_des: float) -> float:
+        """Current (A) in [0, I_max] for measured velocity v (m/s), desired F_des (N)."""
+        ...
+
+    def applied(self, I: float) -> None:
+        """Tell the law what was actually commanded (after safety), for its state."""
+        ...
+
+
+class _ModelBasedLaw:
+    """Shared state handling: the law's own LuGre model and previous current."""
+
+    name = "base"
+
+    def __init__(self, params: LuGreParams, I_max: float, dt: float) -> None:
+        if not I_max > 0.0:
+            raise ValueError("I_max must be > 0")
+        if not dt > 0.0:
+            raise ValueError("dt must be > 0")
+        self.p = params
+        self.I_max = float(I_max)
+        self.dt = float(dt)
+        self.model = LuGreModel(params)
+        self.I_prev = 0.0
+        self._started = False
+        # bound once: attribute lookups cost as much as the arithmetic here
+        self._adv = self.model.advance
+        self._zdot = self.model.zdot
+        self._B = (params.sigma0B, params.sigma1B, params.sigma2B)
+        self._A = (params.sigma0A, params.sigma1A, params.sigma2A)
+
+    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None:
+        self.model.reset(z0, v0)
+        self.I_prev = I0
+        self._started = False
+
+    def applied(self, I: float) -> None:
+        self.I_prev = I
+
+    def _advance(self, v: float) -> float:
+        """Step 3 of eq (12): move z to now with the previous current."""
+        if self._started:
+            return self._adv(v, self.I_prev, self.dt)
+        # First tick: no interval has elapsed; anchor the velocity history.
+        self._started = True
+        self.model.v_prev = v
+        return self.model.z
+
+
+class PaperInverse(_ModelBasedLaw):
+    """Eq (12) as published (Palka & Maślanka 2013), then clamped to [0, I_max]."""
+
+    name = "paper"
+
+    def current(self, v: float, F_des: float) -> float:
+        Ip = self.I_prev
+        z = self._advance(v)  # step 3 (z with I_{i-1})
+        # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
+        zdot = self._zdot(v, Ip)
+        s0B, s1B, s2B = self._B
+        s0A, s1A, s2A = self._A
+        num = F_des - (s0B * z + s1B * zdot + s2B * v)
+        den = s0A * z + s1A * zdot + s2A * v
+        if den == 0.0:
+            I = math.inf if num > 0.0 else (-math.inf if num < 0.0 else math.nan)
+        else:
+            I = num / den
+        I = _clamp(I, self.I_max)
+        self.I_prev = I
+        return I
+
+
+class SmoothInverse(_ModelBasedLaw):
+    """Regularised, slew-bounded eq (12): the spike-free law.
+
+    Why eq (12) spikes: with ż frozen at the previous current the force is
+    affine in the new current, F(I) = B + D·I, where D = σ0A·z + σ1A·ż + σ2A·v
+    is ∂F/∂I. Near a sign change of the force, z, ż and v all pass through
+    zero, so D does too, and because σ1 < 0 below 0.26 A it even goes
+    *negative*: the fitted model then claims more current gives less force,
+    and eq (12) jumps to I_max to exploit it, or flips between 0 and I_max as
+    D changes sign. Neither helps a real damper.
+
+    This law picks the current that minimises
+
+        (B + D·I − F_des)² + ε²·(I − I_prev)²
+
+    over I in [I_prev − ΔI, I_prev + ΔI] ∩ [0, I_max], i.e.
+
+        I = (D·(F_des − B) + ε²·I_prev) / (D² + ε²),  then bounded.
+
+    Where |D| ≫ ε (N/A) it is eq (12); where the damper has no authority
+    (|D| → 0) the current holds instead of jumping. ΔI = slew·dt is the
+    current driver's slew rate taken into the law, so the law never asks for
+    a step the coil could not follow. Measured alternatives (solving the full
+    model for I, evaluating ż at the new current, either term alone) are in
+    ``docs/inverse-laws.md``; both terms are needed to beat eq (12).
+    """
+
+    name = "smooth"
+
+    def __init__(
+        self,
+        params: LuGreParams,
+        I_max: float,
+        dt: float,
+        eps_N_per_A: float = 3.0,
+        max_slew_A_per_s: float = 50.0,
+    ) -> None:
+        super().__init__(params, I_max, dt)
+        if not eps_N_per_A >= 0.0:
+            raise ValueError("eps_N_per_A must be >= 0")
+        if not max_slew_A_per_s > 0.0:
+            raise ValueError("max_slew_A_per_s must be > 0")
+        self.eps2 = float(eps_N_per_A) ** 2
+        self.max_step_A = float(max_slew_A_per_s) * self.dt
+
+    def current(self, v: float, F_des: float) -> float:
+        Ip = self.I_prev
+        z = self._advance(v)
+        zdot = self._zdot(v, Ip)  # as in eq (12): ż with the previous current
+        s0B, s1B, s2B = self._B
+        s0A, s1A, s2A = self._A
+        B = s0B * z + s1B * zdot + s2B * v
+        D = s0A * z + s1A * zdot + s2A * v
+        den = D * D + self.eps2
+        # den == 0 only when ε = 0 and D = 0: no authority, hold.
+        I = (D * (F_des - B) + self.eps2 * Ip) / den if den > 0.0 else Ip
+        step = self.max_step_A
+        if I > Ip + step:
+            I = Ip + step
+        elif I < Ip - step:
+            I = Ip - step
+        # clamp to [0, I_max] (NaN → 0 A), inlined: this runs every tick
+        I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0
+        self.I_prev = I
+        return I
+
+
+class ConstantCurrent:
+    """Open loop: always the same current (identification runs)."""
+
+    name = "constant"
+
+    def __init__(self, I: float, I_max: float) -> None:
+        if not 0.0 <= I <= I_max:
+            raise ValueError(f"constant current {I} A outside [0, {I_max}] A")
+        self.I = float(I)
+        self.I_max = float(I_max)
+
+    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None:
+        pass
+
+    def applied(self, I: float) -> None:
+        pass
+
+    def current(self, v: float, F_des: float) -> float:
+        return self.I

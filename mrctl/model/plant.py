@@ -1,0 +1,107 @@
+"""The simulated damper plant: forward LuGre + current-driver lag + sensors.
+
+This is what stands behind the driver interface in simulation: in-process
+(:mod:`mrctl.io.sim`, ``mrctl simulate``) and in the separate ``hil_sim``
+process. Pure numerics, no I/O; the shaker's motion comes from
+:mod:`mrctl.excitation`.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+from mrctl.model.lugre import LuGreModel
+from mrctl.model.params import LuGreParams
+
+
+class DriverLag:
+    """First-order current driver: I_applied follows the command with time constant τ.
+
+    Discretised exactly for a command held over one tick:
+    I ← I + (I_cmd − I)·(1 − e^{−dt/τ}). τ = 0 is an ideal driver.
+    """
+
+    __slots__ = ("alpha", "I")
+
+    def __init__(self, tau_s: float, dt: float) -> None:
+        if tau_s < 0.0 or not math.isfinite(tau_s):
+            raise ValueError("driver time constant must be finite and >= 0")
+        self.alpha = 1.0 if tau_s == 0.0 else 1.0 - math.exp(-dt / tau_s)
+        self.I = 0.0
+
+    def update(self, I_cmd: float) -> float:
+        self.I += (I_cmd - self.I) * self.alpha
+        return self.I
+
+
+class DamperPlant:
+    """The damper as the driver sees it: command in, true force out, once per tick.
+
+    ``tick(v, I_cmd)`` advances the LuGre state over the last interval with
+    the current applied then, updates the driver, and returns the force at
+    this tick with the newly applied current. With τ = 0 this is exactly the
+    tick protocol the inverse laws assume (see :class:`LuGreModel`)."""
+
+    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started")
+
+    def __init__(self, params: LuGreParams, dt: float, driver_tau_s: float = 0.0) -> None:
+        self.model = LuGreModel(params)
+        self.driver = DriverLag(driver_tau_s, dt)
+        self.dt = dt
+        self.I_applied = 0.0
+        self.F = 0.0
+        self._started = False
+
+    def tick(self, v: float, I_cmd: float) -> float:
+        if self._started:
+            self.model.advance(v, self.I_applied, self.dt)
+        else:
+            self._started = True
+            self.model.v_prev = v
+        self.I_applied = self.driver.update(I_cmd)
+        self.F = self.model.force(v, self.I_applied)
+        return self.F
+
+
+class Sensors:
+    """Seeded Gaussian noise and quantisation of x (m), v (m/s) and F (N).
+
+    Zero noise and zero LSB give exact readings. Uses :mod:`random` (plain
+    floats, reproducible per seed) rather than numpy, because it runs per tick."""
+
+    __slots__ = ("rng", "x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")
+
+    def __init__(
+        self,
+        seed: int = 0,
+        x_noise_m: float = 0.0,
+        v_noise_mps: float = 0.0,
+        F_noise_N: float = 0.0,
+        x_lsb_m: float = 0.0,
+        v_lsb_mps: float = 0.0,
+        F_lsb_N: float = 0.0,
+    ) -> None:
+        self.rng = random.Random(seed)
+        self.x_noise_m = x_noise_m
+        self.v_noise_mps = v_noise_mps
+        self.F_noise_N = F_noise_N
+        self.x_lsb_m = x_lsb_m
+        self.v_lsb_mps = v_lsb_mps
+        self.F_lsb_N = F_lsb_N
+
+    def _read(self, value: float, sigma: float, lsb: float) -> float:
+        if sigma > 0.0:
+            value += self.rng.gauss(0.0, sigma)
+        if lsb > 0.0:
+            value = round(value / lsb) * lsb
+        return value
+
+    def x(self, x: float) -> float:
+        return self._read(x, self.x_noise_m, self.x_lsb_m)
+
+    def v(self, v: float) -> float:
+        return self._read(v, self.v_noise_mps, self.v_lsb_mps)
+
+    def F(self, F: float) -> float:
+        return self._read(F, self.F_noise_N, self.F_lsb_N)
