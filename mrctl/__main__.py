@@ -1,0 +1,5 @@
+import sys
+
+from mrctl.cli import main
+
+sys.exit(main())

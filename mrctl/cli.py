@@ -1,0 +1,135 @@
+"""``mrctl`` command line: simulate, report, check (run/status/identify: see README).
+
+Exit codes: 0 success, 1 runtime failure, 2 bad input (config, CSV, usage).
+Every bad input gets one clear line per problem on stderr, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from mrctl import __version__
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_BAD_INPUT = 2
+
+
+def _err(msg: str) -> None:
+    print(f"mrctl: {msg}", file=sys.stderr)
+
+
+def _load(config_path: str):
+    from mrctl.config import load_experiment
+    from mrctl.experiment import build
+
+    return build(load_experiment(config_path))
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from mrctl.metrics import format_summary
+    from mrctl.simulate import run_duration, simulate, write_csv
+
+    exp = _load(args.config)
+    duration = run_duration(exp, args.duration)
+    res = simulate(exp, duration)
+    s = res.summary
+    meta = {
+        "mrctl_version": __version__,
+        "python": platform.python_version(),
+        "host": platform.node(),
+        "config_file": str(Path(args.config).resolve()),
+        "config": _jsonable(exp.config.to_dict()),
+        "parameters": exp.params.as_dict(),
+        "summary": s,
+    }
+    if args.out:
+        write_csv(res, args.out, comment=f"mrctl {__version__} simulate {args.config}")
+        Path(args.out).with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
+    law = exp.config.inverse.law
+    print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
+          f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
+    print(format_summary(s, exp.I_max))
+    if args.out:
+        print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+    return EXIT_OK
+
+
+def _jsonable(obj):
+    from mrctl.model.params import LuGreParams
+
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, LuGreParams):
+        return obj.as_dict()
+    return obj
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from mrctl.report import make_report
+
+    make_report(args.run, args.out, title=args.title)
+    print(f"wrote {args.out}")
+    return EXIT_OK
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    _load(args.config)
+    print(f"{args.config}: OK")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
+    ap.add_argument("--version", action="version", version=f"mrctl {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)")
+    sp.add_argument("config", help="experiment YAML")
+    sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
+    sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
+    sp.set_defaults(func=cmd_simulate)
+
+    rp = sub.add_parser("report", help="figure of a run: force and current over time, F-v and F-x loops")
+    rp.add_argument("run", help="run CSV from simulate or run")
+    rp.add_argument("--out", required=True, help="PNG to write")
+    rp.add_argument("--title", help="figure title (default: the run file name)")
+    rp.set_defaults(func=cmd_report)
+
+    cp = sub.add_parser("check", help="validate an experiment config; lists every error")
+    cp.add_argument("config")
+    cp.set_defaults(func=cmd_check)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from mrctl.config import ConfigError
+
+    try:
+        from mrctl.report import ReportError
+    except ImportError:  # pragma: no cover
+        ReportError = ConfigError  # type: ignore[misc,assignment]
+    try:
+        return args.func(args)
+    except ConfigError as exc:
+        _err(str(exc))
+        return EXIT_BAD_INPUT
+    except ReportError as exc:
+        _err(str(exc))
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        _err("interrupted")
+        return 130
+    except OSError as exc:
+        _err(f"{exc.filename or ''}: {exc.strerror or exc}")
+        return EXIT_FAILURE
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

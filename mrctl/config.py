@@ -1,0 +1,425 @@
+"""Experiment YAML → validated, typed config; every error names its key path.
+
+Why a small declarative schema instead of a library: the runtime dependency
+set is fixed (numpy, pyyaml, pyserial, pymodbus), and what we need is narrow:
+unknown keys rejected, numbers range-checked, unions chosen by a ``type`` or
+``law`` key, defaults filled, and *all* errors collected so ``mrctl check``
+lists every one at once. The schema below is also the reference for
+``docs/config.md``.
+
+YAML traps handled here: duplicate keys are an error (PyYAML silently keeps
+the last), and ``1e-3`` is read as a number (YAML 1.1 makes it a string).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import yaml
+
+from mrctl.model.params import LuGreParams, params_from_mapping
+
+CONFIG_VERSION = 1
+_REQUIRED = object()
+
+
+class ConfigError(Exception):
+    """One or more problems in a config; ``errors`` holds one line per problem."""
+
+    def __init__(self, errors: list[str], source: str | None = None) -> None:
+        self.errors = list(errors)
+        self.source = source
+        head = f"{source}: " if source else ""
+        super().__init__(head + ("; ".join(self.errors) if len(self.errors) == 1 else f"{len(self.errors)} errors:\n  " + "\n  ".join(self.errors)))
+
+
+# --------------------------------------------------------------------------
+# YAML loading
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that rejects duplicate keys and reads 1e-3 as a float."""
+
+
+def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen: dict[Any, yaml.Node] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first at line {seen[key].start_mark.line + 1})", key_node.start_mark
+            )
+        seen[key] = key_node
+    return loader.construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:\d[\d_]*)?(?:\.\d*)?[eE][-+]?\d+$"),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(path: str | Path) -> Any:
+    """Parse a YAML file strictly; errors become ConfigError with line numbers."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError([f"cannot read: {exc.strerror}"], str(p)) from None
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - strict SafeLoader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError([f"{where}invalid YAML: {problem}"], str(p)) from None
+
+
+# --------------------------------------------------------------------------
+# Schema
+@dataclass(frozen=True)
+class Num:
+    """A number field (int or float in YAML; bools rejected)."""
+
+    default: Any = _REQUIRED
+    min: float | None = None
+    max: float | None = None
+    min_exclusive: bool = False
+    integer: bool = False
+    optional: bool = False  # None allowed
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Str:
+    default: Any = _REQUIRED
+    choices: tuple[str, ...] | None = None
+    optional: bool = False
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Bool:
+    default: Any = _REQUIRED
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Section:
+    fields: Mapping[str, Any]
+    doc: str = ""
+    optional: bool = True  # absent section → all defaults
+
+
+@dataclass(frozen=True)
+class Union:
+    """A section whose allowed keys depend on its discriminator key."""
+
+    key: str
+    variants: Mapping[str, Mapping[str, Any]]
+    default: str | None = None
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Custom:
+    """A field validated by a function: value, key path → (result, errors)."""
+
+    check: Callable[[Any, str], tuple[Any, list[str]]]
+    default: Any = _REQUIRED
+    doc: str = ""
+
+
+class Node:
+    """Validated config section: attribute access, read-only, printable."""
+
+    def __init__(self, values: dict[str, Any]) -> None:
+        object.__setattr__(self, "_values", values)
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self._values[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("config is read-only")
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._values
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._values)
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self._values.get(name, default)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (v.to_dict() if isinstance(v, Node) else v) for k, v in self._values.items()}
+
+    def __repr__(self) -> str:
+        return f"Node({self.to_dict()!r})"
+
+
+def _path(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _check_num(spec: Num, value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None and spec.optional:
+        return None, []
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None, [f"{path}: must be a number, got {value!r}"]
+    if spec.integer and not (isinstance(value, int) or float(value).is_integer()):
+        return None, [f"{path}: must be a whole number, got {value!r}"]
+    if not math.isfinite(float(value)):
+        return None, [f"{path}: must be finite, got {value!r}"]
+    v = int(value) if spec.integer else float(value)
+    lo, hi = spec.min, spec.max
+    if lo is not None and (v <= lo if spec.min_exclusive else v < lo):
+        rel = ">" if spec.min_exclusive else ">="
+        return None, [f"{path}: {value!r} out of range (must be {rel} {lo:g}{f' and <= {hi:g}' if hi is not None else ''})"]
+    if hi is not None and v > hi:
+        return None, [f"{path}: {value!r} out of range (must be <= {hi:g})"]
+    return v, []
+
+
+def _validate_fields(fields_: Mapping[str, Any], data: Any, path: str) -> tuple[Node, list[str]]:
+    errors: list[str] = []
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        return Node({}), [f"{path or 'config'}: must be a mapping, got {type(data).__name__}"]
+    for key in data:
+        if key not in fields_:
+            allowed = ", ".join(fields_)
+            errors.append(f"{_path(path, str(key))}: unknown key (allowed here: {allowed})")
+    out: dict[str, Any] = {}
+    for key, spec in fields_.items():
+        kpath = _path(path, key)
+        present = key in data
+        value = data.get(key)
+        if isinstance(spec, Section):
+            if not present and not spec.optional:
+                errors.append(f"{kpath}: missing required section")
+                continue
+            node, errs = _validate_fields(spec.fields, value if present else {}, kpath)
+            out[key] = node
+            errors += errs
+            continue
+        if isinstance(spec, Union):
+            node, errs = _validate_union(spec, value if present else None, kpath, present)
+            out[key] = node
+            errors += errs
+            continue
+        if not present:
+            if spec.default is _REQUIRED:
+                errors.append(f"{kpath}: missing required key")
+            elif isinstance(spec, Custom):  # defaults of custom fields are inputs too
+                out[key], errs = spec.check(spec.default, kpath)
+                errors += errs
+            else:
+                out[key] = spec.default
+            continue
+        if isinstance(spec, Num):
+            v, errs = _check_num(spec, value, kpath)
+        elif isinstance(spec, Str):
+            if value is None and spec.optional:
+                v, errs = None, []
+            elif not isinstance(value, str):
+                v, errs = None, [f"{kpath}: must be a string, got {value!r}"]
+            elif spec.choices is not None and value not in spec.choices:
+                v, errs = None, [f"{kpath}: {value!r} not allowed (allowed: {', '.join(spec.choices)})"]
+            else:
+                v, errs = value, []
+        elif isinstance(spec, Bool):
+            v, errs = (value, []) if isinstance(value, bool) else (None, [f"{kpath}: must be true or false, got {value!r}"])
+        elif isinstance(spec, Custom):
+            v, errs = spec.check(value, kpath)
+        else:  # pragma: no cover - schema bug
+            raise TypeError(f"bad schema entry at {kpath}")
+        out[key] = v
+        errors += errs
+    return Node(out), errors
+
+
+def _validate_union(spec: Union, data: Any, path: str, present: bool) -> tuple[Node, list[str]]:
+    if not present or data is None:
+        if spec.default is None:
+            return Node({}), [f"{path}: missing required section (with {spec.key}: one of {', '.join(spec.variants)})"]
+        data = {spec.key: spec.default}
+    if not isinstance(data, dict):
+        return Node({}), [f"{path}: must be a mapping, got {type(data).__name__}"]
+    kind = data.get(spec.key, spec.default)
+    if kind is None:
+        return Node({}), [f"{_path(path, spec.key)}: missing (one of {', '.join(spec.variants)})"]
+    if kind not in spec.variants:
+        return Node({}), [f"{_path(path, spec.key)}: {kind!r} not allowed (allowed: {', '.join(spec.variants)})"]
+    variant = {spec.key: Str(default=kind), **spec.variants[kind]}
+    return _validate_fields(variant, data, path)
+
+
+# --------------------------------------------------------------------------
+# Parameters: Table I, a file of spec names, or inline overrides
+_PARAM_FILE_META = ("version", "description", "source", "fit")
+
+
+def load_params_file(path: str | Path) -> LuGreParams:
+    """Read a parameters YAML (keys: the spec's names, plus metadata keys
+    version/description/source/fit which are ignored)."""
+    data = load_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError(["must be a mapping of parameter names to numbers"], str(path))
+    values = {k: v for k, v in data.items() if k not in _PARAM_FILE_META}
+    errors = []
+    known = set(LuGreParams.names())
+    for k in values:
+        if k not in known:
+            errors.append(f"{k}: unknown parameter (expected: {', '.join(LuGreParams.names())})")
+    if errors:
+        raise ConfigError(errors, str(path))
+    try:
+        return params_from_mapping(values)
+    except ValueError as exc:
+        raise ConfigError([str(exc)], str(path)) from None
+
+
+def _make_params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    def check(value: Any, path: str) -> tuple[Any, list[str]]:
+        if value is None or value == "table1":
+            return LuGreParams(), []
+        if isinstance(value, str):
+            value = {"file": value}
+        if not isinstance(value, dict):
+            return None, [f"{path}: must be 'table1', a parameters file path, or a mapping of parameter names"]
+        overrides = dict(value)
+        base = LuGreParams()
+        if "file" in overrides:
+            fpath = overrides.pop("file")
+            if not isinstance(fpath, str):
+                return None, [f"{path}.file: must be a path string, got {fpath!r}"]
+            full = (base_dir / fpath) if not Path(fpath).is_absolute() else Path(fpath)
+            try:
+                base = load_params_file(full)
+            except ConfigError as exc:
+                return None, [f"{path}.file ({full}): {e}" for e in exc.errors]
+        errors = []
+        good: dict[str, float] = {}
+        known = set(LuGreParams.names())
+        for k, v in overrides.items():
+            if k not in known:
+                errors.append(f"{path}.{k}: unknown parameter (expected: file, {', '.join(LuGreParams.names())})")
+            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+                errors.append(f"{path}.{k}: must be a finite number, got {v!r}")
+            else:
+                good[k] = float(v)
+        if errors:
+            return None, errors
+        return base.with_overrides(**good), []
+
+    return check
+
+
+def _file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    def check(value: Any, path: str) -> tuple[Any, list[str]]:
+        if not isinstance(value, str) or not value:
+            return None, [f"{path}: must be a file path, got {value!r}"]
+        p = Path(value)
+        full = p if p.is_absolute() else base_dir / p
+        if not full.is_file():
+            return None, [f"{path}: no such file: {full}"]
+        return str(full), []
+
+    return check
+
+
+def experiment_schema(base_dir: Path) -> dict[str, Any]:
+    """The experiment schema; relative file paths resolve against ``base_dir``."""
+    fcheck = Custom(_file_check(base_dir))
+    return {
+        "version": Num(integer=True, min=CONFIG_VERSION, max=CONFIG_VERSION, doc="config format version (1)"),
+        "name": Str(default=None, optional=True),
+        "description": Str(default=None, optional=True),
+        "duration_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=7 * 86400.0,
+                          doc="run length (s); none = until stopped (excitation files: their length)"),
+        "rate_hz": Num(default=1000.0, min=1.0, max=20000.0, doc="control rate (Hz)"),
+        "parameters": Custom(_make_params_check(base_dir), default="table1",
+                             doc="'table1', a parameters YAML path, or {file: ..., <name>: value} overrides"),
+        "excitation": Union("type", {
+            "sine": {"amplitude_m": Num(min=0.0, max=1.0), "frequency_hz": Num(min=0.0, min_exclusive=True, max=500.0),
+                     "phase_rad": Num(default=0.0)},
+            "chirp": {"amplitude_m": Num(min=0.0, max=1.0), "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0),
+                      "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0), "sweep_s": Num(min=0.0, min_exclusive=True)},
+            "file": {"path": fcheck},
+        }, doc="shaker motion on the simulated bench"),
+        "demand": Union("type", {
+            "viscous": {"c_des": Num(min=0.0, max=1e5, doc="desired damping (N·s/m), eq (13)")},
+            "constant": {"F_N": Num(min=-1e4, max=1e4)},
+            "file": {"path": fcheck},
+        }, doc="desired-force law"),
+        "inverse": Union("law", {
+            "paper": {},
+            "smooth": {"eps_N_per_A": Num(default=3.0, min=0.0, max=1e4),
+                       "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6)},
+            "constant": {"current_A": Num(min=0.0)},
+        }, doc="inverse law"),
+        "safety": Section({
+            "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
+        }),
+        "plant": Section({
+            "driver_tau_s": Num(default=0.0, min=0.0, max=1.0, doc="current-driver lag (s), 0 = ideal"),
+            "sensors": Section({
+                "seed": Num(default=0, integer=True, min=0),
+                "x_noise_m": Num(default=0.0, min=0.0), "v_noise_mps": Num(default=0.0, min=0.0),
+                "F_noise_N": Num(default=0.0, min=0.0),
+                "x_lsb_m": Num(default=0.0, min=0.0), "v_lsb_mps": Num(default=0.0, min=0.0),
+                "F_lsb_N": Num(default=0.0, min=0.0),
+            }),
+        }, doc="simulated bench (backend sim)"),
+        "backend": Union("type", {"sim": {}}, default="sim", doc="where samples come from and currents go"),
+    }
+
+
+def _cross_checks(cfg: Node) -> list[str]:
+    """Rules that span keys (each still names the key to fix)."""
+    errors: list[str] = []
+    I_max = cfg.safety.get("I_max") if "safety" in cfg else None
+    params = cfg.get("parameters")
+    if isinstance(params, LuGreParams) and isinstance(I_max, float):
+        errors += [f"parameters: {e}" for e in params.check_range(I_max)]
+    inv = cfg.get("inverse")
+    if inv is not None and inv.get("law") == "constant" and isinstance(I_max, float):
+        cur = inv.get("current_A")
+        if isinstance(cur, float) and cur > I_max:
+            errors.append(f"inverse.current_A: {cur:g} A exceeds safety.I_max = {I_max:g} A")
+    exc = cfg.get("excitation")
+    if exc is not None and exc.get("type") == "chirp":
+        f0, f1 = exc.get("f0_hz"), exc.get("f1_hz")
+        if isinstance(f0, float) and isinstance(f1, float) and f1 == f0:
+            errors.append("excitation.f1_hz: must differ from f0_hz (use type: sine for one frequency)")
+    return errors
+
+
+def validate_experiment(data: Any, base_dir: Path, source: str | None = None) -> Node:
+    """Validate a parsed experiment; raises ConfigError listing every problem."""
+    if not isinstance(data, dict):
+        raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
+    # the safety section is required: a daemon must never guess a current limit
+    schema = experiment_schema(base_dir)
+    schema["safety"] = Section(schema["safety"].fields, optional=False)
+    node, errors = _validate_fields(schema, data, "")
+    if not errors:
+        errors = _cross_checks(node)
+    if errors:
+        raise ConfigError(errors, source)
+    return node
+
+
+def load_experiment(path: str | Path) -> Node:
+    """Load and validate an experiment YAML file."""
+    p = Path(path)
+    return validate_experiment(load_yaml(p), p.parent, str(p))

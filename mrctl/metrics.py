@@ -1,0 +1,48 @@
+"""Tracking figures of a run, computed offline with numpy.
+
+The definitions are the ones the issues and docs quote:
+- force NRMSE: RMS(F − F_des) over t ≥ settle, divided by the peak-to-peak
+  of F_des over the same window;
+- largest current step: max |I_k − I_{k−1}| over the same window;
+- shares of ticks at 0 A and at I_max.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import numpy as np
+
+# A current within this of a limit counts as "at" it (float noise only).
+_AT_LIMIT_A = 1e-9
+
+
+def tracking_summary(
+    t: np.ndarray, F_des: np.ndarray, F: np.ndarray, I: np.ndarray, I_max: float, settle_s: float
+) -> dict[str, float]:
+    """Figures over t ≥ t[0] + settle_s (the whole run if that leaves < 2 ticks)."""
+    t = np.asarray(t, float)
+    m = t >= t[0] + settle_s
+    if m.sum() < 2:
+        m = np.ones_like(t, dtype=bool)
+    e = np.asarray(F, float)[m] - np.asarray(F_des, float)[m]
+    p2p = float(np.ptp(np.asarray(F_des, float)[m]))
+    Iw = np.asarray(I, float)[m]
+    return {
+        "window_start_s": float(t[m][0]),
+        "force_rmse_N": float(math.sqrt(np.mean(e * e))),
+        "force_nrmse": float(math.sqrt(np.mean(e * e)) / p2p) if p2p > 0 else math.nan,
+        "max_current_step_A": float(np.max(np.abs(np.diff(Iw)))) if Iw.size > 1 else 0.0,
+        "share_at_zero": float(np.mean(Iw <= _AT_LIMIT_A)),
+        "share_at_I_max": float(np.mean(Iw >= I_max - _AT_LIMIT_A)),
+    }
+
+
+def format_summary(s: Mapping[str, float], I_max: float) -> str:
+    return (
+        f"force NRMSE (t >= {s['window_start_s']:.3f} s): {100 * s['force_nrmse']:.3f} %"
+        f"  (RMSE {s['force_rmse_N']:.4f} N)\n"
+        f"largest current step between ticks: {s['max_current_step_A']:.4f} A\n"
+        f"ticks at 0 A: {100 * s['share_at_zero']:.1f} %   at I_max ({I_max:g} A): {100 * s['share_at_I_max']:.1f} %"
+    )

@@ -1,0 +1,53 @@
+"""The mrctl command line: simulate, report, check; clean errors, exit codes."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mrctl.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+FIG5 = str(ROOT / "config" / "experiments" / "fig5.yaml")
+
+
+def test_simulate_writes_csv_sidecar_and_summary(tmp_path, capsys):
+    out = tmp_path / "run.csv"
+    assert main(["simulate", FIG5, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "force NRMSE" in text and "largest current step" in text and "ticks at 0 A" in text
+    lines = [l for l in out.read_text().splitlines() if not l.startswith("#")]
+    header = lines[0].split(",")
+    assert header[:6] == ["t", "x", "v", "F_des", "F", "I"]
+    data = np.loadtxt(out, delimiter=",", skiprows=2)
+    assert data.shape[0] == 4001
+    assert np.allclose(np.diff(data[:, 0]), 0.001)
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["config"]["inverse"]["law"] == "smooth"
+    assert meta["summary"]["max_current_step_A"] <= 0.05 + 1e-12
+
+
+def test_report_draws_a_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "run.csv"
+    assert main(["simulate", FIG5, "--out", str(out), "--duration", "2"]) == 0
+    png = tmp_path / "fig.png"
+    assert main(["report", str(out), "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bad_config_exits_2_with_key_and_no_traceback(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(Path(FIG5).read_text().replace("law: smooth", "law: smoth"))
+    assert main(["simulate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "inverse.law" in err and "Traceback" not in err
+    assert main(["check", str(bad)]) == 2
+    assert main(["check", FIG5]) == 0
+
+
+def test_report_of_missing_file_is_a_clean_error(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    assert main(["report", str(tmp_path / "none.csv"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "none.csv" in capsys.readouterr().err
