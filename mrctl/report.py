@@ -1,0 +1,238 @@
+"""Post-run report: the Fig 5 plot of Palka & Maślanka 2013 from a run CSV.
+
+``mrctl simulate`` and ``mrctl run`` log one row per 1 ms tick; this module
+turns such a log into one PNG an engineer can judge at a glance: desired vs
+actual force and the coil current over time, plus the force–velocity and
+force–displacement loops, with a one-line tracking summary in the title.
+
+Nothing here runs on the control hot path. matplotlib is an optional
+dependency (``mrctl[plot]``) and is imported only inside :func:`make_report`
+so the daemon itself never needs it.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
+
+#: Columns a run CSV must have (SI units: s, m, m/s, N, N, A). Others are ignored.
+REQUIRED_COLUMNS: tuple[str, ...] = ("t", "x", "v", "F_des", "F", "I")
+
+#: Default settling time (s) excluded from the metrics: the start-up transient
+#: (filter fill, LuGre bristle state from z = 0) is not tracking performance.
+DEFAULT_SETTLE_S = 1.0
+
+
+class ReportError(Exception):
+    """A run file cannot be reported on; the message says why, for the CLI user."""
+
+
+# -- loading ----------------------------------------------------------------
+def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Read a run CSV into ``{column: float array}`` for the required columns.
+
+    Columns are found by header name because the loggers add columns (``seq``,
+    ``z``, ``fault`` …) in whatever order suits them; those extra columns are
+    not parsed at all, so they may hold anything. Lines starting with ``#``
+    are comments and may precede the header. Every error is a
+    :class:`ReportError` naming the file and, where it helps, the column or
+    the 1-based line number, so a bad log is fixed without a debugger.
+    """
+    p = Path(path)
+    try:
+        fh = p.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise ReportError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise ReportError(f"{p}: is a directory, not a run CSV") from None
+    except OSError as exc:
+        raise ReportError(f"{p}: cannot read: {exc.strerror or exc}") from None
+
+    with fh:
+        # Keep the physical line numbers: they are what the user's editor shows.
+        lines = ((n, line) for n, line in enumerate(fh, start=1)
+                 if line.strip() and not line.lstrip().startswith("#"))
+        try:
+            header_lineno, header_line = next(lines)
+        except StopIteration:
+            raise ReportError(f"{p}: empty file (no header line)") from None
+        except UnicodeDecodeError:
+            raise ReportError(f"{p}: not a text (UTF-8) CSV file") from None
+
+        header = [h.strip() for h in next(csv.reader([header_line]))]
+        missing = [c for c in REQUIRED_COLUMNS if c not in header]
+        if missing:
+            raise ReportError(
+                f"{p}: missing required column(s) {', '.join(missing)}; "
+                f"found: {', '.join(h for h in header if h) or '(none)'}"
+            )
+        dupes = [c for c in REQUIRED_COLUMNS if header.count(c) > 1]
+        if dupes:
+            raise ReportError(f"{p}: column(s) {', '.join(dupes)} appear more than once "
+                              f"in the header (line {header_lineno})")
+        index = {c: header.index(c) for c in REQUIRED_COLUMNS}
+
+        rows: list[list[float]] = []
+        try:
+            for lineno, line in lines:
+                fields = next(csv.reader([line]))
+                if len(fields) != len(header):
+                    raise ReportError(
+                        f"{p}: line {lineno} has {len(fields)} fields, "
+                        f"the header has {len(header)}"
+                    )
+                row = []
+                for c in REQUIRED_COLUMNS:
+                    text = fields[index[c]].strip()
+                    try:
+                        value = float(text)
+                    except ValueError:
+                        raise ReportError(
+                            f"{p}: line {lineno}: column {c} is not a number: {text!r}"
+                        ) from None
+                    if not math.isfinite(value):
+                        raise ReportError(
+                            f"{p}: line {lineno}: column {c} is not finite: {text!r}"
+                        )
+                    row.append(value)
+                rows.append(row)
+        except UnicodeDecodeError:
+            raise ReportError(f"{p}: not a text (UTF-8) CSV file") from None
+
+    if len(rows) < 2:
+        raise ReportError(f"{p}: {len(rows)} data row(s); a report needs at least 2")
+    data = np.asarray(rows, dtype=float)
+    return {c: data[:, k].copy() for k, c in enumerate(REQUIRED_COLUMNS)}
+
+
+# -- metrics ----------------------------------------------------------------
+def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S) -> dict[str, float]:
+    """Tracking metrics of a run, over ``t >= t[0] + settle``.
+
+    Kept as one pure function (arrays in, floats out) so it can move to
+    ``mrctl.metrics`` unchanged. The window drops the start-up transient; a
+    run shorter than ``settle`` (or leaving fewer than 2 rows) is taken whole
+    rather than refused, since a short bench run still deserves a number.
+
+    Returns:
+        nrmse: RMS(F - F_des) / peak-to-peak(F_des); ``nan`` if F_des is flat.
+        max_dI: largest |I[k+1] - I[k]| (A) between consecutive rows.
+        share_zero: fraction of rows with I == 0 (driver switched off).
+        share_max: fraction of rows at the run's maximum current (saturation).
+        t_start: first time (s) in the window; n: rows in the window.
+    """
+    t = np.asarray(cols["t"], dtype=float)
+    F_des = np.asarray(cols["F_des"], dtype=float)
+    F = np.asarray(cols["F"], dtype=float)
+    I = np.asarray(cols["I"], dtype=float)
+
+    window = t >= t[0] + settle
+    if np.count_nonzero(window) < 2:
+        window = np.ones_like(t, dtype=bool)
+
+    err = F[window] - F_des[window]
+    rms = float(np.sqrt(np.mean(err * err)))
+    span = float(np.ptp(F_des[window]))
+    nrmse = rms / span if span > 0.0 else math.nan
+
+    Iw = I[window]
+    return {
+        "nrmse": nrmse,
+        "max_dI": float(np.max(np.abs(np.diff(Iw)))),
+        "share_zero": float(np.mean(Iw == 0.0)),
+        "share_max": float(np.mean(Iw >= np.max(Iw) - 1e-9)),
+        "t_start": float(t[window][0]),
+        "n": float(np.count_nonzero(window)),
+    }
+
+
+def _window_text(m: dict[str, float], settle_used: bool) -> str:
+    return f"t ≥ {m['t_start']:.3g} s" if settle_used else "whole run"
+
+
+def _summary_line(m: dict[str, float], settle_used: bool) -> str:
+    window = _window_text(m, settle_used)
+    nrmse = "n/a (flat F_des)" if math.isnan(m["nrmse"]) else f"{100.0 * m['nrmse']:.2f} %"
+    return (f"force NRMSE {nrmse}   ·   max |ΔI| {m['max_dI']:.3f} A   ·   "
+            f"I = 0: {100.0 * m['share_zero']:.1f} %   ·   I = max: {100.0 * m['share_max']:.1f} %"
+            f"   ({window})")
+
+
+# -- figure -----------------------------------------------------------------
+def make_report(csv_path: str | os.PathLike[str], out_path: str | os.PathLike[str],
+                title: str | None = None, settle: float = DEFAULT_SETTLE_S) -> None:
+    """Write the Fig-5-style PNG of one run to ``out_path``.
+
+    Uses an explicit Agg canvas (no pyplot, no global backend state) so it
+    works on a headless controller and cannot disturb a caller's matplotlib
+    session. ``title`` replaces the default title (the run file's name).
+    """
+    cols = load_run(csv_path)
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
+
+    m = summarize(cols, settle)
+    t = cols["t"]
+    settle_used = m["t_start"] > t[0]
+    x_mm, v_mms = 1e3 * cols["x"], 1e3 * cols["v"]
+    F_des, F, I = cols["F_des"], cols["F"], cols["I"]
+
+    # Actual first and lighter, desired on top and dark-dashed: when tracking
+    # is good the two coincide, and the reference must stay visible.
+    act = dict(color="tab:red", lw=0.9, alpha=0.7, zorder=2, label="actual $F$")
+    des = dict(color="black", lw=1.3, ls=(0, (4, 2)), zorder=3, label="desired $F_{des}$")
+
+    fig = Figure(figsize=(12, 8.5), dpi=200, layout="constrained")
+    FigureCanvasAgg(fig)
+    (ax_f, ax_i), (ax_fv, ax_fx) = fig.subplots(2, 2)
+
+    ax_f.plot(t, F, **act)
+    ax_f.plot(t, F_des, **des)
+    ax_f.set(xlabel="time (s)", ylabel="force (N)", title="(a) damper force")
+
+    ax_i.plot(t, I, color="tab:green", lw=1.0)
+    ax_i.set(xlabel="time (s)", ylabel="coil current (A)", title="(b) coil current")
+
+    for ax in (ax_f, ax_i):
+        ax.set_xlim(t[0], t[-1])
+        if settle_used:  # grey out what the metrics ignore
+            ax.axvspan(t[0], m["t_start"], color="0.88", zorder=0, lw=0,
+                       label="settling (not in metrics)")
+
+    # Loops over the metrics window only: the start-up transient would draw
+    # a stray first cycle over the steady-state loop the paper's Fig 5 shows.
+    w = t >= m["t_start"]
+    loops = f" ({_window_text(m, settle_used)})"
+    ax_fv.plot(v_mms[w], F[w], **act)
+    ax_fv.plot(v_mms[w], F_des[w], **des)
+    ax_fv.set(xlabel="velocity (mm/s)", ylabel="force (N)", title="(c) force–velocity" + loops)
+
+    ax_fx.plot(x_mm[w], F[w], **act)
+    ax_fx.plot(x_mm[w], F_des[w], **des)
+    ax_fx.set(xlabel="displacement (mm)", ylabel="force (N)",
+              title="(d) force–displacement" + loops)
+
+    for ax in (ax_f, ax_i, ax_fv, ax_fx):
+        ax.grid(True, lw=0.5, alpha=0.5)
+
+    # One shared legend below the panels, so no legend ever covers data
+    # (above would collide with the two-line suptitle).
+    handles, labels = ax_f.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(handles),
+               frameon=False, fontsize="medium")
+    fig.suptitle(f"{title if title is not None else Path(csv_path).name}\n"
+                 f"{_summary_line(m, settle_used)}", fontsize="large")
+
+    try:
+        fig.savefig(out_path, format="png")
+    except OSError as exc:
+        raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
