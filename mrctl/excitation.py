@@ -13,6 +13,8 @@ import math
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
+
 
 class Excitation(Protocol):
     settle_s: float
@@ -25,9 +27,25 @@ class Excitation(Protocol):
         """Velocity (m/s) at time t (s)."""
         ...
 
+    def trajectory(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x (m) and v (m/s) at all times t at once, for offline runs."""
+        ...
+
+
+class _PointwiseTrajectory:
+    """Fallback ``trajectory`` built from the per-tick methods."""
+
+    def trajectory(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (np.array([self.position(tk) for tk in t.tolist()]),  # type: ignore[attr-defined]
+                np.array([self.velocity(tk) for tk in t.tolist()]))  # type: ignore[attr-defined]
+
 
 class Sine:
     """x = A·sin(2π f t + φ): the paper's excitation (A = 10 mm, f = 1 Hz)."""
+
+    def trajectory(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ph = self.w * t + self.phase
+        return self.A * np.sin(ph), self.A * self.w * np.cos(ph)
 
     def __init__(self, amplitude_m: float, frequency_hz: float, phase_rad: float = 0.0) -> None:
         self.A = float(amplitude_m)
@@ -42,7 +60,7 @@ class Sine:
         return self.A * self.w * math.cos(self.w * t + self.phase)
 
 
-class Chirp:
+class Chirp(_PointwiseTrajectory):
     """Linear chirp from f0 to f1 (Hz) over ``sweep_s``, constant amplitude.
 
     x = A·sin(φ(t)), φ = 2π(f0·t + (f1 − f0)·t²/(2·T)); held at f1 after T."""
@@ -136,7 +154,7 @@ class Interpolator:
         return self.y[i] + w * (self.y[i + 1] - self.y[i])
 
 
-class FromFile:
+class FromFile(_PointwiseTrajectory):
     """Displacement from a CSV with columns ``t,x`` (s, m) and optionally ``v``.
 
     Without a ``v`` column the velocity is the central difference of x."""

@@ -82,7 +82,10 @@ class _ModelBasedLaw:
         """Step 3 of eq (12): move z to now with the previous current."""
         if self._started:
             return self._adv(v, self.I_prev, self.dt)
-        # First tick: no interval has elapsed; anchor the velocity history.
+        return self._first(v)
+
+    def _first(self, v: float) -> float:
+        """First tick: no interval has elapsed; anchor the velocity history."""
         self._started = True
         self.model.v_prev = v
         return self.model.z
@@ -95,7 +98,7 @@ class PaperInverse(_ModelBasedLaw):
 
     def current(self, v: float, F_des: float) -> float:
         Ip = self.I_prev
-        z = self._advance(v)  # step 3 (z with I_{i-1})
+        z = self._adv(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
         zdot = self._zdot(v, Ip)
         s0B, s1B, s2B = self._B
@@ -158,7 +161,7 @@ class SmoothInverse(_ModelBasedLaw):
 
     def current(self, v: float, F_des: float) -> float:
         Ip = self.I_prev
-        z = self._advance(v)
+        z = self._adv(v, Ip, self.dt) if self._started else self._first(v)
         zdot = self._zdot(v, Ip)  # as in eq (12): ż with the previous current
         s0B, s1B, s2B = self._B
         s0A, s1A, s2A = self._A

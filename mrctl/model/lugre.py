@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 
-from mrctl.model.params import LuGreParams
+from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
 
 # Below this a·h, φ1 and e^{-x} use their series (avoids 0/0 at v = 0).
 _SMALL_AH = 1e-8
@@ -84,7 +84,13 @@ class LuGreModel:
     def _set_current(self, I: float) -> None:
         p = self.p
         self._I = I
-        self._Fc = p.Fc(I)
+        Bc = p.Bc
+        x = I / Bc if Bc != 0.0 else math.inf
+        if -_LANGEVIN_SERIES_BELOW < x < _LANGEVIN_SERIES_BELOW or Bc == 0.0:
+            self._Fc = p.Fc(I)  # series branch and degenerate fits: the reference code
+        else:
+            L = 1.0 / math.tanh(x) - 1.0 / x  # eq (6) inlined: this runs every tick
+            self._Fc = p.Ac * L * L + p.F0
         self._s0 = p.sigma0A * I + p.sigma0B
         self._s1 = p.sigma1A * I + p.sigma1B
         self._s2 = p.sigma2A * I + p.sigma2B

@@ -59,9 +59,12 @@ class DamperPlant:
         else:
             self._started = True
             self.model.v_prev = v
-        self.I_applied = self.driver.update(I_cmd)
-        self.F = self.model.force(v, self.I_applied)
-        return self.F
+        driver = self.driver
+        I = I_cmd if driver.alpha == 1.0 else driver.update(I_cmd)
+        driver.I = I
+        self.I_applied = I
+        F = self.F = self.model.force(v, I)
+        return F
 
 
 class Sensors:
