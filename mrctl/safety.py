@@ -2,9 +2,50 @@
 
 Whatever a law computes, the driver only ever sees a finite current in
 [0, I_max]; NaN and negative values become 0 A.
+
+:class:`SafetySupervisor` adds the per-tick rules on top of the clamp:
+
+* every DAQ sample is checked (missing, late, stale, non-finite, out of range,
+  device status); a bad sample is *held over* — the law keeps using the last
+  good sample — for at most ``hold_ticks`` consecutive bad ticks, because one
+  dropped or corrupt frame at 1 kHz should not stop an experiment;
+* the next bad tick after that enters FAULT: the output is 0 A immediately
+  (not slew-limited — safety wins over smoothness) until the supervisor
+  resumes by itself (``auto_resume``) or ``reset()`` is called;
+* commanded currents are clamped and, optionally, slew-limited relative to the
+  last current the supervisor let through.
+
+Pure logic: no I/O, logging or clock reads. The loop passes in everything
+(the sample, its age) so the rules are deterministic and unit-testable, and
+the per-tick methods touch only plain ints/floats (no containers, strings or
+exceptions on the good path).
+
+Per-tick protocol (once per tick, in this order)::
+
+    s = sup.check_sample(sample_or_None, age_s)   # None → skip the law
+    I = law(s) if s is not None else 0.0
+    driver.command(sup.limit(I))                   # 0.0 whenever s is None
 """
 
 from __future__ import annotations
+
+import enum
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Protocol, TypeVar
+
+__all__ = [
+    "clamp_current",
+    "SafetyConfig",
+    "SafetyState",
+    "Fault",
+    "SafetyCounters",
+    "SafetySupervisor",
+    "SampleLike",
+]
+
+_U32 = 1 << 32
+_U32_HALF = 1 << 31
 
 
 def clamp_current(I: float, I_max: float) -> float:
@@ -12,3 +53,433 @@ def clamp_current(I: float, I_max: float) -> float:
     if I > 0.0:
         return I if I < I_max else I_max
     return 0.0
+
+
+class SampleLike(Protocol):
+    """What the supervisor reads from a sample (``mrctl.io.base.Sample`` fits).
+
+    Duck-typed so tests and the simulator can pass any object with these
+    attributes. ``status`` is optional (read only when ``status_fault_mask``
+    is set).
+    """
+
+    @property
+    def seq(self) -> int: ...
+    @property
+    def x_m(self) -> float: ...
+    @property
+    def v_mps(self) -> float: ...
+    @property
+    def F_N(self) -> float: ...
+
+
+S = TypeVar("S", bound=SampleLike)
+
+
+class SafetyState(enum.IntEnum):
+    """Where the supervisor is; ``limit`` outputs 0 A in STARTING and FAULT."""
+
+    STARTING = 0  #: no good sample yet (after construction or ``reset``): 0 A
+    OK = 1  #: last sample was good; the law runs on it
+    HOLDING = 2  #: bad sample(s) absorbed; the law runs on the last good one
+    FAULT = 3  #: 0 A until auto-resume or ``reset()``
+
+
+class Fault(enum.IntFlag):
+    """Why the supervisor is (or went) into FAULT; bits OR over the bad run."""
+
+    NONE = 0
+    MISSING = 1 << 0  #: no sample this tick (read timeout / link error)
+    LATE = 1 << 1  #: sample age exceeded ``max_age_s``
+    STALE = 1 << 2  #: sequence number did not advance (mod 2**32)
+    NON_FINITE = 1 << 3  #: NaN/inf in x or v (or F: inf always, NaN if required)
+    OUT_OF_RANGE = 1 << 4  #: x, v or F outside the configured range
+    DEVICE_STATUS = 1 << 5  #: sample.status has a bit of ``status_fault_mask``
+    DRIVER = 1 << 6  #: the loop reported a current-driver failure (latched)
+
+    #: the bad-sample kinds (everything but DRIVER)
+    SAMPLE = MISSING | LATE | STALE | NON_FINITE | OUT_OF_RANGE | DEVICE_STATUS
+
+
+def _range(r: tuple[float, float] | None, name: str) -> tuple[float, float]:
+    if r is None:
+        return (-math.inf, math.inf)
+    lo, hi = (float(r[0]), float(r[1]))
+    if not lo <= hi:  # also rejects NaN
+        raise ValueError(f"{name}: need lo <= hi, got {r!r}")
+    return (lo, hi)
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyConfig:
+    """Supervisor settings; validated on construction (a bad limit is a bug)."""
+
+    I_max: float
+    #: max |dI/dt| of the command (A/s); None = no slew limit
+    max_slew_A_per_s: float | None = None
+    #: consecutive bad ticks absorbed by reusing the last good sample (0 = none)
+    hold_ticks: int = 5
+    #: a sample older than this (s) is late; None = no age check
+    max_age_s: float | None = None
+    x_range_m: tuple[float, float] | None = None
+    v_range_mps: tuple[float, float] | None = None
+    F_range_N: tuple[float, float] | None = None
+    #: True: F_N must be finite (a law that needs the load cell); False: NaN allowed
+    require_force: bool = False
+    #: sample.status bits that make a sample bad (e.g. ``int(Status.FAULTS)``); 0 = ignore
+    status_fault_mask: int = 0
+    #: leave FAULT after ``resume_good_ticks`` consecutive good samples; False = latched
+    auto_resume: bool = False
+    resume_good_ticks: int = 10
+    #: tick period (s); the slew step is max_slew_A_per_s * dt_s per call
+    dt_s: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.I_max) and self.I_max > 0.0):
+            raise ValueError(f"I_max: must be finite and > 0, got {self.I_max!r}")
+        if self.max_slew_A_per_s is not None and not (
+            math.isfinite(self.max_slew_A_per_s) and self.max_slew_A_per_s > 0.0
+        ):
+            raise ValueError(f"max_slew_A_per_s: must be finite and > 0 or None, got {self.max_slew_A_per_s!r}")
+        if isinstance(self.hold_ticks, bool) or not isinstance(self.hold_ticks, int) or self.hold_ticks < 0:
+            raise ValueError(f"hold_ticks: must be an int >= 0, got {self.hold_ticks!r}")
+        if self.max_age_s is not None and not self.max_age_s > 0.0:
+            raise ValueError(f"max_age_s: must be > 0 or None, got {self.max_age_s!r}")
+        _range(self.x_range_m, "x_range_m")
+        _range(self.v_range_mps, "v_range_mps")
+        _range(self.F_range_N, "F_range_N")
+        if (
+            isinstance(self.resume_good_ticks, bool)
+            or not isinstance(self.resume_good_ticks, int)
+            or self.resume_good_ticks < 1
+        ):
+            raise ValueError(f"resume_good_ticks: must be an int >= 1, got {self.resume_good_ticks!r}")
+        if not (math.isfinite(self.dt_s) and self.dt_s > 0.0):
+            raise ValueError(f"dt_s: must be finite and > 0, got {self.dt_s!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyCounters:
+    """Run totals for the run log and status (a snapshot; cheap to pass around)."""
+
+    good: int  #: good samples
+    missing: int  #: bad samples by kind (each bad sample counts once, first kind found)
+    late: int
+    stale: int
+    non_finite: int
+    out_of_range: int
+    device_status: int
+    holds_used: int  #: bad ticks absorbed by the hold (no fault)
+    longest_bad_run: int  #: most consecutive bad samples seen
+    faults_entered: int  #: transitions into FAULT (samples or driver)
+    ticks_in_fault: int  #: check_sample calls that returned None because of FAULT
+    resumes: int  #: automatic recoveries (auto_resume)
+    resets: int  #: reset() calls
+    cmd_non_finite: int  #: NaN/inf currents handed to limit() (clamped)
+
+    @property
+    def bad(self) -> int:
+        return (self.missing + self.late + self.stale + self.non_finite
+                + self.out_of_range + self.device_status)
+
+    def as_dict(self) -> dict[str, int]:
+        d = asdict(self)
+        d["bad"] = self.bad
+        return d
+
+
+# bit → label for the reason string (built only on a state change)
+_KIND_LABELS = (
+    (Fault.MISSING, "missing"),
+    (Fault.LATE, "late"),
+    (Fault.STALE, "stale"),
+    (Fault.NON_FINITE, "non-finite"),
+    (Fault.OUT_OF_RANGE, "out of range"),
+    (Fault.DEVICE_STATUS, "device status"),
+)
+
+_MISSING = int(Fault.MISSING)
+_LATE = int(Fault.LATE)
+_STALE = int(Fault.STALE)
+_NON_FINITE = int(Fault.NON_FINITE)
+_OUT_OF_RANGE = int(Fault.OUT_OF_RANGE)
+_DEVICE_STATUS = int(Fault.DEVICE_STATUS)
+_DRIVER = int(Fault.DRIVER)
+
+_STARTING = SafetyState.STARTING
+_OK = SafetyState.OK
+_HOLDING = SafetyState.HOLDING
+_FAULT = SafetyState.FAULT
+
+_isfinite = math.isfinite
+
+
+class SafetySupervisor:
+    """Per-tick safety rules: sample checks with hold-over, FAULT → 0 A, clamp + slew.
+
+    Call :meth:`check_sample` then :meth:`limit` once per tick (see the module
+    docstring). Status (``state``, ``fault``, ``reason``, ``counters()``) may be
+    read between ticks from the loop thread; it is not locked.
+    """
+
+    __slots__ = (
+        "config",
+        # precomputed config (locals on the hot path)
+        "_I_max", "_step", "_hold", "_max_age", "_xlo", "_xhi", "_vlo", "_vhi",
+        "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n",
+        # state
+        "_state", "_last_good", "_last_seq", "_bad_run", "_bad_bits", "_good_run",
+        "_fault", "_latched", "_reason", "_out_ok", "_last_out",
+        # counters
+        "_n_good", "_n_missing", "_n_late", "_n_stale", "_n_non_finite",
+        "_n_out_of_range", "_n_status", "_n_holds", "_longest_bad",
+        "_n_faults", "_n_fault_ticks", "_n_resumes", "_n_resets", "_n_cmd_nonfinite",
+    )
+
+    def __init__(self, config: SafetyConfig) -> None:
+        self.config = config
+        self._I_max = float(config.I_max)
+        slew = config.max_slew_A_per_s
+        # inf step == no slew limit, so limit() has a single code path
+        self._step = math.inf if slew is None else float(slew) * float(config.dt_s)
+        self._hold = config.hold_ticks
+        self._max_age = math.inf if config.max_age_s is None else float(config.max_age_s)
+        self._xlo, self._xhi = _range(config.x_range_m, "x_range_m")
+        self._vlo, self._vhi = _range(config.v_range_mps, "v_range_mps")
+        self._Flo, self._Fhi = _range(config.F_range_N, "F_range_N")
+        self._req_F = bool(config.require_force)
+        self._status_mask = int(config.status_fault_mask)
+        self._auto = bool(config.auto_resume)
+        self._resume_n = config.resume_good_ticks
+        self._n_good = self._n_missing = self._n_late = self._n_stale = 0
+        self._n_non_finite = self._n_out_of_range = self._n_status = 0
+        self._n_holds = self._longest_bad = self._n_faults = self._n_fault_ticks = 0
+        self._n_resumes = self._n_resets = self._n_cmd_nonfinite = 0
+        self._arm()
+
+    def _arm(self) -> None:
+        """Back to STARTING: no fault, no reference sample, 0 A output."""
+        self._state = _STARTING
+        self._last_good = None
+        # forget the sequence reference too: a reconnected DAQ may restart its
+        # counter, which would otherwise look stale (backwards) forever
+        self._last_seq: int | None = None
+        self._bad_run = 0
+        self._bad_bits = 0
+        self._good_run = 0
+        self._fault = 0
+        self._latched = False
+        self._reason = ""
+        self._out_ok = False
+        self._last_out = 0.0
+
+    # ------------------------------------------------------------------ per tick
+
+    def _classify(self, sample: Any, age_s: float) -> int:
+        """0 if good, else the first bad kind found (one kind per sample)."""
+        if sample is None:
+            return _MISSING
+        if not age_s <= self._max_age:  # NaN age counts as late
+            return _LATE
+        last = self._last_seq
+        if last is not None:
+            d = (sample.seq - last) % _U32
+            if d == 0 or d >= _U32_HALF:
+                return _STALE
+        x = sample.x_m
+        v = sample.v_mps
+        F = sample.F_N
+        if not (_isfinite(x) and _isfinite(v)):
+            return _NON_FINITE
+        F_ok = _isfinite(F)
+        if not F_ok and (self._req_F or F == F):  # inf always bad; NaN only if required
+            return _NON_FINITE
+        if not (self._xlo <= x <= self._xhi and self._vlo <= v <= self._vhi):
+            return _OUT_OF_RANGE
+        if F_ok and not self._Flo <= F <= self._Fhi:
+            return _OUT_OF_RANGE
+        if self._status_mask and getattr(sample, "status", 0) & self._status_mask:
+            return _DEVICE_STATUS
+        return 0
+
+    def check_sample(self, sample: S | None, age_s: float = 0.0) -> S | None:
+        """Check this tick's sample; return what the law should use, or None.
+
+        ``sample`` is None when the read timed out or the link failed this
+        tick; ``age_s`` is the sample's measured age (ignored unless
+        ``max_age_s`` is set). Returns the sample itself if good, the last
+        good sample during a hold, or None (FAULT, or no good sample yet):
+        the loop then skips the law, and :meth:`limit` outputs 0 A.
+        """
+        kind = self._classify(sample, age_s)
+        if kind == 0:
+            self._n_good += 1
+            self._last_good = sample
+            self._last_seq = sample.seq  # type: ignore[union-attr]
+            self._bad_run = 0
+            self._bad_bits = 0
+            if self._state is _FAULT:
+                self._good_run += 1
+                if self._latched or self._good_run < self._resume_n:
+                    self._n_fault_ticks += 1
+                    self._out_ok = False
+                    return None
+                self._resume()
+            self._state = _OK
+            self._out_ok = True
+            return sample
+
+        # bad sample: count it by kind
+        if kind == _MISSING:
+            self._n_missing += 1
+        elif kind == _LATE:
+            self._n_late += 1
+        elif kind == _STALE:
+            self._n_stale += 1
+        elif kind == _NON_FINITE:
+            self._n_non_finite += 1
+        elif kind == _OUT_OF_RANGE:
+            self._n_out_of_range += 1
+        else:
+            self._n_status += 1
+        self._bad_run += 1
+        self._bad_bits |= kind
+        if self._bad_run > self._longest_bad:
+            self._longest_bad = self._bad_run
+        self._good_run = 0
+        self._out_ok = False
+
+        if self._state is _FAULT:
+            self._n_fault_ticks += 1
+            return None
+        if self._bad_run > self._hold:
+            self._enter_fault(self._bad_bits, False)
+            self._n_fault_ticks += 1
+            return None
+        self._n_holds += 1
+        last = self._last_good
+        if last is None:  # nothing to hold yet (STARTING): 0 A, not yet a fault
+            return None
+        self._state = _HOLDING
+        self._out_ok = True
+        return last
+
+    def limit(self, I_cmd: float) -> float:
+        """The current to command: clamped to [0, I_max] and slew-limited.
+
+        Returns 0.0 (immediately, not slewed) whenever the last
+        :meth:`check_sample` returned None. The slew step is relative to the
+        previous return value, i.e. the last current actually commanded.
+        """
+        if not self._out_ok:
+            self._last_out = 0.0
+            return 0.0
+        if not _isfinite(I_cmd):
+            self._n_cmd_nonfinite += 1
+        I = float(clamp_current(I_cmd, self._I_max))
+        last = self._last_out
+        step = self._step
+        if I > last + step:
+            I = last + step
+        elif I < last - step:
+            I = last - step
+        # last ± step can round 1 ulp outside the range near the limits
+        if I > self._I_max:
+            I = self._I_max
+        elif I < 0.0:
+            I = 0.0
+        self._last_out = I
+        return I
+
+    # ----------------------------------------------------------- state changes
+
+    def _enter_fault(self, bits: int, latch: bool) -> None:
+        if self._state is not _FAULT:
+            self._n_faults += 1
+        self._state = _FAULT
+        self._fault |= bits
+        self._latched = self._latched or latch or not self._auto
+        self._good_run = 0
+        self._out_ok = False
+        self._last_out = 0.0
+        self._reason = self._describe()
+
+    def _resume(self) -> None:
+        self._n_resumes += 1
+        self._fault = 0
+        self._latched = False
+        self._good_run = 0
+        self._reason = ""
+
+    def _describe(self) -> str:
+        parts = [label for bit, label in _KIND_LABELS if self._fault & bit]
+        msgs = []
+        if self._fault & _DRIVER:
+            msgs.append("current driver failed")
+        if parts:
+            msgs.append(
+                f"{'/'.join(parts)} sample(s) for {self._bad_run} consecutive tick(s)"
+                f" (hold_ticks={self._hold})"
+            )
+        how = "latched until reset()" if self._latched else (
+            f"auto-resume after {self._resume_n} good samples")
+        return f"{'; '.join(msgs)}; 0 A, {how}"
+
+    def driver_failed(self) -> None:
+        """The loop could not command the current driver: FAULT, latched.
+
+        Latched even with ``auto_resume``: good samples say nothing about the
+        actuator, so only ``reset()`` (after the link is back) clears it.
+        """
+        self._enter_fault(_DRIVER, True)
+
+    def reset(self) -> None:
+        """Clear any fault and re-arm (back to STARTING; counters are kept).
+
+        Output stays 0 A until the next good sample; the sequence-number
+        reference is forgotten so a restarted DAQ counter is accepted.
+        """
+        self._n_resets += 1
+        self._arm()
+
+    # ------------------------------------------------------------------ status
+
+    @property
+    def state(self) -> SafetyState:
+        return self._state
+
+    @property
+    def in_fault(self) -> bool:
+        return self._state is _FAULT
+
+    @property
+    def fault(self) -> Fault:
+        """Fault bits of the current FAULT (NONE when not in FAULT)."""
+        return Fault(self._fault)
+
+    @property
+    def reason(self) -> str:
+        """Human-readable cause of the current FAULT ("" when not in FAULT)."""
+        return self._reason
+
+    @property
+    def last_output_A(self) -> float:
+        return self._last_out
+
+    def counters(self) -> SafetyCounters:
+        return SafetyCounters(
+            good=self._n_good,
+            missing=self._n_missing,
+            late=self._n_late,
+            stale=self._n_stale,
+            non_finite=self._n_non_finite,
+            out_of_range=self._n_out_of_range,
+            device_status=self._n_status,
+            holds_used=self._n_holds,
+            longest_bad_run=self._longest_bad,
+            faults_entered=self._n_faults,
+            ticks_in_fault=self._n_fault_ticks,
+            resumes=self._n_resumes,
+            resets=self._n_resets,
+            cmd_non_finite=self._n_cmd_nonfinite,
+        )
