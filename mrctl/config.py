@@ -337,6 +337,17 @@ def _file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
     return check
 
 
+def _current_list(value: Any, path: str) -> tuple[Any, list[str]]:
+    if not isinstance(value, list) or not value:
+        return None, [f"{path}: must be a non-empty list of currents (A)"]
+    out, errors = [], []
+    for i, v in enumerate(value):
+        num, errs = _check_num(Num(min=0.0), v, f"{path}[{i}]")
+        out.append(num)
+        errors += errs
+    return out, errors
+
+
 def experiment_schema(base_dir: Path) -> dict[str, Any]:
     """The experiment schema; relative file paths resolve against ``base_dir``."""
     fcheck = Custom(_file_check(base_dir))
@@ -366,6 +377,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "smooth": {"eps_N_per_A": Num(default=3.0, min=0.0, max=1e4),
                        "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6)},
             "constant": {"current_A": Num(min=0.0)},
+            "schedule": {"currents_A": Custom(_current_list), "step_s": Num(min=0.0, min_exclusive=True)},
         }, doc="inverse law"),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
@@ -396,6 +408,10 @@ def _cross_checks(cfg: Node) -> list[str]:
         cur = inv.get("current_A")
         if isinstance(cur, float) and cur > I_max:
             errors.append(f"inverse.current_A: {cur:g} A exceeds safety.I_max = {I_max:g} A")
+    if inv is not None and inv.get("law") == "schedule" and isinstance(I_max, float):
+        for i, cur in enumerate(inv.get("currents_A") or []):
+            if isinstance(cur, float) and cur > I_max:
+                errors.append(f"inverse.currents_A[{i}]: {cur:g} A exceeds safety.I_max = {I_max:g} A")
     exc = cfg.get("excitation")
     if exc is not None and exc.get("type") == "chirp":
         f0, f1 = exc.get("f0_hz"), exc.get("f1_hz")

@@ -12,7 +12,7 @@ from typing import Any, Callable
 from mrctl import demand as demand_mod
 from mrctl import excitation as excitation_mod
 from mrctl.config import ConfigError, Node
-from mrctl.model.inverse import ConstantCurrent, InverseLaw, PaperInverse, SmoothInverse
+from mrctl.model.inverse import ConstantCurrent, InverseLaw, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
 
@@ -32,6 +32,7 @@ LAWS: dict[str, Callable[[Node, LuGreParams, float, float], InverseLaw]] = {
     "paper": lambda c, p, I_max, dt: PaperInverse(p, I_max, dt),
     "smooth": lambda c, p, I_max, dt: SmoothInverse(p, I_max, dt, c.eps_N_per_A, c.max_slew_A_per_s),
     "constant": lambda c, p, I_max, dt: ConstantCurrent(c.current_A, I_max),
+    "schedule": lambda c, p, I_max, dt: ScheduleCurrent(c.currents_A, c.step_s, I_max, dt),
 }
 
 

@@ -55,7 +55,7 @@ def test_good_config_fills_defaults():
         ("safety.I_max", True, "safety.I_max: must be a number"),
         ("safety.I_max", float("nan"), "safety.I_max: must be finite"),
         ("demand.c_des", -5, "demand.c_des: -5 out of range"),
-        ("inverse.law", "papr", "inverse.law: 'papr' not allowed (allowed: paper, smooth, constant)"),
+        ("inverse.law", "papr", "inverse.law: 'papr' not allowed (allowed: paper, smooth, constant, schedule)"),
         ("excitation.type", "square", "excitation.type: 'square' not allowed"),
         ("rate_hz", 0, "rate_hz: 0 out of range"),
         ("version", 2, "version: 2 out of range"),
@@ -66,6 +66,9 @@ def test_good_config_fills_defaults():
         ("demand", {"type": "file", "path": "nope.csv"}, "demand.path: no such file"),
         ("inverse", {"law": "constant", "current_A": 0.9}, "inverse.current_A: 0.9 A exceeds safety.I_max"),
         ("inverse", {"law": "smooth", "max_slew_A_per_s": 0}, "inverse.max_slew_A_per_s: 0 out of range"),
+        ("inverse", {"law": "schedule", "currents_A": [0.1, "x"], "step_s": 1}, "inverse.currents_A[1]: must be a number"),
+        ("inverse", {"law": "schedule", "currents_A": [0.1, 0.7], "step_s": 1}, "inverse.currents_A[1]: 0.7 A exceeds"),
+        ("inverse", {"law": "schedule", "currents_A": [], "step_s": 1}, "inverse.currents_A: must be a non-empty list"),
     ],
 )
 def test_each_error_names_its_key(path, value, expect):

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from mrctl.model.inverse import ConstantCurrent, PaperInverse, SmoothInverse
+from mrctl.model.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import TABLE_I
 from mrctl.model.plant import DamperPlant
@@ -131,3 +131,12 @@ def test_constant_law_and_argument_checks():
         PaperInverse(TABLE_I, 0.0, DT)
     with pytest.raises(ValueError):
         SmoothInverse(TABLE_I, 0.6, DT, max_slew_A_per_s=0.0)
+
+
+def test_schedule_law_steps_through_currents_then_zero():
+    law = ScheduleCurrent([0.1, 0.3], step_s=0.002, I_max=0.6, dt=DT)
+    assert [law.current(0.0, 0.0) for _ in range(6)] == [0.1, 0.1, 0.3, 0.3, 0.0, 0.0]
+    law.reset()
+    assert law.current(0.0, 0.0) == 0.1
+    with pytest.raises(ValueError):
+        ScheduleCurrent([0.1, 0.9], 1.0, 0.6, DT)

@@ -18,7 +18,10 @@ Laws, by the name used in YAML (``inverse.law``):
     where ∂F/∂I vanishes, inside the driver's slew bound. No spikes; the
     design study and measured figures are in ``docs/inverse-laws.md``.
 ``constant``
-    A fixed current, open loop (identification runs).
+    A fixed current, open loop.
+``schedule``
+    A staircase of constant currents, open loop: the identification runs of
+    the paper's Section III (one current per segment), 0 A after the last.
 """
 
 from __future__ import annotations
@@ -200,3 +203,33 @@ class ConstantCurrent:
 
     def current(self, v: float, F_des: float) -> float:
         return self.I
+
+
+class ScheduleCurrent:
+    """Open-loop staircase: ``currents_A[i]`` for ticks in [i·step, (i+1)·step), then 0 A.
+
+    Counts its own ticks (one call per tick), so it needs no clock."""
+
+    name = "schedule"
+
+    def __init__(self, currents_A: list[float], step_s: float, I_max: float, dt: float) -> None:
+        if not currents_A:
+            raise ValueError("currents_A must not be empty")
+        for I in currents_A:
+            if not 0.0 <= I <= I_max:
+                raise ValueError(f"scheduled current {I} A outside [0, {I_max}] A")
+        self.currents_A = [float(I) for I in currents_A]
+        self.ticks_per_step = max(1, int(round(step_s / dt)))
+        self.I_max = float(I_max)
+        self.k = 0
+
+    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None:
+        self.k = 0
+
+    def applied(self, I: float) -> None:
+        pass
+
+    def current(self, v: float, F_des: float) -> float:
+        i = self.k // self.ticks_per_step
+        self.k += 1
+        return self.currents_A[i] if i < len(self.currents_A) else 0.0
