@@ -78,6 +78,37 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from mrctl.service import RunOptions, run
+
+    return run(RunOptions(args.config, out=args.out, duration_s=args.duration,
+                          status_socket=args.status_socket, live=not args.quiet))
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from mrctl.service import default_status_socket, query_status
+
+    path = args.socket or default_status_socket()
+    try:
+        st = query_status(path)
+    except OSError as exc:
+        _err(str(exc))
+        return EXIT_FAILURE
+    if args.json:
+        print(json.dumps(st, indent=2))
+        return EXIT_OK
+    t = st.get("timing") or {}
+    print(f"{st.get('experiment')} (pid {st.get('pid')}): up {st.get('uptime_s', 0):.1f} s, "
+          f"{st.get('rate_hz')} Hz, {st.get('ticks')} ticks, law {st.get('law')}")
+    print(f"current {st.get('current_A', 0.0):.4f} A, safety {st.get('safety_state')} "
+          f"(fault {st.get('fault')}), link errors {st.get('link_errors')}")
+    if t:
+        print(f"lateness p50/p99/max {t.get('lateness_p50_us')}/{t.get('lateness_p99_us')}/"
+              f"{t.get('lateness_max_us')} us, compute p99 {t.get('compute_p99_us')} us, "
+              f"overruns {t.get('overruns')}")
+    return EXIT_OK
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     _load(args.config)
     print(f"{args.config}: OK")
@@ -100,6 +131,19 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", required=True, help="PNG to write")
     rp.add_argument("--title", help="figure title (default: the run file name)")
     rp.set_defaults(func=cmd_report)
+
+    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
+    rn.add_argument("config", help="experiment YAML")
+    rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
+    rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
+    rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")
+    rn.add_argument("--quiet", action="store_true", help="no live progress line")
+    rn.set_defaults(func=cmd_run)
+
+    st = sub.add_parser("status", help="live state of a running mrctl")
+    st.add_argument("--socket", help="status socket path (default as for run)")
+    st.add_argument("--json", action="store_true", help="print the raw JSON")
+    st.set_defaults(func=cmd_status)
 
     cp = sub.add_parser("check", help="validate an experiment config; lists every error")
     cp.add_argument("config")

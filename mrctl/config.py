@@ -348,6 +348,54 @@ def _current_list(value: Any, path: str) -> tuple[Any, list[str]]:
     return out, errors
 
 
+def _range_check(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None:
+        return None, []
+    if not isinstance(value, list) or len(value) != 2:
+        return None, [f"{path}: must be [lo, hi] or null, got {value!r}"]
+    lo, e1 = _check_num(Num(), value[0], f"{path}[0]")
+    hi, e2 = _check_num(Num(), value[1], f"{path}[1]")
+    if e1 or e2:
+        return None, e1 + e2
+    if not lo <= hi:
+        return None, [f"{path}: need lo <= hi, got {value!r}"]
+    return (lo, hi), []
+
+
+def _cpu_list(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None:
+        return None, []
+    if not isinstance(value, list) or not value:
+        return None, [f"{path}: must be a non-empty list of CPU numbers or null"]
+    cpus, errors = [], []
+    for i, c in enumerate(value):
+        n, errs = _check_num(Num(integer=True, min=0, max=4095), c, f"{path}[{i}]")
+        cpus.append(n)
+        errors += errs
+    return (frozenset(cpus) if not errors else None), errors
+
+
+def _optional_bool(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None or isinstance(value, bool):
+        return value, []
+    return None, [f"{path}: must be true, false or null (probe), got {value!r}"]
+
+
+def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
+    """The Modbus register map (docs/registers.md); null = the default map."""
+    try:
+        from mrctl.io.registers import RegisterMap, default_register_map
+    except ImportError:  # pragma: no cover - the module ships with mrctl
+        return None, [f"{path}: Modbus register maps are not available in this build"]
+    if value is None:
+        return default_register_map(), []
+    try:
+        return RegisterMap.from_mapping(value), []
+    except ValueError as exc:
+        msg = str(exc)
+        return None, [msg if msg.startswith("registers") else f"{path}: {msg}"]
+
+
 def experiment_schema(base_dir: Path) -> dict[str, Any]:
     """The experiment schema; relative file paths resolve against ``base_dir``."""
     fcheck = Custom(_file_check(base_dir))
@@ -381,6 +429,40 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
         }, doc="inverse law"),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
+            "max_slew_A_per_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+                                    doc="slew limit of the command (A/s); none = off"),
+            "hold_ticks": Num(default=5, integer=True, min=0, max=1000,
+                              doc="bad samples bridged with the last good one before 0 A"),
+            "max_age_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+                             doc="a sample whose read took longer is late; none = off"),
+            "x_range_m": Custom(_range_check, default=None),
+            "v_range_mps": Custom(_range_check, default=None),
+            "F_range_N": Custom(_range_check, default=None),
+            "require_force": Bool(default=False, doc="a non-finite load-cell force is a bad sample"),
+            "fault_on_device_status": Bool(default=True, doc="device fault bits make a sample bad"),
+            "auto_resume": Bool(default=False, doc="leave the fault by itself after good samples"),
+            "resume_good_ticks": Num(default=10, integer=True, min=1, max=100000),
+            "driver_retries": Num(default=2, integer=True, min=0, max=10,
+                                  doc="extra write attempts within a tick before the driver is lost"),
+        }),
+        "loop": Section({
+            "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin")),
+            "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01),
+        }, doc="pacing of the real-time loop (mrctl run)"),
+        "rt": Section({
+            "fifo_priority": Num(default=None, optional=True, integer=True, min=1, max=99),
+            "lock_memory": Bool(default=False),
+            "cpus": Custom(_cpu_list, default=None),
+            "timer_slack_ns": Num(default=None, optional=True, integer=True, min=1, max=10**9),
+            "gc_freeze": Bool(default=True),
+            "gc_disable": Bool(default=True),
+        }, doc="real-time settings, each applied or reported refused"),
+        "record": Section({
+            "flush_interval_s": Num(default=1.0, min=0.05, max=10.0),
+            "buffer_ticks": Num(default=16384, integer=True, min=256, max=10**7),
+        }, doc="run log"),
+        "service": Section({
+            "status_socket": Str(default=None, optional=True, doc="Unix socket for mrctl status"),
         }),
         "plant": Section({
             "driver_tau_s": Num(default=0.0, min=0.0, max=1.0, doc="current-driver lag (s), 0 = ideal"),
@@ -392,7 +474,34 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                 "F_lsb_N": Num(default=0.0, min=0.0),
             }),
         }, doc="simulated bench (backend sim)"),
-        "backend": Union("type", {"sim": {}}, default="sim", doc="where samples come from and currents go"),
+        "backend": Union("type", {
+            "sim": {},
+            "serial": {
+                "url": Str(doc="device path, socket://host:port or loop://"),
+                "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000),
+                "timeout_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0),
+                "watchdog_ms": Num(default=50, integer=True, min=1, max=255),
+            },
+            "modbus-tcp": {
+                "host": Str(default="127.0.0.1"), "port": Num(default=502, integer=True, min=1, max=65535),
+                "unit_id": Num(default=1, integer=True, min=0, max=247),
+                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0),
+                "use_fc23": Custom(_optional_bool, default=None),
+                "registers": Custom(_register_map, default=None),
+            },
+            "modbus-rtu": {
+                "url": Str(), "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000),
+                "unit_id": Num(default=1, integer=True, min=1, max=247),
+                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0),
+                "use_fc23": Custom(_optional_bool, default=None),
+                "registers": Custom(_register_map, default=None),
+            },
+        }, default="sim", doc="where samples come from and currents go"),
+        "link": Section({
+            "on_infeasible": Str(default="refuse", choices=("refuse", "reduce_rate"),
+                                 doc="if the link cannot sustain rate_hz: refuse, or run slower"),
+            "probe_exchanges": Num(default=50, integer=True, min=0, max=10000),
+        }, doc="start-up feasibility check of real links"),
     }
 
 

@@ -1,0 +1,167 @@
+"""One control tick: read → demand law → inverse law → safety → write → record.
+
+The loop (:mod:`mrctl.loop`) knows timing, not physics; the backends know
+bytes, not physics; this module joins them and nothing else. The tick is
+called at 1 kHz, so it allocates nothing it can avoid, does no I/O but the
+backend's, and hands its row to the recorder's bounded buffer.
+
+Two backend shapes:
+
+- *split* (``backend.split`` is true: the in-process sim): read the sample,
+  compute, write the current, all within the tick. Zero latency, the same
+  tick order as ``mrctl simulate``.
+- *exchange* (serial, Modbus): one transaction per tick writes the current
+  computed on the previous tick and returns the latest sample; the current
+  for it goes out on the next tick (one tick of latency, inherent to a single
+  request/reply per tick).
+
+A driver write that fails is retried within the tick budget; if it still
+fails, the supervisor latches a DRIVER fault and the run ends: the service
+then commands 0 A where it still can and exits non-zero.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable
+
+from mrctl.io.base import LinkError
+from mrctl.safety import SafetySupervisor
+
+#: Columns of the run log: the core six of ``mrctl simulate`` first.
+RUN_COLUMNS = (
+    "t", "x", "v", "F_des", "F", "I",
+    "k", "seq", "t_dev", "I_applied", "F_true", "late_us", "compute_us", "fault", "link_errors",
+)
+
+NAN = math.nan
+
+
+class DriverLost(Exception):
+    """The current driver could not be commanded within the tick budget."""
+
+
+class Controller:
+    """Holds the per-run objects and implements ``tick(k, now_ns)``."""
+
+    def __init__(
+        self,
+        backend: Any,
+        law: Any,
+        demand: Any,
+        supervisor: SafetySupervisor,
+        dt: float,
+        record: Callable[..., None] | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        driver_retries: int = 2,
+    ) -> None:
+        self.backend = backend
+        self.law = law
+        self.demand = demand
+        self.sup = supervisor
+        self.dt = dt
+        self.record = record
+        self.clock_ns = clock_ns
+        self.driver_retries = driver_retries
+        self.split = bool(getattr(backend, "split", False))
+        self._begin = getattr(backend, "begin_tick", None) if getattr(backend, "host_clocked", False) else None
+        self._truth = (lambda: backend.true_force_N) if hasattr(backend, "true_force_N") else (lambda: NAN)
+        self.I_next = 0.0  # exchange shape: the current to send on the next tick
+        self.I_last = 0.0  # last current actually commanded (A)
+        self.link_errors = 0
+        self.ticks = 0
+        self.stopped_reason: str | None = None
+        self.loop: Any = None  # the FixedRateLoop, for the per-row lateness column
+        self.pending: tuple[Any, Any] | None = None  # (law, demand) from a reload
+        # live values for the status socket (plain attribute stores per tick)
+        self.last_x = self.last_v = self.last_F_des = NAN
+
+    # ------------------------------------------------------------------
+    def swap_laws(self, law: Any, demand: Any) -> None:
+        """Take new laws at a tick boundary (SIGHUP reload). The new inverse
+        law starts from the current actually commanded, so no step appears."""
+        law.reset(I0=self.I_last)
+        self.law = law
+        self.demand = demand
+
+    def tick(self, k: int, now_ns: int) -> bool:
+        """One control period; returns False to end the run (driver lost)."""
+        if self.pending is not None:  # a reload, taken at the tick boundary
+            law, demand = self.pending
+            self.pending = None
+            self.swap_laws(law, demand)
+        if self._begin is not None:
+            self._begin(k)
+        backend = self.backend
+        sup = self.sup
+        t0 = self.clock_ns()
+        sample = None
+        try:
+            if self.split:
+                sample = backend.read()
+            else:
+                sample = backend.exchange(self.I_next)
+                self.I_last = self.I_next
+        except LinkError:
+            self.link_errors += 1
+        age_s = (self.clock_ns() - t0) * 1e-9
+        s = sup.check_sample(sample, age_s)
+        t = k * self.dt
+        if s is not None:
+            x = s.x_m
+            v = s.v_mps
+            F_des = self.demand.force(t, x, v)
+            I_law = self.law.current(v, F_des)
+        else:
+            x = v = F_des = NAN
+            I_law = 0.0
+        I = sup.limit(I_law)
+        if I != I_law:
+            self.law.applied(I)  # the law's state follows what is commanded
+        if self.split:
+            if not self._write(I):
+                return False
+            self.I_last = I
+        else:
+            self.I_next = I
+        self.ticks += 1
+        self.last_x, self.last_v, self.last_F_des = x, v, F_des
+        rec = self.record
+        if rec is not None:
+            if sample is not None:
+                seq, t_dev, F, I_app = sample.seq, sample.t_dev_s, sample.F_N, sample.current_A
+            else:
+                seq = t_dev = F = I_app = NAN
+            end = self.clock_ns()
+            lp = self.loop
+            late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
+            rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self._truth(), late_us,
+                (end - now_ns) * 1e-3, int(sup.fault), self.link_errors)
+        return True
+
+    def _write(self, I: float) -> bool:
+        for _ in range(self.driver_retries + 1):
+            try:
+                self.backend.write(I)
+                return True
+            except LinkError:
+                self.link_errors += 1
+        self.sup.driver_failed()
+        self.stopped_reason = "current driver lost: write failed after retries"
+        return False
+
+    def safe_stop(self) -> str | None:
+        """Command 0 A on the way out, whatever the reason; returns an error
+        text if even that failed (the caller reports it)."""
+        try:
+            if self.split:
+                self.backend.write(0.0)
+            else:
+                self.backend.exchange(0.0)
+            self.I_last = 0.0
+            return None
+        except LinkError as exc:
+            return f"could not command 0 A on exit: {exc}"
+        except Exception as exc:  # noqa: BLE001 - the last line of defence must not raise
+            return f"could not command 0 A on exit: {type(exc).__name__}: {exc}"
