@@ -79,16 +79,22 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    import time
+
     from mrctl.service import RunOptions, run
 
-    return run(RunOptions(args.config, out=args.out, duration_s=args.duration,
+    out = time.strftime(args.out) if args.out and "%" in args.out else args.out
+    return run(RunOptions(args.config, out=out, duration_s=args.duration,
                           status_socket=args.status_socket, live=not args.quiet))
 
 
 def cmd_status(args: argparse.Namespace) -> int:
     from mrctl.service import default_status_socket, query_status
 
-    path = args.socket or default_status_socket()
+    if args.instance:
+        path = f"/run/mrctl/{args.instance}/status.sock"
+    else:
+        path = args.socket or default_status_socket()
     try:
         st = query_status(path)
     except OSError as exc:
@@ -134,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
     rn.add_argument("config", help="experiment YAML")
-    rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
+    rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it); "
+                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
     rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
     rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")
     rn.add_argument("--quiet", action="store_true", help="no live progress line")
@@ -142,6 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     st = sub.add_parser("status", help="live state of a running mrctl")
     st.add_argument("--socket", help="status socket path (default as for run)")
+    st.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
     st.add_argument("--json", action="store_true", help="print the raw JSON")
     st.set_defaults(func=cmd_status)
 
