@@ -401,31 +401,36 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
     fcheck = Custom(_file_check(base_dir))
     return {
         "version": Num(integer=True, min=CONFIG_VERSION, max=CONFIG_VERSION, doc="config format version (1)"),
-        "name": Str(default=None, optional=True),
-        "description": Str(default=None, optional=True),
+        "name": Str(default=None, optional=True, doc="experiment name (logs, file titles)"),
+        "description": Str(default=None, optional=True, doc="free text, kept in the run log"),
         "duration_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=7 * 86400.0,
                           doc="run length (s); none = until stopped (excitation files: their length)"),
         "rate_hz": Num(default=1000.0, min=1.0, max=20000.0, doc="control rate (Hz)"),
         "parameters": Custom(_make_params_check(base_dir), default="table1",
                              doc="'table1', a parameters YAML path, or {file: ..., <name>: value} overrides"),
         "excitation": Union("type", {
-            "sine": {"amplitude_m": Num(min=0.0, max=1.0), "frequency_hz": Num(min=0.0, min_exclusive=True, max=500.0),
-                     "phase_rad": Num(default=0.0)},
-            "chirp": {"amplitude_m": Num(min=0.0, max=1.0), "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0),
-                      "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0), "sweep_s": Num(min=0.0, min_exclusive=True)},
-            "file": {"path": fcheck},
+            "sine": {"amplitude_m": Num(min=0.0, max=1.0, doc="displacement amplitude (m)"),
+                     "frequency_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="frequency (Hz)"),
+                     "phase_rad": Num(default=0.0, doc="phase at t = 0 (rad)")},
+            "chirp": {"amplitude_m": Num(min=0.0, max=1.0, doc="displacement amplitude (m)"),
+                      "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="start frequency (Hz)"),
+                      "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
+                      "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
+            "file": {"path": Custom(_file_check(base_dir), doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
         }, doc="shaker motion on the simulated bench"),
         "demand": Union("type", {
             "viscous": {"c_des": Num(min=0.0, max=1e5, doc="desired damping (N·s/m), eq (13)")},
-            "constant": {"F_N": Num(min=-1e4, max=1e4)},
-            "file": {"path": fcheck},
+            "constant": {"F_N": Num(min=-1e4, max=1e4, doc="desired force (N)")},
+            "file": {"path": Custom(_file_check(base_dir), doc="CSV with columns t,F_des (s, N)")},
         }, doc="desired-force law"),
         "inverse": Union("law", {
             "paper": {},
-            "smooth": {"eps_N_per_A": Num(default=3.0, min=0.0, max=1e4),
-                       "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6)},
-            "constant": {"current_A": Num(min=0.0)},
-            "schedule": {"currents_A": Custom(_current_list), "step_s": Num(min=0.0, min_exclusive=True)},
+            "smooth": {"eps_N_per_A": Num(default=3.0, min=0.0, max=1e4, doc="regularisation: hold where dF/dI is below this (N/A)"),
+                       "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6,
+                                               doc="driver slew rate the law respects (A/s)")},
+            "constant": {"current_A": Num(min=0.0, doc="the current (A), <= safety.I_max")},
+            "schedule": {"currents_A": Custom(_current_list, doc="list of currents (A), each held step_s, then 0 A"),
+                         "step_s": Num(min=0.0, min_exclusive=True, doc="time per current (s)")},
         }, doc="inverse law"),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
@@ -435,31 +440,31 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                               doc="bad samples bridged with the last good one before 0 A"),
             "max_age_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
                              doc="a sample whose read took longer is late; none = off"),
-            "x_range_m": Custom(_range_check, default=None),
-            "v_range_mps": Custom(_range_check, default=None),
-            "F_range_N": Custom(_range_check, default=None),
+            "x_range_m": Custom(_range_check, default=None, doc="[lo, hi] valid displacement (m); outside = bad sample"),
+            "v_range_mps": Custom(_range_check, default=None, doc="[lo, hi] valid velocity (m/s)"),
+            "F_range_N": Custom(_range_check, default=None, doc="[lo, hi] valid load-cell force (N)"),
             "require_force": Bool(default=False, doc="a non-finite load-cell force is a bad sample"),
             "fault_on_device_status": Bool(default=True, doc="device fault bits make a sample bad"),
             "auto_resume": Bool(default=False, doc="leave the fault by itself after good samples"),
-            "resume_good_ticks": Num(default=10, integer=True, min=1, max=100000),
+            "resume_good_ticks": Num(default=10, integer=True, min=1, max=100000, doc="good samples needed to resume"),
             "driver_retries": Num(default=2, integer=True, min=0, max=10,
                                   doc="extra write attempts within a tick before the driver is lost"),
         }),
         "loop": Section({
-            "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin")),
-            "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01),
+            "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),
+            "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01, doc="hybrid: spin this long before the deadline"),
         }, doc="pacing of the real-time loop (mrctl run)"),
         "rt": Section({
-            "fifo_priority": Num(default=None, optional=True, integer=True, min=1, max=99),
-            "lock_memory": Bool(default=False),
-            "cpus": Custom(_cpu_list, default=None),
-            "timer_slack_ns": Num(default=None, optional=True, integer=True, min=1, max=10**9),
-            "gc_freeze": Bool(default=True),
-            "gc_disable": Bool(default=True),
+            "fifo_priority": Num(default=None, optional=True, integer=True, min=1, max=99, doc="SCHED_FIFO priority; null = normal"),
+            "lock_memory": Bool(default=False, doc="mlockall (needs LimitMEMLOCK)"),
+            "cpus": Custom(_cpu_list, default=None, doc="CPU affinity, e.g. [1]; null = any"),
+            "timer_slack_ns": Num(default=None, optional=True, integer=True, min=1, max=10**9, doc="prctl timer slack"),
+            "gc_freeze": Bool(default=True, doc="gc.freeze() after start-up"),
+            "gc_disable": Bool(default=True, doc="no cyclic GC during the loop"),
         }, doc="real-time settings, each applied or reported refused"),
         "record": Section({
-            "flush_interval_s": Num(default=1.0, min=0.05, max=10.0),
-            "buffer_ticks": Num(default=16384, integer=True, min=256, max=10**7),
+            "flush_interval_s": Num(default=1.0, min=0.05, max=10.0, doc="fsync the log at least this often (s)"),
+            "buffer_ticks": Num(default=16384, integer=True, min=256, max=10**7, doc="rows buffered before overflow"),
         }, doc="run log"),
         "service": Section({
             "status_socket": Str(default=None, optional=True, doc="Unix socket for mrctl status"),
@@ -467,40 +472,49 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
         "plant": Section({
             "driver_tau_s": Num(default=0.0, min=0.0, max=1.0, doc="current-driver lag (s), 0 = ideal"),
             "sensors": Section({
-                "seed": Num(default=0, integer=True, min=0),
-                "x_noise_m": Num(default=0.0, min=0.0), "v_noise_mps": Num(default=0.0, min=0.0),
-                "F_noise_N": Num(default=0.0, min=0.0),
-                "x_lsb_m": Num(default=0.0, min=0.0), "v_lsb_mps": Num(default=0.0, min=0.0),
-                "F_lsb_N": Num(default=0.0, min=0.0),
+                "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),
+                "x_noise_m": Num(default=0.0, min=0.0, doc="std dev of displacement noise (m)"),
+                "v_noise_mps": Num(default=0.0, min=0.0, doc="std dev of velocity noise (m/s)"),
+                "F_noise_N": Num(default=0.0, min=0.0, doc="std dev of load-cell noise (N)"),
+                "x_lsb_m": Num(default=0.0, min=0.0, doc="displacement quantisation step (m), 0 = none"),
+                "v_lsb_mps": Num(default=0.0, min=0.0, doc="velocity quantisation step (m/s)"),
+                "F_lsb_N": Num(default=0.0, min=0.0, doc="force quantisation step (N)"),
             }),
         }, doc="simulated bench (backend sim)"),
         "backend": Union("type", {
             "sim": {},
             "serial": {
                 "url": Str(doc="device path, socket://host:port or loop://"),
-                "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000),
-                "timeout_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0),
-                "watchdog_ms": Num(default=50, integer=True, min=1, max=255),
+                "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud (see docs/protocol.md)"),
+                "timeout_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0,
+                                 doc="reply timeout (s); null = wire time + 250 us"),
+                "watchdog_ms": Num(default=50, integer=True, min=1, max=255,
+                                   doc="device applies 0 A if setpoints stop this long"),
             },
             "modbus-tcp": {
-                "host": Str(default="127.0.0.1"), "port": Num(default=502, integer=True, min=1, max=65535),
-                "unit_id": Num(default=1, integer=True, min=0, max=247),
-                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0),
-                "use_fc23": Custom(_optional_bool, default=None),
-                "registers": Custom(_register_map, default=None),
+                "host": Str(default="127.0.0.1", doc="device address"),
+                "port": Num(default=502, integer=True, min=1, max=65535, doc="TCP port"),
+                "unit_id": Num(default=1, integer=True, min=0, max=247, doc="Modbus unit id"),
+                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
+                "use_fc23": Custom(_optional_bool, default=None,
+                                   doc="one FC23 transaction per tick; null = probe at start"),
+                "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
             },
             "modbus-rtu": {
-                "url": Str(), "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000),
-                "unit_id": Num(default=1, integer=True, min=1, max=247),
-                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0),
-                "use_fc23": Custom(_optional_bool, default=None),
-                "registers": Custom(_register_map, default=None),
+                "url": Str(doc="serial device path (or any pyserial URL)"),
+                "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud"),
+                "unit_id": Num(default=1, integer=True, min=1, max=247, doc="Modbus unit id"),
+                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
+                "use_fc23": Custom(_optional_bool, default=None,
+                                   doc="one FC23 transaction per tick; null = probe at start"),
+                "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
             },
         }, default="sim", doc="where samples come from and currents go"),
         "link": Section({
             "on_infeasible": Str(default="refuse", choices=("refuse", "reduce_rate"),
                                  doc="if the link cannot sustain rate_hz: refuse, or run slower"),
-            "probe_exchanges": Num(default=50, integer=True, min=0, max=10000),
+            "probe_exchanges": Num(default=50, integer=True, min=0, max=10000,
+                                   doc="round trips measured at start-up (0 = wire-time estimate only)"),
         }, doc="start-up feasibility check of real links"),
     }
 
@@ -548,3 +562,72 @@ def load_experiment(path: str | Path) -> Node:
     """Load and validate an experiment YAML file."""
     p = Path(path)
     return validate_experiment(load_yaml(p), p.parent, str(p))
+
+
+# --------------------------------------------------------------------------
+# Reference documentation, generated from the schema (docs/config.md)
+def _kind(spec: Any) -> str:
+    if isinstance(spec, Num):
+        kind = "integer" if spec.integer else "number"
+        lo = "" if spec.min is None else (f"> {spec.min:g}" if spec.min_exclusive else f">= {spec.min:g}")
+        hi = "" if spec.max is None else f"<= {spec.max:g}"
+        rng = ", ".join(x for x in (lo, hi) if x)
+        return kind + (f" ({rng})" if rng else "") + (" or null" if spec.optional else "")
+    if isinstance(spec, Str):
+        return ("one of " + ", ".join(f"`{c}`" for c in spec.choices)) if spec.choices else "string"
+    if isinstance(spec, Bool):
+        return "true/false"
+    return "see description"
+
+
+def _default(spec: Any) -> str:
+    d = getattr(spec, "default", _REQUIRED)
+    if d is _REQUIRED:
+        return "**required**"
+    return "null" if d is None else f"`{d}`"
+
+
+def schema_markdown() -> str:
+    """The experiment schema as markdown tables (docs/config.md's generated part)."""
+    lines: list[str] = []
+
+    def table(fields_: Mapping[str, Any], prefix: str) -> None:
+        rows = [(k, v) for k, v in fields_.items() if not isinstance(v, (Section, Union))]
+        if rows:
+            lines.append("| key | type | default | meaning |")
+            lines.append("|---|---|---|---|")
+            for k, spec in rows:
+                lines.append(f"| `{_path(prefix, k)}` | {_kind(spec)} | {_default(spec)} | {getattr(spec, 'doc', '')} |")
+            lines.append("")
+        for k, spec in fields_.items():
+            path = _path(prefix, k)
+            if isinstance(spec, Section):
+                lines.append(f"### `{path}`" + (f": {spec.doc}" if spec.doc else ""))
+                lines.append("")
+                table(spec.fields, path)
+            elif isinstance(spec, Union):
+                lines.append(f"### `{path}`: {spec.doc}")
+                lines.append("")
+                lines.append(f"Chosen by `{path}.{spec.key}`" + (f" (default `{spec.default}`)" if spec.default else "") + ".")
+                lines.append("")
+                for name, vfields in spec.variants.items():
+                    lines.append(f"#### `{path}.{spec.key}: {name}`")
+                    lines.append("")
+                    if vfields:
+                        table(vfields, path)
+                    else:
+                        lines.append("(no further keys)")
+                        lines.append("")
+
+    table(experiment_schema(Path(".")), "")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":  # regenerate docs/config.md's generated block
+    import sys as _sys
+
+    _doc = Path(__file__).resolve().parents[1] / "docs" / "config.md"
+    _b, _e = "<!-- BEGIN GENERATED: mrctl.config.schema_markdown -->", "<!-- END GENERATED -->"
+    _src = _doc.read_text()
+    _doc.write_text(_src[: _src.index(_b) + len(_b)] + "\n" + schema_markdown() + "\n" + _src[_src.index(_e):])
+    print(f"updated {_doc}", file=_sys.stderr)

@@ -1,0 +1,39 @@
+"""The real controller tick for bench/loop_timing.py: fig5 on the in-process sim
+bench, with the safety supervisor and the recorder (writing to a temp file),
+exactly as ``mrctl run`` builds it.
+
+    python bench/loop_timing.py --tick controller_tick:make_tick
+"""
+
+from __future__ import annotations
+
+import atexit
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mrctl.config import load_experiment  # noqa: E402
+from mrctl.controller import RUN_COLUMNS, Controller  # noqa: E402
+from mrctl.experiment import build  # noqa: E402
+from mrctl.recorder import Recorder  # noqa: E402
+from mrctl.safety import SafetySupervisor  # noqa: E402
+from mrctl.service import make_backend, safety_config  # noqa: E402
+
+CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
+
+
+def make_tick(period_s: float) -> Callable[[int, int], object]:
+    sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
+    exp = build(load_experiment(CONFIG))
+    backend = make_backend(exp)
+    backend.open()
+    sup = SafetySupervisor(safety_config(exp.config, exp.dt))
+    tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
+    rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536)
+    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record)
+    atexit.register(rec.close)
+    return ctl.tick
