@@ -116,7 +116,20 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    _load(args.config)
+    from mrctl.feasibility import assess, wire_time_s
+
+    exp = _load(args.config)
+    cfg = exp.config
+    wire = wire_time_s(cfg.backend)
+    if wire is not None:
+        f = assess(cfg.rate_hz, wire, what=f"{cfg.backend.type} at {cfg.backend.baudrate} Bd")
+        if not f.ok:
+            level = "warning" if cfg.link.on_infeasible == "reduce_rate" else "error"
+            _err(f"{args.config}: {level}: {f.message}")
+            if level == "error":
+                return EXIT_BAD_INPUT
+        else:
+            print(f.message)
     print(f"{args.config}: OK")
     return EXIT_OK
 

@@ -389,6 +389,31 @@ class Service:
             self.last_reload_error = f"{type(exc).__name__}: {exc}"
             self.warn(f"reload rejected, keeping the running config: {self.last_reload_error}")
 
+    def _check_link(self, exp: Experiment, backend: Any) -> Experiment | None:
+        """Feasibility of the configured rate on this link (docs/design.md);
+        returns the experiment to run (maybe at a reduced rate) or None to refuse."""
+        from mrctl.config import load_yaml, validate_experiment
+        from mrctl.feasibility import assess, probe, wire_time_s
+
+        cfg = exp.config
+        rtts, errors = probe(backend, cfg.link.probe_exchanges)
+        f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type)
+        if f.ok:
+            self.say(f.message)
+            return exp
+        if cfg.link.on_infeasible == "reduce_rate" and f.suggested_rate_hz:
+            self.warn(f"{f.message} Running at {f.suggested_rate_hz:g} Hz instead.")
+            data = load_yaml(self.opts.config_path)
+            data["rate_hz"] = f.suggested_rate_hz
+            self.exp = build(validate_experiment(data, Path(self.opts.config_path).parent, self.opts.config_path))
+            assert self.sup is not None
+            self.sup = SafetySupervisor(safety_config(self.exp.config, self.exp.dt))
+            assert self.ctl is not None
+            self.ctl.sup = self.sup
+            return self.exp
+        self.warn(f"refusing to start: {f.message}")
+        return None
+
     # -- the run ---------------------------------------------------------------
     def run(self) -> int:
         o = self.opts
@@ -421,6 +446,14 @@ class Service:
             self.warn(err)
             backend.close()
             return EXIT_LINK
+        if cfg.backend.type != "sim":
+            exp = self._check_link(exp, backend)
+            if exp is None:
+                backend.close()
+                return EXIT_LINK
+            cfg = exp.config
+            ctl.law, ctl.demand, ctl.dt = exp.law, exp.demand, exp.dt
+            total_ticks = int(round(duration * cfg.rate_hz)) if duration else None
         exp.law.reset()
         loop = self.loop = FixedRateLoop(cfg.rate_hz, wait=cfg.loop.wait, spin_margin_s=cfg.loop.spin_margin_s)
         ctl.loop = loop

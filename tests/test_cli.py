@@ -51,3 +51,19 @@ def test_report_of_missing_file_is_a_clean_error(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     assert main(["report", str(tmp_path / "none.csv"), "--out", str(tmp_path / "x.png")]) == 2
     assert "none.csv" in capsys.readouterr().err
+
+
+def test_check_refuses_a_link_that_cannot_do_the_rate(tmp_path, capsys):
+    pytest.importorskip("mrctl.io.registers")
+    cfg = tmp_path / "rtu.yaml"
+    text = Path(FIG5).read_text().replace(
+        "backend: {type: sim}", "backend: {type: modbus-rtu, url: /dev/ttyUSB0, baudrate: 115200}")
+    cfg.write_text(text)
+    assert main(["check", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "does not fit 1000 Hz" in err and "100 Hz" in err
+    cfg.write_text(text.replace("115200", "921600"))
+    assert main(["check", str(cfg)]) == 0
+    cfg.write_text(text + "link: {on_infeasible: reduce_rate}\n")
+    assert main(["check", str(cfg)]) == 0  # a warning, the run would go at 100 Hz
+    assert "warning" in capsys.readouterr().err

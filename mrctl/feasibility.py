@@ -1,0 +1,106 @@
+"""Start-up check: can this link sustain the configured control rate?
+
+Two measures, both before the loop starts:
+
+1. **Wire time** from the baud rate and the frame sizes (serial protocol,
+   Modbus RTU). Physics, no link needed, so ``mrctl check`` reports it too.
+   Example: Modbus RTU at 115200 Bd 8E1 needs ~5.6 ms per tick.
+2. **Measured round trips**: ``probe_exchanges`` exchanges at 0 A (the safe
+   setpoint), p50/p99 of their duration. This catches what the arithmetic
+   cannot: USB-serial latency timers, device turnaround, a slow server.
+
+The tick needs the exchange *and* the compute to fit in one period; we
+allow the link 80 % of it. If it does not fit, the run is refused, or, with
+``link.on_infeasible: reduce_rate``, run at the highest standard rate that
+fits, with a clear message either way.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+from mrctl.io.base import LinkError
+
+LINK_SHARE = 0.8
+STANDARD_RATES_HZ = (1000.0, 500.0, 250.0, 200.0, 100.0, 50.0, 20.0, 10.0)
+
+
+@dataclass(frozen=True)
+class Feasibility:
+    rate_hz: float
+    wire_s: float | None
+    probe_p50_s: float | None
+    probe_p99_s: float | None
+    probe_errors: int
+    ok: bool
+    suggested_rate_hz: float | None
+    message: str
+
+
+def wire_time_s(backend_cfg: Any) -> float | None:
+    """Seconds one tick occupies the wire, or None where it is not the limit (TCP, sim)."""
+    kind = backend_cfg.type
+    if kind == "serial":
+        from mrctl.io.protocol import exchange_wire_time_s
+
+        return exchange_wire_time_s(backend_cfg.baudrate)
+    if kind == "modbus-rtu":
+        from mrctl.io.modbus import rtu_transaction_wire_time_s
+
+        fc23 = backend_cfg.use_fc23 if backend_cfg.use_fc23 is not None else True
+        return rtu_transaction_wire_time_s(backend_cfg.registers, backend_cfg.baudrate, fc23)
+    return None
+
+
+def probe(link: Any, n: int) -> tuple[list[float], int]:
+    """n exchanges at 0 A; returns (durations in s of the successful ones, error count)."""
+    times: list[float] = []
+    errors = 0
+    pc = time.perf_counter
+    for _ in range(n):
+        t0 = pc()
+        try:
+            if getattr(link, "split", False):
+                link.read()
+                link.write(0.0)
+            else:
+                link.exchange(0.0)
+        except LinkError:
+            errors += 1
+            continue
+        times.append(pc() - t0)
+    return times, errors
+
+
+def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), errors: int = 0,
+           what: str = "link") -> Feasibility:
+    """Decide, and say why in one message a lab user can act on."""
+    budget = LINK_SHARE / rate_hz
+    p50 = statistics.median(rtts) if rtts else None
+    p99 = sorted(rtts)[min(len(rtts) - 1, int(0.99 * len(rtts)))] if rtts else None
+    need = max(x for x in (wire_s, p99, 0.0) if x is not None)
+    if rtts == [] and errors:
+        return Feasibility(rate_hz, wire_s, None, None, errors, False, None,
+                           f"{what}: no reply to any of {errors} probe exchanges; check the cable, address and baud rate")
+    parts = []
+    if wire_s is not None:
+        parts.append(f"{wire_s * 1e3:.2f} ms on the wire")
+    if p99 is not None:
+        parts.append(f"measured round trip p50 {p50 * 1e3:.2f} ms, p99 {p99 * 1e3:.2f} ms")  # type: ignore[operator]
+    how = " and ".join(parts) if parts else "no measurement"
+    if need <= budget and (not rtts or errors <= len(rtts) // 10):
+        return Feasibility(rate_hz, wire_s, p50, p99, errors, True, None,
+                           f"{what}: {how} per tick fits {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed)")
+    if need <= budget:
+        return Feasibility(rate_hz, wire_s, p50, p99, errors, False, None,
+                           f"{what}: {errors} of {errors + len(rtts)} probe exchanges failed; the link is unreliable")
+    fits = [r for r in STANDARD_RATES_HZ if r < rate_hz and need <= LINK_SHARE / r]
+    best = fits[0] if fits else None
+    msg = (f"{what}: {how} per tick does not fit {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed for the link). "
+           + (f"The highest standard rate that fits is {best:g} Hz (set link.on_infeasible: reduce_rate to run there)"
+              if best else "No standard rate down to 10 Hz fits")
+           + "; or use a faster baud rate / Modbus TCP.")
+    return Feasibility(rate_hz, wire_s, p50, p99, errors, False, best, msg)

@@ -1,0 +1,67 @@
+"""Start-up feasibility: wire time arithmetic, probe, decision and messages."""
+
+import time
+from types import SimpleNamespace
+
+import pytest
+
+from mrctl.feasibility import assess, probe, wire_time_s
+from mrctl.io.base import LinkTimeout, Sample
+
+
+def test_serial_wire_time_from_frame_sizes():
+    w921 = wire_time_s(SimpleNamespace(type="serial", baudrate=921600))
+    w115 = wire_time_s(SimpleNamespace(type="serial", baudrate=115200))
+    assert w115 == pytest.approx(w921 * 8)  # linear in 1/baud
+    assert assess(1000.0, w921).ok
+    f = assess(1000.0, w115)
+    assert not f.ok and f.suggested_rate_hz == 100.0
+    assert "does not fit 1000 Hz" in f.message and "100 Hz" in f.message
+
+
+def test_modbus_rtu_115200_cannot_do_1khz():
+    pytest.importorskip("mrctl.io.registers")
+    from mrctl.io.registers import default_register_map
+
+    cfg = SimpleNamespace(type="modbus-rtu", baudrate=115200, use_fc23=None, registers=default_register_map())
+    w = wire_time_s(cfg)
+    assert w > 3.2e-3  # the issue's 37-byte figure is a floor; 8E1 and gaps add more
+    f = assess(1000.0, w, what="modbus-rtu 115200 Bd")
+    assert not f.ok and f.suggested_rate_hz is not None and f.suggested_rate_hz <= 200.0
+
+
+def test_tcp_and_sim_have_no_wire_limit():
+    assert wire_time_s(SimpleNamespace(type="modbus-tcp")) is None
+    assert wire_time_s(SimpleNamespace(type="sim")) is None
+
+
+class SlowLink:
+    def __init__(self, delay_s, fail_every=0):
+        self.delay_s, self.fail_every, self.n, self.setpoints = delay_s, fail_every, 0, []
+
+    def exchange(self, I):
+        self.n += 1
+        self.setpoints.append(I)
+        if self.fail_every and self.n % self.fail_every == 0:
+            raise LinkTimeout("x")
+        time.sleep(self.delay_s)
+        return Sample(self.n, 0.0, 0.0, 0.0, float("nan"), 0)
+
+
+def test_probe_sends_only_zero_amps_and_measures():
+    link = SlowLink(0.002)
+    rtts, errors = probe(link, 20)
+    assert errors == 0 and len(rtts) == 20 and min(rtts) >= 0.002
+    assert set(link.setpoints) == {0.0}
+    f = assess(1000.0, None, rtts)
+    assert not f.ok and f.suggested_rate_hz is not None and f.suggested_rate_hz <= 250.0
+    assert "measured round trip" in f.message
+
+
+def test_unreliable_and_dead_links_are_refused():
+    rtts, errors = probe(SlowLink(0.0, fail_every=3), 30)
+    assert errors == 10
+    f = assess(100.0, None, rtts, errors)
+    assert not f.ok and "unreliable" in f.message
+    f = assess(100.0, None, [], 30)
+    assert not f.ok and "no reply" in f.message
