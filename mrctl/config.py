@@ -449,6 +449,10 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "resume_good_ticks": Num(default=10, integer=True, min=1, max=100000, doc="good samples needed to resume"),
             "driver_retries": Num(default=2, integer=True, min=0, max=10,
                                   doc="extra write attempts within a tick before the driver is lost"),
+            "link_loss_s": Num(default=0.1, min=0.0, min_exclusive=True, max=60.0,
+                               doc="exchange links: no good exchange for this long = driver lost, exit 3"),
+            "reconnect_interval_s": Num(default=0.05, min=0.001, max=60.0,
+                                        doc="exchange links: reopen a disconnected link at most this often"),
         }),
         "loop": Section({
             "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),

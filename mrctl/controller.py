@@ -17,7 +17,10 @@ Two backend shapes:
 
 A driver write that fails is retried within the tick budget; if it still
 fails, the supervisor latches a DRIVER fault and the run ends: the service
-then commands 0 A where it still can and exits non-zero.
+then commands 0 A where it still can and exits non-zero. On exchange links
+the setpoint shares the link with the samples, so ``link_loss_ticks``
+consecutive failed exchanges mean the driver is lost too; a ``Disconnected``
+link is reopened at most every ``reconnect_every_ticks`` before that.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import math
 import time
 from typing import Any, Callable
 
-from mrctl.io.base import LinkError
+from mrctl.io.base import Disconnected, LinkError
 from mrctl.safety import SafetySupervisor
 
 #: Columns of the run log: the core six of ``mrctl simulate`` first.
@@ -55,6 +58,8 @@ class Controller:
         record: Callable[..., None] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         driver_retries: int = 2,
+        link_loss_ticks: int = 100,
+        reconnect_every_ticks: int = 50,
     ) -> None:
         self.backend = backend
         self.law = law
@@ -64,6 +69,10 @@ class Controller:
         self.record = record
         self.clock_ns = clock_ns
         self.driver_retries = driver_retries
+        self.link_loss_ticks = link_loss_ticks
+        self.reconnect_every_ticks = max(1, reconnect_every_ticks)
+        self.consecutive_failures = 0
+        self.reconnects = 0
         self.split = bool(getattr(backend, "split", False))
         self._begin = getattr(backend, "begin_tick", None) if getattr(backend, "host_clocked", False) else None
         self._truth = (lambda: backend.true_force_N) if hasattr(backend, "true_force_N") else (lambda: NAN)
@@ -103,8 +112,21 @@ class Controller:
             else:
                 sample = backend.exchange(self.I_next)
                 self.I_last = self.I_next
+            self.consecutive_failures = 0
+        except Disconnected:
+            self.link_errors += 1
+            self.consecutive_failures += 1
+            if self.consecutive_failures % self.reconnect_every_ticks == 1:
+                self._reconnect()
         except LinkError:
             self.link_errors += 1
+            self.consecutive_failures += 1
+        if not self.split and self.consecutive_failures > self.link_loss_ticks:
+            # the setpoint travels on the same link: the driver is unreachable
+            self.sup.driver_failed()
+            self.stopped_reason = (f"link lost: no successful exchange for {self.consecutive_failures} ticks "
+                                   f"(the device's own watchdog applies 0 A)")
+            return False
         age_s = (self.clock_ns() - t0) * 1e-9
         s = sup.check_sample(sample, age_s)
         t = k * self.dt
@@ -150,6 +172,16 @@ class Controller:
         self.sup.driver_failed()
         self.stopped_reason = "current driver lost: write failed after retries"
         return False
+
+    def _reconnect(self) -> None:
+        """Reopen a vanished link (USB-serial unplugged, TCP reset), at most once
+        per ``reconnect_every_ticks``; a failure just counts as another bad tick."""
+        try:
+            self.backend.close()
+            self.backend.open()
+            self.reconnects += 1
+        except (LinkError, OSError):
+            pass
 
     def safe_stop(self) -> str | None:
         """Command 0 A on the way out, whatever the reason; returns an error

@@ -259,6 +259,8 @@ class RunOptions:
     duration_s: float | None = None
     status_socket: str | None = None
     live: bool = True  # progress / live line on stderr (foreground)
+    clock_ns: Callable[[], int] = time.monotonic_ns  # injectable for deterministic tests
+    sleep: Callable[[float], object] = time.sleep
     stream: TextIO = field(default_factory=lambda: sys.stdout)
     err: TextIO = field(default_factory=lambda: sys.stderr)
 
@@ -439,7 +441,9 @@ class Service:
             return EXIT_LINK
         sup = self.sup = SafetySupervisor(safety_config(cfg, exp.dt))
         ctl = self.ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt,
-                                    driver_retries=cfg.safety.driver_retries)
+                                    driver_retries=cfg.safety.driver_retries,
+                                    link_loss_ticks=max(1, round(cfg.safety.link_loss_s * cfg.rate_hz)),
+                                    reconnect_every_ticks=max(1, round(cfg.safety.reconnect_interval_s * cfg.rate_hz)))
         # the first thing a (re)start does on the wire: 0 A
         err = ctl.safe_stop()
         if err:
@@ -455,7 +459,8 @@ class Service:
             ctl.law, ctl.demand, ctl.dt = exp.law, exp.demand, exp.dt
             total_ticks = int(round(duration * cfg.rate_hz)) if duration else None
         exp.law.reset()
-        loop = self.loop = FixedRateLoop(cfg.rate_hz, wait=cfg.loop.wait, spin_margin_s=cfg.loop.spin_margin_s)
+        loop = self.loop = FixedRateLoop(cfg.rate_hz, wait=cfg.loop.wait, spin_margin_s=cfg.loop.spin_margin_s,
+                                         clock=o.clock_ns, sleep=o.sleep)
         ctl.loop = loop
         meta = {
             "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),

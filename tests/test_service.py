@@ -253,15 +253,37 @@ def test_run_bad_config_exits_2(tmp_path):
     assert svc.run() == 2
 
 
-def test_run_nrmse_close_to_simulate(tmp_path):
-    """The real-time run on the sim bench tracks like the offline simulation."""
+class VirtualClock:
+    """Time advances 1 µs per reading and by exactly what is slept: no tick is
+    ever late, so the run is deterministic whatever the machine is doing."""
+
+    def __init__(self):
+        self.t = 0
+
+    def now(self):
+        self.t += 1000
+        return self.t
+
+    def sleep(self, s):
+        self.t += int(s * 1e9)
+
+
+def test_daemon_path_tracks_exactly_like_the_offline_simulation(tmp_path):
+    """Same physics through loop, controller, supervisor, sim backend and recorder
+    as through mrctl simulate (real-time figures: bench/run_vs_simulate.py)."""
     from mrctl.config import load_experiment
     from mrctl.experiment import build
     from mrctl.simulate import simulate
 
     cfg = _config(tmp_path)
-    svc, code, out = _run(cfg, tmp_path, duration=3.0)
+    vc = VirtualClock()
+    svc, code, out = _run(cfg, tmp_path, duration=3.0, clock_ns=vc.now, sleep=vc.sleep)
     assert code == 0
-    side = read_sidecar(out)
-    sim = simulate(build(load_experiment(cfg)), 3.0).summary
-    assert side["summary"]["tracking"]["force_nrmse"] <= 1.5 * sim["force_nrmse"]
+    cols = read_run(out)
+    sim = simulate(build(load_experiment(cfg)), 3.0)
+    n = len(cols["k"])
+    assert n == 3000 and np.array_equal(cols["k"], np.arange(3000))
+    assert np.array_equal(cols["I"], sim.columns["I"][:n])
+    assert np.array_equal(cols["F_true"], sim.columns["F"][:n])
+    track = read_sidecar(out)["summary"]["tracking"]
+    assert track["force_nrmse"] <= 1.5 * sim.summary["force_nrmse"]

@@ -1,0 +1,84 @@
+"""Controller on exchange links: one tick of latency, link loss, reconnects."""
+
+import math
+
+import pytest
+
+from mrctl.controller import Controller
+from mrctl.demand import Viscous
+from mrctl.io.base import Disconnected, LinkTimeout, Sample
+from mrctl.model.inverse import SmoothInverse
+from mrctl.model.params import TABLE_I
+from mrctl.safety import SafetyConfig, SafetySupervisor
+
+
+class FakeExchangeLink:
+    """A device answering exchanges; can go silent or vanish for a while."""
+
+    split = False
+
+    def __init__(self, silent=(), gone=()):
+        self.k = 0
+        self.sent = []
+        self.silent, self.gone = silent, gone
+        self.opens = 0
+        self.is_open = True
+
+    def open(self):
+        self.opens += 1
+        self.is_open = True
+
+    def close(self):
+        self.is_open = False
+
+    def exchange(self, I):
+        k = self.k
+        self.k += 1
+        if k in self.gone or not self.is_open:
+            raise Disconnected("unplugged")
+        if k in self.silent:
+            raise LinkTimeout("no reply")
+        self.sent.append((k, I))
+        v = 0.0628 * math.cos(2 * math.pi * k * 1e-3)
+        return Sample(k, k * 1e-3, 0.0, v, math.nan, 0)
+
+
+def _ctl(link, **kw):
+    sup = SafetySupervisor(SafetyConfig(I_max=0.6, hold_ticks=3, auto_resume=True, resume_good_ticks=5))
+    return Controller(link, SmoothInverse(TABLE_I, 0.6, 1e-3), Viscous(500.0), sup, 1e-3, **kw), sup
+
+
+def test_exchange_sends_the_current_computed_on_the_previous_tick():
+    link = FakeExchangeLink()
+    ctl, _ = _ctl(link)
+    ctl.tick(0, 0)
+    I0 = ctl.I_next
+    ctl.tick(1, 0)
+    assert link.sent[0] == (0, 0.0) and link.sent[1] == (1, I0) and I0 > 0.0
+
+
+def test_short_silence_is_held_then_zero_then_recovers():
+    link = FakeExchangeLink(silent=set(range(100, 120)))
+    ctl, sup = _ctl(link, link_loss_ticks=100)
+    for k in range(300):
+        assert ctl.tick(k, 0) is True
+    sent = dict(link.sent)
+    assert sent[121] == 0.0  # fault (hold 3) was active when the link came back
+    assert sup.counters().faults_entered == 1 and any(sent[k] > 0 for k in range(200, 300))
+
+
+def test_long_silence_means_the_driver_is_lost():
+    link = FakeExchangeLink(silent=set(range(100, 10_000)))
+    ctl, sup = _ctl(link, link_loss_ticks=50)
+    results = [ctl.tick(k, 0) for k in range(200)]
+    assert results.index(False) == 100 + 50  # the 51st consecutive failure ends the run
+    assert "link lost" in ctl.stopped_reason and sup.in_fault
+
+
+def test_disconnected_link_is_reopened_at_a_bounded_rate():
+    link = FakeExchangeLink(gone=set(range(100, 130)))
+    ctl, _ = _ctl(link, link_loss_ticks=100, reconnect_every_ticks=10)
+    for k in range(300):
+        assert ctl.tick(k, 0) is True
+    assert ctl.reconnects == 3  # failures 1, 11, 21 of the 30-tick outage
+    assert link.opens == 3
