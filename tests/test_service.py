@@ -112,8 +112,18 @@ def _run(cfg, tmp_path, duration=1.0, **kw):
 def test_signal_ends_with_zero_amps_and_a_complete_log(tmp_path, spy_backend, sig):
     h = spy_backend()
     cfg = _config(tmp_path)
-    threading.Timer(0.8, lambda: os.kill(os.getpid(), sig)).start()
-    svc, code, out = _run(cfg, tmp_path, duration=30.0)
+    out = tmp_path / "run.csv"
+    svc = Service(RunOptions(str(cfg), out=str(out), duration_s=30.0, live=False,
+                             status_socket=str(tmp_path / "st.sock")))
+
+    def signal_mid_run():  # once really controlling, whatever start-up took on a busy machine
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (svc.ctl is None or svc.ctl.ticks < 300):
+            time.sleep(0.01)
+        os.kill(os.getpid(), sig)
+
+    threading.Thread(target=signal_mid_run, daemon=True).start()
+    code = svc.run()
     assert code == 0
     spy = h["spy"]
     assert spy.writes[-1][1] == 0.0  # the last thing the driver saw
@@ -190,23 +200,38 @@ def test_ready_watchdog_and_stopping_reach_notify_socket(tmp_path, monkeypatch):
 
 def test_sighup_swaps_a_valid_config_and_rejects_a_bad_one(tmp_path):
     cfg = _config(tmp_path)
-    def later():
-        time.sleep(0.6)
+    out = tmp_path / "run.csv"
+    svc = Service(RunOptions(str(cfg), out=str(out), duration_s=3.0, live=False,
+                             status_socket=str(tmp_path / "st.sock")))
+    marks = {}
+
+    def wait_ticks(n):
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (svc.ctl is None or svc.ctl.ticks < n):
+            time.sleep(0.005)
+        return svc.ctl.ticks
+
+    def later():  # paced by the loop's own progress, not by wall time
+        marks["good"] = wait_ticks(500)
         cfg.write_text(FIG5.replace("c_des: 500.0", "c_des: 250.0"))
         os.kill(os.getpid(), signal.SIGHUP)
-        time.sleep(0.6)
+        while svc.reloads_ok < 1:
+            time.sleep(0.005)
+        marks["swapped"] = wait_ticks(svc.ctl.ticks + 5)
         cfg.write_text(FIG5.replace("law: smooth", "law: nonsense"))
         os.kill(os.getpid(), signal.SIGHUP)
 
-    threading.Thread(target=later).start()
-    svc, code, out = _run(cfg, tmp_path, duration=2.0)
+    threading.Thread(target=later, daemon=True).start()
+    code = svc.run()
     assert code == 0
     assert svc.reloads_ok == 1 and svc.reloads_rejected == 1
     assert "inverse.law" in svc.last_reload_error
     cols = read_run(out)
     ratio = cols["F_des"] / cols["v"]
     ok = np.isfinite(ratio) & (np.abs(cols["v"]) > 1e-3)
-    early, late = ok & (cols["t"] < 0.5), ok & (cols["t"] > 1.4)
+    n = np.arange(len(ratio))  # row = tick run
+    early, late = ok & (n < marks["good"]), ok & (n > marks["swapped"])
+    assert early.sum() > 100 and late.sum() > 100
     assert np.allclose(ratio[early], 500.0) and np.allclose(ratio[late], 250.0)
     # the loop was not disturbed: every deadline after the swap was still served
     assert svc.loop.stats.summary()["ticks"] == svc.ctl.ticks
