@@ -23,6 +23,8 @@ class DeviceState:
         self._setpoint_A = 0.0
         self._enable = False
         self._setpoint_ns = 0  # monotonic time of the last setpoint (0 = never)
+        self._watchdog_ms = 0  # watchdog the host asked for with it (0 = device default)
+        self._clear_requests = 0  # CLEAR_FAULTS requests so far (the clock acts on changes)
         self.setpoints_received = 0
         self.requests_served = 0
 
@@ -36,15 +38,34 @@ class DeviceState:
         with self._lock:
             return self._setpoint_A, self._enable, self._setpoint_ns
 
+    def setpoint_ex(self) -> tuple[float, bool, int, int, int]:
+        """:meth:`setpoint` plus (requested watchdog ms or 0, CLEAR_FAULTS request count)."""
+        with self._lock:
+            return (self._setpoint_A, self._enable, self._setpoint_ns,
+                    self._watchdog_ms, self._clear_requests)
+
     # -- protocol side ----------------------------------------------------
     def latest_sample(self) -> Sample:
         with self._lock:
             self.requests_served += 1
             return self._sample
 
-    def set_setpoint(self, current_A: float, enable: bool = True) -> None:
+    def set_setpoint(
+        self, current_A: float, enable: bool = True, watchdog_ms: int = 0, clear_faults: bool = False
+    ) -> None:
+        """Accept a setpoint (restarts the device watchdog). ``watchdog_ms``:
+        the host's requested watchdog, 0 = device default; ``clear_faults``:
+        also clear latched status bits (serial CLEAR_FAULTS flag)."""
         with self._lock:
             self._setpoint_A = current_A
             self._enable = enable
             self._setpoint_ns = time.monotonic_ns()
+            self._watchdog_ms = watchdog_ms
+            if clear_faults:
+                self._clear_requests += 1
             self.setpoints_received += 1
+
+    def request_clear_faults(self) -> None:
+        """Clear latched status bits (WATCHDOG_TRIPPED) at the next tick."""
+        with self._lock:
+            self._clear_requests += 1

@@ -1,0 +1,186 @@
+"""The device side of the simulated bench: its own fixed-rate clock.
+
+Each tick k (absolute deadlines on ``time.monotonic_ns``, via
+:class:`mrctl.loop.FixedRateLoop`, hybrid sleep-then-spin by default):
+
+1. ``SimBench.begin_tick(k)`` moves the shaker to t = k·dt;
+2. the sensors are read (``sample()``: noisy, quantised; F is the last
+   completed tick's force, NaN without a load cell);
+3. the latest setpoint is taken from :class:`~hil_sim.state.DeviceState`
+   and turned into the driver input: 0 A before the first setpoint, when
+   ``enable`` is clear, or when the watchdog has expired (no setpoint for
+   ``watchdog_ms``: the host's requested value, or the configured default);
+   otherwise the setpoint clamped to [0, I_max_A];
+4. ``command(I)``: the plant produces tick k's true force;
+5. ``Sample(seq=k mod 2**32, t_dev_s=k·dt, x, v, F, status, I_applied)`` is
+   published for the protocol servers, and the truth row is logged.
+
+Status bits: ``OUTPUT_ENABLED`` while a live, enabled setpoint is applied;
+``WATCHDOG_TRIPPED`` latched from the first expiry until a CLEAR_FAULTS
+request; ``CURRENT_CLAMPED`` when the last setpoint was out of range or
+non-finite; ``NO_LOAD_CELL`` without a load cell.
+
+Late ticks: the loop skips deadlines it overran (k jumps); the plant runs
+the skipped ticks on the held command (``SimBench.begin_tick``), so the
+physics stays on the k·dt grid and only the skipped rows are missing from
+the truth log. The sensor noise of skipped ticks is drawn and discarded, so
+the noise at tick k is a function of (seed, k) alone: with the same seed and
+the same setpoints, runs agree tick for tick whatever deadlines they missed.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+from mrctl.io.base import Sample, Status
+from mrctl.loop import FixedRateLoop
+from mrctl.model.bench import SimBench
+
+from hil_sim.config import BenchConfig
+from hil_sim.state import DeviceState
+from hil_sim.truth import TruthLog
+
+__all__ = ["BenchDevice", "clamp_setpoint"]
+
+_U32 = 0xFFFFFFFF
+_OUTPUT_ENABLED = int(Status.OUTPUT_ENABLED)
+_WATCHDOG_TRIPPED = int(Status.WATCHDOG_TRIPPED)
+_CURRENT_CLAMPED = int(Status.CURRENT_CLAMPED)
+_NO_LOAD_CELL = int(Status.NO_LOAD_CELL)
+
+
+def clamp_setpoint(I: float, I_max: float) -> tuple[float, bool]:
+    """(current the driver accepts, whether it had to be clamped). NaN/inf → 0 A."""
+    if not math.isfinite(I):
+        return 0.0, True
+    if I < 0.0:
+        return 0.0, True
+    if I > I_max:
+        return I_max, True
+    return I, False
+
+
+class BenchDevice:
+    """SimBench + device logic (setpoint, watchdog, status) on a fixed-rate clock."""
+
+    def __init__(self, cfg: BenchConfig, state: DeviceState, truth: TruthLog | None = None,
+                 wait: str = "hybrid", spin_margin_s: float = 2e-4) -> None:
+        self.cfg = cfg
+        self.state = state
+        self.truth = truth
+        self.bench = SimBench(cfg.params, cfg.excitation, cfg.dt, cfg.driver_tau_s,
+                              cfg.make_sensors(), cfg.load_cell)
+        self._sensors = self.bench.sensors
+        self.loop = FixedRateLoop(cfg.rate_hz, wait=wait, spin_margin_s=spin_margin_s)
+        self.I_max = cfg.I_max_A
+        self.default_watchdog_ns = cfg.watchdog_ms * 1_000_000
+        self._base_status = 0 if cfg.load_cell else _NO_LOAD_CELL
+        self._tripped = False  # WATCHDOG_TRIPPED latch
+        self._expired = False  # watchdog expired now (setpoints absent)
+        self._clears_seen = 0
+        self.k_last = -1
+        self.ticks = 0
+        #: times the watchdog expired (one per stretch of absent setpoints)
+        self.watchdog_trips = 0
+        self.first_trip_k: int | None = None
+        self.clamped_ticks = 0
+        #: set once the first sample is published (the process may say READY)
+        self.first_tick = threading.Event()
+
+    # -- the tick -------------------------------------------------------------
+    def tick(self, k: int, now_ns: int) -> None:
+        b = self.bench
+        if k != self.k_last + 1 and self._sensors is not None:
+            self._skip_noise(k - self.k_last - 1)
+        b.begin_tick(k)
+        x_m, v_m, F_m = b.sample()
+        I_req, enable, sp_ns, wd_ms, clears = self.state.setpoint_ex()
+        if clears != self._clears_seen:
+            self._clears_seen = clears
+            self._tripped = False
+        status = self._base_status
+        if sp_ns == 0:
+            # Watchdog from power-up: 0 A until the first setpoint (not a trip).
+            I = 0.0
+        elif now_ns - sp_ns > (wd_ms * 1_000_000 if wd_ms > 0 else self.default_watchdog_ns):
+            I = 0.0
+            if not self._expired:
+                self._expired = True
+                self.watchdog_trips += 1
+                if self.first_trip_k is None:
+                    self.first_trip_k = k
+            self._tripped = True
+        else:
+            self._expired = False
+            I, clamped = clamp_setpoint(I_req, self.I_max)
+            if clamped:
+                status |= _CURRENT_CLAMPED
+                self.clamped_ticks += 1
+            if enable:
+                status |= _OUTPUT_ENABLED
+            else:
+                I = 0.0
+        if self._tripped:
+            status |= _WATCHDOG_TRIPPED
+        b.command(I)
+        t = b.t
+        I_app = b.I_applied
+        self.state.publish(Sample(k & _U32, t, x_m, v_m, F_m, status, I_app))
+        if self.truth is not None:
+            self.truth.record((k, t, b.x, b.v, b.F, b.I_cmd, I_app, x_m, v_m, F_m, status))
+        self.k_last = k
+        self.ticks += 1
+        if not self.first_tick.is_set():
+            self.first_tick.set()
+
+    def _skip_noise(self, n: int) -> None:
+        """Draw the noise of ``n`` skipped ticks, so tick k's noise depends on
+        (seed, k) only, not on which deadlines the clock happened to miss."""
+        s = self._sensors
+        for _ in range(n):
+            s.x(0.0)
+            s.v(0.0)
+            s.F(0.0)
+
+    def safe_tick(self) -> None:
+        """One last tick at 0 A with the output disabled (on stop)."""
+        k = self.k_last + 1
+        b = self.bench
+        b.begin_tick(k)
+        x_m, v_m, F_m = b.sample()
+        b.command(0.0)
+        status = self._base_status | (_WATCHDOG_TRIPPED if self._tripped else 0)
+        self.state.publish(Sample(k & _U32, b.t, x_m, v_m, F_m, status, b.I_applied))
+        if self.truth is not None:
+            self.truth.record((k, b.t, b.x, b.v, b.F, b.I_cmd, b.I_applied, x_m, v_m, F_m, status))
+        self.k_last = k
+        self.ticks += 1
+
+    # -- running ----------------------------------------------------------------
+    def run(self, duration_s: float | None = None) -> int:
+        """Run the clock until :meth:`stop` or ``duration_s``; then one 0 A tick."""
+        try:
+            return self.loop.run(self.tick, duration_s=duration_s)
+        finally:
+            self.safe_tick()
+            self.first_tick.set()
+
+    def stop(self) -> None:
+        """Stop after the current tick (thread- and signal-safe)."""
+        self.loop.stop()
+
+    def summary(self) -> dict:
+        timing = self.loop.stats.summary()
+        return {
+            "ticks": self.ticks,
+            "last_k": self.k_last,
+            "rate_hz": self.cfg.rate_hz,
+            "watchdog_ms": self.cfg.watchdog_ms,
+            "watchdog_trips": self.watchdog_trips,
+            "first_watchdog_trip_k": self.first_trip_k,
+            "clamped_ticks": self.clamped_ticks,
+            "setpoints_received": self.state.setpoints_received,
+            "requests_served": self.state.requests_served,
+            "timing": timing,
+        }

@@ -1,0 +1,149 @@
+"""Bench YAML → validated config for ``python -m hil_sim``.
+
+Reuses mrctl's strict YAML loader and schema machinery (:mod:`mrctl.config`)
+and the very same field specs for ``rate_hz``, ``parameters``, ``excitation``
+and ``plant``, so a section copied from an experiment file means the same
+thing here. Every error names its key path; all errors are collected.
+
+The sensor-noise seed is the top-level ``seed`` (overridable with
+``--seed``), not ``plant.sensors.seed``: one seed for the whole bench.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mrctl.config import (
+    Bool,
+    ConfigError,
+    Node,
+    Num,
+    Section,
+    Str,
+    _validate_fields,
+    experiment_schema,
+    load_yaml,
+)
+from mrctl.experiment import EXCITATIONS
+from mrctl.model.params import LuGreParams
+from mrctl.model.plant import Sensors
+
+__all__ = ["BenchConfig", "bench_schema", "load_bench_config", "validate_bench", "ConfigError"]
+
+#: Largest current the simulated driver accepts (A); above → clamped + CURRENT_CLAMPED.
+DEFAULT_I_MAX_A = 2.0
+DEFAULT_WATCHDOG_MS = 50
+
+_SENSOR_KEYS = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")
+
+
+def bench_schema(base_dir: Path) -> dict[str, Any]:
+    """The bench schema; relative file paths resolve against ``base_dir``."""
+    exp = experiment_schema(base_dir)
+    sensors = {k: v for k, v in exp["plant"].fields["sensors"].fields.items() if k != "seed"}
+    return {
+        "version": exp["version"],
+        "name": Str(default=None, optional=True),
+        "description": Str(default=None, optional=True),
+        "rate_hz": exp["rate_hz"],
+        "duration_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=7 * 86400.0,
+                          doc="stop after this many seconds; none = until SIGTERM/SIGINT"),
+        "seed": Num(default=0, integer=True, min=0, doc="sensor-noise seed"),
+        "parameters": exp["parameters"],
+        "excitation": exp["excitation"],
+        "plant": Section({
+            "driver_tau_s": exp["plant"].fields["driver_tau_s"],
+            "sensors": Section(sensors),
+        }),
+        "load_cell": Bool(default=True, doc="false: F is NaN and NO_LOAD_CELL is set"),
+        "watchdog_ms": Num(default=DEFAULT_WATCHDOG_MS, integer=True, min=1, max=60000,
+                           doc="device watchdog when the host asks for the default (SETPOINT watchdog_ms 0, Modbus)"),
+        "I_max_A": Num(default=DEFAULT_I_MAX_A, min=0.0, min_exclusive=True, max=10.0,
+                       doc="driver range: larger setpoints are clamped and flagged CURRENT_CLAMPED"),
+    }
+
+
+@dataclass
+class BenchConfig:
+    """Everything the bench process needs, as live objects."""
+
+    node: Node
+    source: str | None
+    rate_hz: float
+    duration_s: float | None
+    seed: int
+    params: LuGreParams
+    excitation: Any
+    driver_tau_s: float
+    sensor_kw: dict[str, float]
+    load_cell: bool
+    watchdog_ms: int
+    I_max_A: float
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+    def make_sensors(self) -> Sensors | None:
+        """Sensor model (seeded), or None when it would be the identity."""
+        if not any(self.sensor_kw.values()):
+            return None
+        return Sensors(self.seed, **self.sensor_kw)
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-able echo of the effective config (for the truth-log summary)."""
+        d = self.node.to_dict()
+        d["parameters"] = self.params.as_dict()
+        d["seed"] = self.seed
+        d["duration_s"] = self.duration_s
+        d["source"] = self.source
+        return d
+
+
+def validate_bench(data: Any, base_dir: Path, source: str | None = None,
+                   seed: int | None = None, duration_s: float | None = None) -> BenchConfig:
+    """Validate parsed YAML (+ CLI overrides); raises ConfigError listing every problem."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
+    node, errors = _validate_fields(bench_schema(base_dir), data, "")
+    exc = node.get("excitation")
+    if not errors and exc is not None and exc.get("type") == "chirp" and exc.get("f0_hz") == exc.get("f1_hz"):
+        errors.append("excitation.f1_hz: must differ from f0_hz (use type: sine for one frequency)")
+    if seed is not None and seed < 0:
+        errors.append(f"--seed: must be >= 0, got {seed}")
+    if duration_s is not None and not (duration_s > 0 and math.isfinite(duration_s)):
+        errors.append(f"--duration: must be a positive number of seconds, got {duration_s!r}")
+    if errors:
+        raise ConfigError(errors, source)
+    try:
+        excitation = EXCITATIONS[exc.type](exc)
+    except ValueError as e:
+        raise ConfigError([f"excitation.path: {e}"], source) from None
+    s = node.plant.sensors
+    return BenchConfig(
+        node=node,
+        source=source,
+        rate_hz=float(node.rate_hz),
+        duration_s=duration_s if duration_s is not None else node.duration_s,
+        seed=seed if seed is not None else int(node.seed),
+        params=node.parameters,
+        excitation=excitation,
+        driver_tau_s=float(node.plant.driver_tau_s),
+        sensor_kw={k: float(s.get(k)) for k in _SENSOR_KEYS},
+        load_cell=bool(node.load_cell),
+        watchdog_ms=int(node.watchdog_ms),
+        I_max_A=float(node.I_max_A),
+    )
+
+
+def load_bench_config(path: str | Path, seed: int | None = None,
+                      duration_s: float | None = None) -> BenchConfig:
+    """Load and validate a bench YAML file (CLI overrides applied on top)."""
+    p = Path(path)
+    return validate_bench(load_yaml(p), p.parent, str(p), seed=seed, duration_s=duration_s)
+

@@ -1,0 +1,288 @@
+"""Serial transport: the framed binary protocol (docs/protocol.md) on a pty.
+
+:class:`PtyEndpoint` creates a pseudo-terminal pair and publishes the
+*host-side* tty (the slave, e.g. ``/dev/pts/7``) as a symlink at the
+``--link`` path, so the host opens it like a real port
+(``serial_for_url('/tmp/mrctl-sim-tty')``). The device side is the master
+fd. The process keeps the slave fd open itself, so the host may close and
+reopen the port without the master seeing EIO.
+
+:class:`SerialDevice` serves the protocol on the master fd from its own
+thread (the device's "UART interrupt"): it decodes SETPOINT frames with
+:class:`~mrctl.io.protocol.FrameDecoder`, hands each to
+:meth:`DeviceState.set_setpoint` (which restarts the watchdog) and replies
+at once with a SAMPLE built from :meth:`DeviceState.latest_sample`, echoing
+the host's seq. The reply never waits for the clock: it carries the latest
+*completed* measurement, as the protocol requires.
+
+Device-side obligations implemented here (the clock thread does the rest,
+see :mod:`hil_sim.bench`):
+
+* ERROR ``BAD_VERSION`` (detail = 1) for a CRC-valid frame of another
+  version; nothing applied.
+* ERROR ``BAD_CRC`` (echo = last good host seq) when a candidate frame fails
+  its CRC; the applied current is not changed.
+* ERROR ``UNKNOWN_TYPE`` for a valid v1 frame that is not a SETPOINT.
+* ``RX_ERROR`` in the reply status, latched from the first corrupt or
+  discarded input until a SETPOINT with ``CLEAR_FAULTS``.
+* ``CURRENT_CLAMPED`` in the reply to an out-of-range or non-finite setpoint.
+
+SAMPLE ``seq`` is the device tick index k of the measurement (mod 2**32),
+not a count of frames sent: it is what aligns host logs with the truth log.
+Two replies within one tick therefore carry the same seq, and a gap is the
+number of device ticks between two requests.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import select
+import stat
+import sys
+import threading
+import time
+import tty
+from pathlib import Path
+
+from mrctl.io.base import Status
+from mrctl.io.protocol import (
+    PROTOCOL_VERSION,
+    ErrorCode,
+    ErrorFrame,
+    ForeignFrame,
+    FrameDecoder,
+    SampleFrame,
+    SetpointFlag,
+    SetpointFrame,
+    encode_error,
+    encode_sample,
+)
+
+from hil_sim.bench import clamp_setpoint
+from hil_sim.state import DeviceState
+
+__all__ = ["LinkPathError", "PtyEndpoint", "SerialDevice", "run_server"]
+
+_U32 = 0xFFFFFFFF
+_ENABLE = int(SetpointFlag.ENABLE)
+_CLEAR = int(SetpointFlag.CLEAR_FAULTS)
+_RX_ERROR = int(Status.RX_ERROR)
+_CLAMPED = int(Status.CURRENT_CLAMPED)
+_WATCHDOG_TRIPPED = int(Status.WATCHDOG_TRIPPED)
+_POLL_S = 0.05  # how often the server looks at its stop event
+_WRITE_BUDGET_S = 0.01  # how long a reply may wait for room in the pty buffer
+
+
+class LinkPathError(Exception):
+    """The ``--link`` path can't be used (a regular file, missing directory...)."""
+
+
+class PtyEndpoint:
+    """A pty pair whose host-side tty is symlinked at ``link_path``.
+
+    An existing symlink at ``link_path`` is replaced (atomically); anything
+    else there (a regular file, a directory) is refused. :meth:`close`
+    removes the symlink if it still points at this pty, and closes both fds.
+    """
+
+    def __init__(self, link_path: str | os.PathLike[str]) -> None:
+        self.link = Path(link_path)
+        try:
+            st = os.lstat(self.link)
+        except FileNotFoundError:
+            st = None
+        except OSError as e:
+            raise LinkPathError(f"link path {self.link}: {e.strerror}") from None
+        if st is not None and not stat.S_ISLNK(st.st_mode):
+            kind = ("a regular file" if stat.S_ISREG(st.st_mode)
+                    else "a directory" if stat.S_ISDIR(st.st_mode) else "not a symlink")
+            raise LinkPathError(f"link path {self.link} is {kind}; refusing to replace it "
+                                "(remove it or choose another --link)")
+        if not self.link.parent.is_dir():
+            raise LinkPathError(f"link path {self.link}: directory {self.link.parent} does not exist")
+        self.master_fd, self.slave_fd = os.openpty()
+        self._linked = False
+        try:
+            tty.setraw(self.slave_fd)  # no echo / CR-LF mangling before the host configures it
+            self.tty_path = os.ttyname(self.slave_fd)
+            tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+            os.symlink(self.tty_path, tmp)
+            os.replace(tmp, self.link)
+            self._linked = True
+            os.set_blocking(self.master_fd, False)
+        except OSError as e:
+            self._close_fds()
+            raise LinkPathError(f"link path {self.link}: cannot create symlink: {e.strerror}") from None
+
+    def _close_fds(self) -> None:
+        for fd in (self.master_fd, self.slave_fd):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.master_fd = self.slave_fd = -1
+
+    def close(self) -> None:
+        """Remove the symlink (if still ours) and close the pty. Idempotent."""
+        if self._linked:
+            self._linked = False
+            try:
+                if os.readlink(self.link) == self.tty_path:
+                    os.unlink(self.link)
+            except OSError:
+                pass
+        if self.master_fd >= 0:
+            self._close_fds()
+
+    def __enter__(self) -> "PtyEndpoint":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SerialDevice:
+    """Serves the binary protocol on a (non-blocking) fd until ``stop`` is set."""
+
+    def __init__(self, state: DeviceState, fd: int, stop: threading.Event, I_max_A: float = 2.0) -> None:
+        self.state = state
+        self.fd = fd
+        self.stop = stop
+        self.I_max = I_max_A
+        self.dec = FrameDecoder()
+        self._rx_error = False  # latched RX_ERROR
+        self._clear_seq: int | None = None  # sample seq whose WATCHDOG bit a CLEAR_FAULTS masks
+        self._last_good_seq = 0
+        self.setpoints = 0
+        self.replies = 0
+        self.errors_sent = 0
+        self.replies_dropped = 0
+        self.bad_version = 0
+        self.unknown_type = 0
+
+    def counters(self) -> dict[str, int]:
+        d = self.dec
+        return {
+            "setpoints": self.setpoints,
+            "replies": self.replies,
+            "errors_sent": self.errors_sent,
+            "replies_dropped": self.replies_dropped,
+            "crc_errors": d.crc_errors,
+            "header_errors": d.header_errors,
+            "bytes_discarded": d.bytes_discarded,
+            "unknown_frames": d.unknown_frames,
+            "bad_version": self.bad_version,
+            "unknown_type": self.unknown_type,
+        }
+
+    # -- I/O ------------------------------------------------------------------
+    def serve(self) -> None:
+        poller = select.poll()
+        poller.register(self.fd, select.POLLIN)
+        timeout_ms = int(_POLL_S * 1000)
+        while not self.stop.is_set():
+            if not poller.poll(timeout_ms):
+                continue
+            try:
+                data = os.read(self.fd, 4096)
+            except BlockingIOError:
+                continue
+            except OSError as e:
+                if e.errno == errno.EIO:  # no host has the tty open (cannot happen while we hold it)
+                    time.sleep(_POLL_S)
+                    continue
+                raise
+            if data:
+                self.handle(data)
+
+    def _send(self, frame: bytes) -> bool:
+        if _write_all(self.fd, frame):
+            return True
+        self.replies_dropped += 1
+        return False
+
+    # -- protocol ---------------------------------------------------------------
+    def handle(self, data: bytes) -> None:
+        """Feed received bytes; answer every complete frame."""
+        dec = self.dec
+        crc0, bad0 = dec.crc_errors, dec.bytes_discarded
+        frames = dec.feed(data)
+        if dec.bytes_discarded != bad0 or dec.crc_errors != crc0:
+            self._rx_error = True
+        if dec.crc_errors != crc0:
+            self._error(self._last_good_seq, ErrorCode.BAD_CRC)
+        for f in frames:
+            if isinstance(f, SetpointFrame):
+                self._setpoint(f)
+            elif isinstance(f, ForeignFrame):
+                self.bad_version += 1
+                self._rx_error = True
+                self._error(f.seq, ErrorCode.BAD_VERSION, PROTOCOL_VERSION)
+            elif isinstance(f, (SampleFrame, ErrorFrame)):
+                self.unknown_type += 1
+                self._rx_error = True
+                self._error(f.seq, ErrorCode.UNKNOWN_TYPE)
+
+    def _setpoint(self, f: SetpointFrame) -> None:
+        clear = bool(f.flags & _CLEAR)
+        self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear)
+        self.setpoints += 1
+        self._last_good_seq = f.seq
+        s = self.state.latest_sample()
+        if clear:
+            self._rx_error = False
+            self._clear_seq = s.seq
+        status = s.status & ~_CLAMPED
+        if clamp_setpoint(f.current_A, self.I_max)[1]:
+            status |= _CLAMPED
+        if self._rx_error:
+            status |= _RX_ERROR
+        if self._clear_seq == s.seq:
+            status &= ~_WATCHDOG_TRIPPED  # cleared before this reply; the clock catches up next tick
+        reply = encode_sample(s.seq, f.seq, round(s.t_dev_s * 1e6) & _U32, s.x_m, s.v_mps, s.F_N,
+                              s.current_A, status)
+        if self._send(reply):
+            self.replies += 1
+
+    def _error(self, echo_seq: int, code: int, detail: int = 0) -> None:
+        s = self.state.latest_sample()
+        if self._send(encode_error(s.seq, echo_seq, code, detail)):
+            self.errors_sent += 1
+
+
+def _write_all(fd: int, data: bytes) -> bool:
+    view = memoryview(data)
+    deadline = None
+    while view:
+        try:
+            view = view[os.write(fd, view):]
+        except BlockingIOError:
+            now = time.monotonic()
+            if deadline is None:
+                deadline = now + _WRITE_BUDGET_S
+            elif now >= deadline:
+                return False
+            select.select([], [fd], [], deadline - now)
+    return True
+
+
+def run_server(target, name: str, failed: list[str], stop: threading.Event) -> threading.Thread:
+    """Run ``target()`` in a daemon thread; an exception is reported, recorded
+    in ``failed`` and sets ``stop`` (the process then exits non-zero)."""
+
+    def body() -> None:
+        try:
+            target()
+        except BaseException as e:  # noqa: BLE001 - a server thread must not die silently
+            failed.append(f"{name}: {type(e).__name__}: {e}")
+            print(f"hil_sim: {name} failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+            stop.set()
+
+    t = threading.Thread(target=body, name=f"hil_sim-{name}", daemon=True)
+    t.start()
+    return t

@@ -1,0 +1,163 @@
+"""Ground-truth log of the simulated bench: one CSV row per device tick.
+
+Columns (SI units)::
+
+    k,t,x,v,F_true,I_cmd,I_applied,x_meas,v_meas,F_meas,status
+
+``k`` is the tick index, which is also the device ``seq`` of the sample
+published at that tick (``seq = k mod 2**32``), so a host log that records
+the device seq aligns with this file exactly. ``x, v, F_true`` are the plant's
+true values at tick k, ``I_cmd`` the driver input the device applied at tick
+k (after enable, watchdog and clamping), ``I_applied`` the driver output
+(after its lag), ``*_meas`` what the sensors reported in the sample of tick k
+(``F_meas`` is the previous tick's force, NaN without a load cell) and
+``status`` the sample's :class:`mrctl.io.base.Status` bits.
+
+Design — the clock thread never waits on the disk: :meth:`TruthLog.record`
+appends the row tuple to a list; every ``batch_ticks`` rows (0.1 s) the list
+is handed to the writer thread with a non-blocking ``put_nowait`` on a
+bounded queue. If the queue is full (disk stalled), the batch is dropped and
+counted (``dropped_rows``) rather than blocking the clock. The writer
+formats a batch (``%r``: exact floats), writes it and flushes the file after
+every batch, i.e. about 10 times a second. :meth:`close` hands over the rest,
+joins the writer and writes a JSON summary beside the CSV (``truth.csv`` →
+``truth.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["COLUMNS", "TruthLog", "summary_path"]
+
+COLUMNS = ("k", "t", "x", "v", "F_true", "I_cmd", "I_applied", "x_meas", "v_meas", "F_meas", "status")
+_ROW_FMT = "%d,%r,%r,%r,%r,%r,%r,%r,%r,%r,%d\n"
+_STOP = None
+
+
+def summary_path(csv_path: str | Path) -> Path:
+    """The JSON summary beside a truth CSV: same stem, ``.json``."""
+    p = Path(csv_path)
+    s = p.with_suffix(".json")
+    return s if s != p else p.with_name(p.name + ".summary.json")
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else repr(obj)
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    return str(obj)
+
+
+class TruthLog:
+    """Non-blocking per-tick CSV writer (see module doc)."""
+
+    def __init__(self, path: str | Path, rate_hz: float = 1000.0, batch_s: float = 0.1,
+                 queue_batches: int = 100) -> None:
+        self.path = Path(path)
+        # Open (and write the header) in the caller's thread, so a bad path
+        # is an error at start-up, not a silent writer-thread failure.
+        self._fh = open(self.path, "w", encoding="ascii", newline="")
+        self._fh.write(",".join(COLUMNS) + "\n")
+        self._fh.flush()
+        self.batch_ticks = max(1, int(rate_hz * batch_s))
+        self._q: queue.Queue[list[tuple] | None] = queue.Queue(maxsize=queue_batches)
+        self._batch: list[tuple] = []
+        self.recorded_rows = 0  #: rows handed to record() (clock side)
+        self.dropped_rows = 0  #: rows dropped because the queue was full
+        self.written_rows = 0  #: rows written by the writer
+        self.lost_rows = 0  #: rows discarded after a write error
+        self.flushes = 0
+        self.error: str | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._writer, name="hil_sim-truth", daemon=True)
+        self._thread.start()
+
+    # -- clock side ---------------------------------------------------------
+    def record(self, row: tuple) -> None:
+        """Append one row (never blocks)."""
+        b = self._batch
+        b.append(row)
+        if len(b) >= self.batch_ticks:
+            self._handover()
+
+    def _handover(self) -> None:
+        b = self._batch
+        if not b:
+            return
+        self._batch = []
+        self.recorded_rows += len(b)
+        try:
+            self._q.put_nowait(b)
+        except queue.Full:
+            self.dropped_rows += len(b)
+
+    # -- writer side ----------------------------------------------------------
+    def _writer(self) -> None:
+        fh = self._fh
+        fmt = _ROW_FMT
+        while True:
+            batch = self._q.get()
+            if batch is _STOP:
+                break
+            if self.error is not None:
+                self.lost_rows += len(batch)
+                continue
+            try:
+                fh.write("".join([fmt % r for r in batch]))
+                fh.flush()
+                self.flushes += 1
+                self.written_rows += len(batch)
+            except (OSError, ValueError) as e:
+                self.error = f"{type(e).__name__}: {e}"
+                self.lost_rows += len(batch)
+
+    # -- end ------------------------------------------------------------------
+    def close(self, summary: dict[str, Any] | None = None, timeout_s: float = 10.0) -> dict[str, Any]:
+        """Write the remaining rows, stop the writer, write the JSON summary.
+
+        Returns the summary dict (the caller's ``summary`` plus the log's own
+        counters). Idempotent; never raises for I/O errors (they are reported
+        in ``error``)."""
+        if self._closed:
+            return {}
+        self._closed = True
+        self._handover()
+        deadline = time.monotonic() + timeout_s
+        try:
+            self._q.put(_STOP, timeout=max(0.0, deadline - time.monotonic()))
+        except queue.Full:
+            self.error = self.error or "writer did not drain the queue in time"
+        self._thread.join(max(0.0, deadline - time.monotonic()))
+        try:
+            self._fh.close()
+        except OSError as e:
+            self.error = self.error or f"close: {e}"
+        out = dict(summary or {})
+        out["truth_log"] = {
+            "path": str(self.path),
+            "columns": list(COLUMNS),
+            "rows_recorded": self.recorded_rows,
+            "rows_written": self.written_rows,
+            "rows_dropped": self.dropped_rows,
+            "rows_lost": self.lost_rows,
+            "error": self.error,
+        }
+        try:
+            sp = summary_path(self.path)
+            sp.write_text(json.dumps(_jsonable(out), indent=2) + "\n")
+        except OSError as e:
+            print(f"hil_sim: cannot write truth summary: {e}", file=sys.stderr)
+        return out
