@@ -10,9 +10,14 @@ Two measures, both before the loop starts:
    cannot: USB-serial latency timers, device turnaround, a slow server.
 
 The tick needs the exchange *and* the compute to fit in one period; we
-allow the link 80 % of it. If it does not fit, the run is refused, or, with
+allow the link 80 % of it. What the link *sustains* decides: the wire time
+and the median round trip. If they do not fit, the run is refused, or, with
 ``link.on_infeasible: reduce_rate``, run at the highest standard rate that
-fits, with a clear message either way.
+fits, with a clear message either way. A tail (p99) beyond the budget with a
+median inside it is a warning, not a refusal: on a shared or non-RT host a
+few exchanges are late, and the safety supervisor bridges those with its
+hold (and counts them); a short probe's p99 is also little more than its
+single worst sample.
 """
 
 from __future__ import annotations
@@ -81,7 +86,7 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
     budget = LINK_SHARE / rate_hz
     p50 = statistics.median(rtts) if rtts else None
     p99 = sorted(rtts)[min(len(rtts) - 1, int(0.99 * len(rtts)))] if rtts else None
-    need = max(x for x in (wire_s, p99, 0.0) if x is not None)
+    need = max(x for x in (wire_s, p50, 0.0) if x is not None)
     if rtts == [] and errors:
         return Feasibility(rate_hz, wire_s, None, None, errors, False, None,
                            f"{what}: no reply to any of {errors} probe exchanges; check the cable, address and baud rate")
@@ -92,8 +97,12 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
         parts.append(f"measured round trip p50 {p50 * 1e3:.2f} ms, p99 {p99 * 1e3:.2f} ms")  # type: ignore[operator]
     how = " and ".join(parts) if parts else "no measurement"
     if need <= budget and (not rtts or errors <= len(rtts) // 10):
+        tail = ""
+        if p99 is not None and p99 > budget:
+            tail = (f"; warning: the p99 exceeds it, expect some late samples "
+                    f"(bridged by safety.hold_ticks, counted in the run log)")
         return Feasibility(rate_hz, wire_s, p50, p99, errors, True, None,
-                           f"{what}: {how} per tick fits {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed)")
+                           f"{what}: {how} per tick fits {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed){tail}")
     if need <= budget:
         return Feasibility(rate_hz, wire_s, p50, p99, errors, False, None,
                            f"{what}: {errors} of {errors + len(rtts)} probe exchanges failed; the link is unreliable")

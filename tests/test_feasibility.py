@@ -65,3 +65,11 @@ def test_unreliable_and_dead_links_are_refused():
     assert not f.ok and "unreliable" in f.message
     f = assess(100.0, None, [], 30)
     assert not f.ok and "no reply" in f.message
+
+
+def test_a_tail_beyond_the_budget_warns_but_the_median_decides():
+    rtts = [0.0002] * 95 + [0.003] * 5  # p50 0.2 ms, p99 3 ms
+    f = assess(1000.0, 0.0006, rtts)
+    assert f.ok and "warning: the p99 exceeds" in f.message
+    f = assess(1000.0, 0.0006, [0.0012] * 100)  # the median itself does not fit
+    assert not f.ok and f.suggested_rate_hz == 500.0
