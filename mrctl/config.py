@@ -290,6 +290,8 @@ def load_params_file(path: str | Path) -> LuGreParams:
 
 def _make_params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
+        if value is None and path.endswith("plant.parameters"):
+            return None, []  # the simulated damper uses the law's set
         if value is None or value == "table1":
             return LuGreParams(), []
         if isinstance(value, str):
@@ -474,6 +476,10 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "status_socket": Str(default=None, optional=True, doc="Unix socket for mrctl status"),
         }),
         "plant": Section({
+            "parameters": Custom(_make_params_check(base_dir), default=None,
+                                 doc="the simulated damper's own parameter set (same forms as parameters); "
+                                     "null = the law's set. Set it to test a law with identified parameters "
+                                     "against a known damper"),
             "driver_tau_s": Num(default=0.0, min=0.0, max=1.0, doc="current-driver lag (s), 0 = ideal"),
             "sensors": Section({
                 "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),
@@ -530,6 +536,9 @@ def _cross_checks(cfg: Node) -> list[str]:
     params = cfg.get("parameters")
     if isinstance(params, LuGreParams) and isinstance(I_max, float):
         errors += [f"parameters: {e}" for e in params.check_range(I_max)]
+    plant_params = cfg.plant.get("parameters") if "plant" in cfg else None
+    if isinstance(plant_params, LuGreParams) and isinstance(I_max, float):
+        errors += [f"plant.parameters: {e}" for e in plant_params.check_range(I_max)]
     inv = cfg.get("inverse")
     if inv is not None and inv.get("law") == "constant" and isinstance(I_max, float):
         cur = inv.get("current_A")

@@ -52,8 +52,13 @@ class Experiment:
     def name(self) -> str:
         return self.config.name or "run"
 
+    @property
+    def plant_params(self) -> LuGreParams:
+        """The simulated damper's parameters: ``plant.parameters``, else the law's."""
+        return self.config.plant.parameters or self.params
+
     def make_plant(self) -> DamperPlant:
-        return DamperPlant(self.params, self.dt, self.config.plant.driver_tau_s)
+        return DamperPlant(self.plant_params, self.dt, self.config.plant.driver_tau_s)
 
     def make_sensors(self) -> Sensors | None:
         """Sensor model, or None when it would be the identity (fast path)."""

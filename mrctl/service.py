@@ -221,7 +221,7 @@ def make_backend(exp: Experiment) -> Any:
         from mrctl.io.sim import SimLink
         from mrctl.model.bench import SimBench
 
-        bench = SimBench(exp.params, exp.excitation, exp.dt, exp.config.plant.driver_tau_s, exp.make_sensors())
+        bench = SimBench(exp.plant_params, exp.excitation, exp.dt, exp.config.plant.driver_tau_s, exp.make_sensors())
         return SimLink(bench)
     if kind == "serial":
         from mrctl.io.serial import SerialLink
