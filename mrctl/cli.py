@@ -115,6 +115,12 @@ def cmd_status(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_identify(args: argparse.Namespace) -> int:
+    from mrctl.identify import cli_identify
+
+    return cli_identify(args.runs, args.out, method=args.method, report_png=args.report)
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     from mrctl.feasibility import assess, wire_time_s
 
@@ -165,6 +171,14 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
     st.add_argument("--json", action="store_true", help="print the raw JSON")
     st.set_defaults(func=cmd_status)
+
+    ip = sub.add_parser("identify", help="fit the LuGre parameter set from constant-current sine runs")
+    ip.add_argument("runs", nargs="+", help="run CSVs (simulate or run) with a constant-current schedule")
+    ip.add_argument("--out", required=True, help="parameters YAML to write (usable as parameters: FILE)")
+    ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
+                    help="optimiser (docs/identification.md); default trf")
+    ip.add_argument("--report", help="also draw Figs 2 and 3 of the paper to this PNG")
+    ip.set_defaults(func=cmd_identify)
 
     cp = sub.add_parser("check", help="validate an experiment config; lists every error")
     cp.add_argument("config")

@@ -236,3 +236,166 @@ def make_report(csv_path: str | os.PathLike[str], out_path: str | os.PathLike[st
         fig.savefig(out_path, format="png")
     except OSError as exc:
         raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+
+
+# -- identification figure (paper's Figs 2 and 3) -----------------------------
+__all__ += ["make_identification_report"]
+
+#: Currents shown in the force–velocity panel (the paper's Fig 2); the nearest
+#: identified current to each is drawn.
+FIG2_CURRENTS_A: tuple[float, ...] = (0.0, 0.25, 0.5)
+
+# (Θ name, label, unit scale, unit text) of the Fig 3 panels
+_THETA_PANELS = (
+    ("Fc", "Coulomb force $F_c$", 1.0, "N"),
+    ("Fs", "stiction force $F_s$", 1.0, "N"),
+    ("vs", "Stribeck velocity $v_s$", 1e3, "mm/s"),
+    ("sigma0", "bristle stiffness $\\sigma_0$", 1e-3, "kN/m"),
+    ("sigma1", "bristle damping $\\sigma_1$", 1.0, "N·s/m"),
+    ("sigma2", "viscous coefficient $\\sigma_2$", 1.0, "N·s/m"),
+)
+
+
+def _as_identification_result(runs_or_result, **identify_kwargs):
+    """An IdentificationResult, identifying first if given runs (paths or column dicts)."""
+    from mrctl.identify import IdentificationError, IdentificationResult, identify, load_identification_run
+
+    if isinstance(runs_or_result, IdentificationResult):
+        return runs_or_result
+    items = runs_or_result
+    if isinstance(items, (str, os.PathLike, dict)):
+        items = [items]
+    try:
+        runs, names = [], []
+        for k, item in enumerate(items):
+            if isinstance(item, (str, os.PathLike)):
+                runs.append(load_identification_run(item))
+                names.append(str(item))
+            else:
+                runs.append(item)
+                names.append(f"run {k + 1}")
+        return identify(runs, sources=names, **identify_kwargs)
+    except IdentificationError as exc:
+        raise ReportError(str(exc)) from None
+
+
+def make_identification_report(runs_or_result, out_path: str | os.PathLike[str], title: str | None = None,
+                               reference=None, show_reference: bool = True, **identify_kwargs) -> None:
+    """Write the identification PNG: the paper's Fig 2 and Fig 3 for this damper.
+
+    ``runs_or_result``: an :class:`mrctl.identify.IdentificationResult`, or run
+    CSV path(s) / column dict(s) to identify first (``identify_kwargs`` go to
+    :func:`mrctl.identify.identify`).
+
+    Top row: (a) force vs velocity at the identified currents nearest to
+    0, 0.25 and 0.5 A — measured samples as dots, the per-current fit as a
+    solid line, the 13-constant laws (6)–(11) dashed; (b) fit NRMSE per current
+    against the sensor-noise floor. Below, (c)–(h): each of the six parameters
+    vs current, identified values with ±2 standard errors (hollow where
+    poorly determined) and the fitted approximating law; Table I of the paper
+    (``reference``, default) as a thin grey line for comparison.
+    """
+    res = _as_identification_result(runs_or_result, **identify_kwargs)
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+        from matplotlib.lines import Line2D
+    except ImportError:
+        raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
+    from mrctl.identify import theta_from_params
+    from mrctl.model.params import TABLE_I
+
+    if reference is None and show_reference:
+        reference = TABLE_I
+    fits = res.fits
+    I = res.currents
+
+    fig = Figure(figsize=(14, 12.5), dpi=150, layout="constrained")
+    FigureCanvasAgg(fig)
+    gs = fig.add_gridspec(3, 3, height_ratios=(1.35, 1.0, 1.0))
+    ax_fv = fig.add_subplot(gs[0, :2])
+    ax_q = fig.add_subplot(gs[0, 2])
+
+    # (a) Fig 2: force–velocity loops
+    chosen: list[int] = []
+    for target in FIG2_CURRENTS_A:
+        k = int(np.argmin(np.abs(I - target)))
+        if k not in chosen:
+            chosen.append(k)
+    colors = ("tab:blue", "tab:orange", "tab:red", "tab:green", "tab:purple")
+    for c, k in zip(colors, chosen):
+        f = fits[k]
+        v_mms = 1e3 * f.v
+        ax_fv.plot(v_mms, f.F_fit, "-", lw=2.2, color=c, zorder=2, label=f"{f.current:.2f} A")
+        if f.F_laws.size:
+            ax_fv.plot(v_mms, f.F_laws, ls=(0, (2, 3)), lw=0.9, color="black", alpha=0.7, zorder=3)
+        # measured on top, small and translucent: the noise band shows around the fit
+        ax_fv.plot(v_mms, f.F_meas, ".", ms=1.6, color="0.15", alpha=0.18, zorder=4, rasterized=True)
+    ax_fv.set(xlabel="velocity (mm/s)", ylabel="force (N)",
+              title=f"(a) force–velocity at constant current, sine {1.0 / res.period_s:.3g} Hz (cf. paper Fig 2)")
+    cur_handles, cur_labels = ax_fv.get_legend_handles_labels()
+    style = [Line2D([], [], ls="none", marker=".", ms=6, color="0.15", alpha=0.5),
+             Line2D([], [], color="0.5", lw=2.2),
+             Line2D([], [], color="black", lw=0.9, ls=(0, (2, 3)))]
+    ax_fv.legend(cur_handles + style, cur_labels + ["measured", "fit at this current", "laws (6)–(11)"],
+                 loc="upper left", fontsize="small", ncol=2, framealpha=0.9)
+
+    # (b) fit quality per current
+    ax_q.plot(I, [100 * f.nrmse for f in fits], "o-", color="tab:blue", ms=4, label="per-current fit")
+    ax_q.plot(I, [100 * f.nrmse_laws for f in fits], "s--", color="black", ms=3.5, mfc="none",
+              label="laws (6)–(11)")
+    ax_q.plot(I, [100 * f.noise_nrmse for f in fits], ":", color="tab:gray", lw=2.0, label="sensor-noise floor")
+    ax_q.set(xlabel="current (A)", ylabel="NRMSE (% of peak-to-peak force)", title="(b) fit error")
+    ax_q.set_ylim(bottom=0.0)
+    ax_q.legend(fontsize="small")
+
+    # (c)–(h) Fig 3: parameters vs current
+    Ig = np.linspace(0.0, max(float(I.max()), 1e-3), 200)
+    law = np.array([theta_from_params(res.params, float(i)) for i in Ig])
+    ref = np.array([theta_from_params(reference, float(i)) for i in Ig]) if reference is not None else None
+    from mrctl.identify import THETA_NAMES
+
+    for n, (name, label, scale, unit) in enumerate(_THETA_PANELS):
+        ax = fig.add_subplot(gs[1 + n // 3, n % 3])
+        j = THETA_NAMES.index(name)
+        y = np.array([f.theta[name] for f in fits]) * scale
+        se = np.array([f.se.get(name, np.nan) for f in fits]) * abs(scale)
+        well = np.array([f.determined.get(name) == "well" for f in fits])
+        if ref is not None:
+            ax.plot(Ig, ref[:, j] * scale, color="0.6", lw=1.0, ls=":", zorder=1)
+        ax.plot(Ig, law[:, j] * scale, color="black", lw=1.3, zorder=2)
+        ax.errorbar(I, y, yerr=2 * se, fmt="none", ecolor="tab:blue", elinewidth=0.9, capsize=2, zorder=3)
+        ax.plot(I[well], y[well], "o", color="tab:blue", ms=5, zorder=4)
+        if (~well).any():
+            ax.plot(I[~well], y[~well], "o", mfc="white", mec="tab:blue", ms=5, zorder=4)
+        lf = res.laws.get(name)
+        extra = f"  (law rms {100 * lf.rel_rms:.1f} %)" if lf is not None else ""
+        ax.set(xlabel="current (A)", ylabel=f"{unit}", title=f"({'cdefgh'[n]}) {label}{extra}")
+        ax.grid(True, lw=0.5, alpha=0.5)
+        if name == "sigma1":
+            ax.axhline(0.0, color="0.3", lw=0.6)
+    for ax in (ax_fv, ax_q):
+        ax.grid(True, lw=0.5, alpha=0.5)
+    # one legend for (c)–(h), below the panels so it never covers data
+    p_handles = [Line2D([], [], ls="none", marker="o", ms=5, color="tab:blue"),
+                 Line2D([], [], ls="none", marker="o", ms=5, mfc="white", mec="tab:blue"),
+                 Line2D([], [], color="tab:blue", lw=0.9, marker="_", ms=8),
+                 Line2D([], [], color="black", lw=1.3)]
+    p_labels = ["identified (well determined)", "identified, poorly determined", "±2 standard errors",
+                "approximating law (6)–(11)"]
+    if ref is not None:
+        p_handles.append(Line2D([], [], color="0.6", lw=1.0, ls=":"))
+        p_labels.append("paper, Table I")
+    fig.legend(p_handles, p_labels, loc="outside lower center", ncol=len(p_handles), frameon=False,
+               fontsize="medium")
+
+    nr = [f.nrmse for f in fits]
+    poor = [k for k, v in res.summary_determined().items() if v != "well"]
+    head = title if title is not None else ("LuGre identification: " + ", ".join(Path(s).name for s in res.sources))
+    fig.suptitle(f"{head}\n{len(fits)} currents {I.min():.2f}–{I.max():.2f} A · optimiser {res.method} · "
+                 f"fit NRMSE {100 * min(nr):.2f}–{100 * max(nr):.2f} % · Fc law rms {res.laws['Fc'].rms:.3g} N"
+                 + (f" · poorly determined: {', '.join(poor)}" if poor else ""), fontsize="large")
+    try:
+        fig.savefig(out_path, format="png")
+    except OSError as exc:
+        raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
