@@ -103,6 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=_nonneg_int, default=None, help="sensor-noise seed (overrides seed)")
     ap.add_argument("--truth", type=Path, default=None, metavar="FILE.csv",
                     help="write the per-tick ground-truth log here (+ FILE.json summary at exit)")
+    ap.add_argument("--serve", choices=("inline", "thread"), default="inline",
+                    help="serial: serve the link from the clock thread while it spins (inline, "
+                         "lowest latency, one busy core) or from a blocking server thread")
     ap.add_argument("--wait", choices=("hybrid", "sleep", "spin"), default="hybrid",
                     help="clock wait strategy (default hybrid: sleep, then spin the last 0.2 ms)")
     return ap
@@ -200,10 +203,14 @@ def _run(args: argparse.Namespace) -> int:
     try:
         if args.truth is not None:
             try:
-                truth = TruthLog(args.truth, cfg.rate_hz)
+                # inline serving: no writer thread (it would cost the spinning
+                # clock GIL hand-offs); the clock formats rows in its idle spin
+                truth = TruthLog(args.truth, cfg.rate_hz,
+                                 threaded=not (args.transport == "serial" and args.serve == "inline"))
             except OSError as e:
                 raise StartupError(f"--truth {args.truth}: cannot open: {e.strerror}") from None
-        device = BenchDevice(cfg, state, truth, wait=args.wait)
+        inline = args.transport == "serial" and args.serve == "inline"
+        device = None if inline else BenchDevice(cfg, state, truth, wait=args.wait)
 
         # -- transport -----------------------------------------------------------
         ready_info: dict[str, str] = {"transport": args.transport}
@@ -218,7 +225,20 @@ def _run(args: argparse.Namespace) -> int:
             ready_info.update(link=str(args.link), tty=endpoint.tty_path)
         if args.transport == "serial":
             server = SerialDevice(state, endpoint.master_fd, stop, cfg.I_max_A)
-            threads.append(run_server(server.serve, "serial", failed, stop))
+            if inline:
+                # one thread spins, ticks the bench on time and serves the pty in
+                # between: a reply never waits for a thread wake-up (docs/hil_sim.md)
+                if truth is not None:
+                    poll, work = server.poll_once, truth.work_once
+
+                    def idle() -> None:
+                        poll()
+                        work()
+                else:
+                    idle = server.poll_once
+                device = BenchDevice(cfg, state, truth, wait="spin", idle=idle)
+            else:
+                threads.append(run_server(server.serve, "serial", failed, stop))
             server_ready.set()
         elif args.transport == "modbus-rtu":
             # The RTU server takes the pty master fd directly (the device side).

@@ -65,14 +65,14 @@ class BenchDevice:
     """SimBench + device logic (setpoint, watchdog, status) on a fixed-rate clock."""
 
     def __init__(self, cfg: BenchConfig, state: DeviceState, truth: TruthLog | None = None,
-                 wait: str = "hybrid", spin_margin_s: float = 2e-4) -> None:
+                 wait: str = "hybrid", spin_margin_s: float = 2e-4, idle=None) -> None:
         self.cfg = cfg
         self.state = state
         self.truth = truth
         self.bench = SimBench(cfg.params, cfg.excitation, cfg.dt, cfg.driver_tau_s,
                               cfg.make_sensors(), cfg.load_cell)
         self._sensors = self.bench.sensors
-        self.loop = FixedRateLoop(cfg.rate_hz, wait=wait, spin_margin_s=spin_margin_s)
+        self.loop = FixedRateLoop(cfg.rate_hz, wait=wait, spin_margin_s=spin_margin_s, idle=idle)
         self.I_max = cfg.I_max_A
         self.default_watchdog_ns = cfg.watchdog_ms * 1_000_000
         self._base_status = 0 if cfg.load_cell else _NO_LOAD_CELL

@@ -22,6 +22,14 @@ formats a batch (``%r``: exact floats), writes it and flushes the file after
 every batch, i.e. about 10 times a second. :meth:`close` hands over the rest,
 joins the writer and writes a JSON summary beside the CSV (``truth.csv`` →
 ``truth.json``).
+
+Cooperative mode (``threaded=False``), used when hil_sim serves its link
+inline from a spinning clock thread: there is then no second thread at all.
+A writer thread would need the GIL ten times a second for ~0.3 ms of
+formatting, and every hand-back of the GIL costs the spinning clock a thread
+wake-up, which on a VM can be milliseconds late. Instead the clock calls
+:meth:`work_once` from its idle spin; each call formats at most a few rows
+(a few µs) and writes the text once a batch is complete.
 """
 
 from __future__ import annotations
@@ -65,7 +73,7 @@ class TruthLog:
     """Non-blocking per-tick CSV writer (see module doc)."""
 
     def __init__(self, path: str | Path, rate_hz: float = 1000.0, batch_s: float = 0.1,
-                 queue_batches: int = 100) -> None:
+                 queue_batches: int = 100, threaded: bool = True) -> None:
         self.path = Path(path)
         # Open (and write the header) in the caller's thread, so a bad path
         # is an error at start-up, not a silent writer-thread failure.
@@ -82,8 +90,15 @@ class TruthLog:
         self.flushes = 0
         self.error: str | None = None
         self._closed = False
-        self._thread = threading.Thread(target=self._writer, name="hil_sim-truth", daemon=True)
-        self._thread.start()
+        self.threaded = threaded
+        # cooperative mode: rows waiting to be formatted, and formatted text
+        self._pending: list[tuple] = []
+        self._pos = 0
+        self._text: list[str] = []
+        self._thread: threading.Thread | None = None
+        if threaded:
+            self._thread = threading.Thread(target=self._writer, name="hil_sim-truth", daemon=True)
+            self._thread.start()
 
     # -- clock side ---------------------------------------------------------
     def record(self, row: tuple) -> None:
@@ -93,12 +108,47 @@ class TruthLog:
         if len(b) >= self.batch_ticks:
             self._handover()
 
+    def work_once(self, max_rows: int = 4) -> None:
+        """Cooperative mode: format up to ``max_rows`` rows; write a finished batch."""
+        p = self._pending
+        if self._pos >= len(p):
+            return
+        end = min(len(p), self._pos + max_rows)
+        fmt = _ROW_FMT
+        self._text.extend([fmt % r for r in p[self._pos:end]])
+        self._pos = end
+        if end == len(p):
+            self._write_text()
+
+    def _write_text(self) -> None:
+        n = len(self._text)
+        self._pending = []
+        self._pos = 0
+        if self.error is not None:
+            self.lost_rows += n
+            self._text = []
+            return
+        try:
+            self._fh.write("".join(self._text))
+            self._fh.flush()
+            self.flushes += 1
+            self.written_rows += n
+        except (OSError, ValueError) as e:
+            self.error = f"{self.path}: {e}"
+            self.lost_rows += n
+        self._text = []
+
     def _handover(self) -> None:
         b = self._batch
         if not b:
             return
         self._batch = []
         self.recorded_rows += len(b)
+        if not self.threaded:
+            if self._pending:  # the previous batch is not formatted yet: finish it now
+                self.work_once(len(self._pending))
+            self._pending = b
+            return
         try:
             self._q.put_nowait(b)
         except queue.Full:
@@ -135,12 +185,20 @@ class TruthLog:
             return {}
         self._closed = True
         self._handover()
+        if not self.threaded:
+            self.work_once(len(self._pending))
+            return self._finish(summary)
         deadline = time.monotonic() + timeout_s
         try:
             self._q.put(_STOP, timeout=max(0.0, deadline - time.monotonic()))
         except queue.Full:
             self.error = self.error or "writer did not drain the queue in time"
+        assert self._thread is not None
         self._thread.join(max(0.0, deadline - time.monotonic()))
+        return self._finish(summary)
+
+    def _finish(self, summary: dict[str, Any] | None) -> dict[str, Any]:
+        """Close the CSV and write the JSON summary beside it."""
         try:
             self._fh.close()
         except OSError as e:

@@ -60,6 +60,7 @@ class FixedRateLoop:
         clock: Callable[[], int] = time.monotonic_ns,
         sleep: Callable[[float], object] = time.sleep,
         stats: TimingStats | None = None,
+        idle: Callable[[], object] | None = None,
     ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
@@ -78,6 +79,10 @@ class FixedRateLoop:
         self._sleep = sleep
         self._mode = WAIT_STRATEGIES.index(wait)
         self._stop = False
+        #: called on every pass of the spin phase (spin, and hybrid's last part):
+        #: lets a single-threaded device serve its link while it waits, with no
+        #: thread wake-up in between (hil_sim's inline serving).
+        self._idle = idle
 
     def stop(self) -> None:
         """Ask the loop to end after the current tick.
@@ -130,14 +135,22 @@ class FixedRateLoop:
                 break
             deadline = t0 + k * period
             now = clock()
+            idle = self._idle
             if mode == _SPIN:
-                while now < deadline:
-                    now = clock()
+                if idle is None:
+                    while now < deadline:
+                        now = clock()
+                else:
+                    while now < deadline:
+                        idle()
+                        now = clock()
             elif mode == _HYBRID:
                 if deadline - now > margin:
                     sleep((deadline - margin - now) * 1e-9)
                     now = clock()
                 while now < deadline:
+                    if idle is not None:
+                        idle()
                     now = clock()
             else:
                 while now < deadline:

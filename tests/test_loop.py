@@ -487,3 +487,28 @@ def test_loop_thread_smoke_with_gc_disabled() -> None:
     with rt.rt_applied(rt.RtSettings(gc_disable=True)):
         assert loop.run(lambda k, now: True, max_ticks=10) == 10
     assert gc.isenabled()
+
+
+@pytest.mark.parametrize("wait", ["spin", "hybrid"])
+def test_idle_hook_runs_only_in_the_spin_phase(wait):
+    """hil_sim serves its link from this hook: it must run while the loop
+    waits for a deadline (and only then), never delaying a tick."""
+    clk = FakeClock(read_ns=1000)
+    events = []
+    loop = FixedRateLoop(1000.0, wait=wait, spin_margin_s=2e-4, clock=clk, sleep=clk.sleep,
+                         idle=lambda: events.append(("idle", clk.t)))
+    loop.run(lambda k, now: events.append(("tick", k)), max_ticks=5)
+    ticks = [e for e in events if e[0] == "tick"]
+    idles = [e for e in events if e[0] == "idle"]
+    assert len(ticks) == 5 and idles
+    # each idle call followed a clock reading taken before the deadline of the
+    # tick that came next (the fake clock advances read_ns per reading)
+    next_k = None
+    for e in reversed(events):
+        if e[0] == "tick":
+            next_k = e[1]
+        else:
+            assert next_k is not None, "idle after the last tick"
+            assert e[1] - clk.read_ns < loop.t_start_ns + next_k * loop.period_ns
+    if wait == "hybrid":  # the sleep covers all but the 0.2 ms margin
+        assert len(idles) <= 5 * (200_000 // 1000 + 2)

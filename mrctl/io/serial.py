@@ -90,6 +90,7 @@ class SerialLink:
         watchdog_ms: int = DEFAULT_WATCHDOG_MS,
         safe_on_close: bool = True,
         serial_kwargs: Mapping[str, Any] | None = None,
+        spin_wait: bool = True,
     ) -> None:
         """
         url: device path or pyserial URL. baudrate: Bd (nominal for USB-CDC).
@@ -100,6 +101,10 @@ class SerialLink:
         watchdog_ms: device watchdog requested in every SETPOINT (0..255; 0 =
             device default).
         safe_on_close: send a disabled 0 A SETPOINT before closing the port.
+        spin_wait: wait for the reply by polling the port without blocking
+            (busy for one round trip, ~0.1–0.3 ms) instead of sleeping in
+            select(): a sleeping thread wakes up to ~1.5 ms late on a VM
+            (docs/performance.md), which would cost the tick its reply.
         """
         if not 0 <= watchdog_ms <= 255:
             raise ValueError(f"watchdog_ms must be 0..255, got {watchdog_ms!r}")
@@ -121,6 +126,7 @@ class SerialLink:
         #: False → SETPOINTs go out without ENABLE (device holds 0 A, output off).
         self.enabled = True
         self._serial_kwargs = dict(serial_kwargs or {})
+        self.spin_wait = spin_wait
         self._port: Any = None
         self._seq = 0
         self._enc = SetpointEncoder()
@@ -178,7 +184,7 @@ class SerialLink:
             port = serial.serial_for_url(
                 self.url,
                 baudrate=self.baudrate,
-                timeout=self.poll_s,
+                timeout=0 if self.spin_wait else self.poll_s,  # 0: read() never blocks
                 write_timeout=self.write_timeout_s,
                 **self._serial_kwargs,
             )
