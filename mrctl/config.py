@@ -400,7 +400,11 @@ def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
 
 def experiment_schema(base_dir: Path) -> dict[str, Any]:
     """The experiment schema; relative file paths resolve against ``base_dir``."""
-    fcheck = Custom(_file_check(base_dir))
+    modbus_common = {
+        "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
+        "use_fc23": Custom(_optional_bool, default=None, doc="one FC23 transaction per tick; null = probe at start"),
+        "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+    }
     return {
         "version": Num(integer=True, min=CONFIG_VERSION, max=CONFIG_VERSION, doc="config format version (1)"),
         "name": Str(default=None, optional=True, doc="experiment name (logs, file titles)"),
@@ -505,19 +509,13 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                 "host": Str(default="127.0.0.1", doc="device address"),
                 "port": Num(default=502, integer=True, min=1, max=65535, doc="TCP port"),
                 "unit_id": Num(default=1, integer=True, min=0, max=247, doc="Modbus unit id"),
-                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
-                "use_fc23": Custom(_optional_bool, default=None,
-                                   doc="one FC23 transaction per tick; null = probe at start"),
-                "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+                **modbus_common,
             },
             "modbus-rtu": {
                 "url": Str(doc="serial device path (or any pyserial URL)"),
                 "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud"),
-                "unit_id": Num(default=1, integer=True, min=1, max=247, doc="Modbus unit id"),
-                "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
-                "use_fc23": Custom(_optional_bool, default=None,
-                                   doc="one FC23 transaction per tick; null = probe at start"),
-                "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+                "unit_id": Num(default=1, integer=True, min=1, max=247, doc="Modbus unit id (RTU: 1-247)"),
+                **modbus_common,
             },
         }, default="sim", doc="where samples come from and currents go"),
         "link": Section({
