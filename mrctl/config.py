@@ -377,6 +377,12 @@ def _cpu_list(value: Any, path: str) -> tuple[Any, list[str]]:
     return (frozenset(cpus) if not errors else None), errors
 
 
+def _lead_check(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value == "auto":
+        return "auto", []
+    return _check_num(Num(min=0.0, max=0.1), value, path)
+
+
 def _optional_bool(value: Any, path: str) -> tuple[Any, list[str]]:
     if value is None or isinstance(value, bool):
         return value, []
@@ -386,16 +392,15 @@ def _optional_bool(value: Any, path: str) -> tuple[Any, list[str]]:
 def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
     """The Modbus register map (docs/registers.md); null = the default map."""
     try:
-        from mrctl.io.registers import RegisterMap, default_register_map
+        from mrctl.io.registers import default_register_map
     except ImportError:  # pragma: no cover - the module ships with mrctl
         return None, [f"{path}: Modbus register maps are not available in this build"]
     if value is None:
         return default_register_map(), []
-    try:
-        return RegisterMap.from_mapping(value), []
-    except ValueError as exc:
-        msg = str(exc)
-        return None, [msg if msg.startswith("registers") else f"{path}: {msg}"]
+    from mrctl.io.registers import validate_register_map
+
+    rmap, errors = validate_register_map(value, path)
+    return rmap, errors
 
 
 def experiment_schema(base_dir: Path) -> dict[str, Any]:
@@ -404,6 +409,8 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
         "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
         "use_fc23": Custom(_optional_bool, default=None, doc="one FC23 transaction per tick; null = probe at start"),
         "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+        "watchdog_ms": Num(default=50, integer=True, min=0, max=65535,
+                           doc="device applies 0 A if setpoints stop this long (0 = device default)"),
     }
     return {
         "version": Num(integer=True, min=CONFIG_VERSION, max=CONFIG_VERSION, doc="config format version (1)"),
@@ -460,6 +467,11 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "reconnect_interval_s": Num(default=0.05, min=0.001, max=60.0,
                                         doc="exchange links: reopen a disconnected link at most this often"),
         }),
+        "latency": Section({
+            "lead_s": Custom(_lead_check, default="auto",
+                             doc="latency compensation: predict v this far ahead (s); 'auto' = 1.5 ticks on "
+                                 "exchange links (serial, Modbus), 0 on the in-process sim"),
+        }, doc="what the controller does about actuation delay (mrctl/estimate.py)"),
         "loop": Section({
             "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),
             "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01, doc="hybrid: spin this long before the deadline"),
@@ -514,6 +526,8 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "modbus-rtu": {
                 "url": Str(doc="serial device path (or any pyserial URL)"),
                 "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud"),
+                "parity": Str(default="E", choices=("E", "O", "N"), doc="RTU standard: E (8E1); N needs stopbits 2"),
+                "stopbits": Num(default=1, min=1, max=2, doc="stop bits"),
                 "unit_id": Num(default=1, integer=True, min=1, max=247, doc="Modbus unit id (RTU: 1-247)"),
                 **modbus_common,
             },

@@ -60,6 +60,7 @@ class Controller:
         driver_retries: int = 2,
         link_loss_ticks: int = 100,
         reconnect_every_ticks: int = 50,
+        lead_s: float = 0.0,
     ) -> None:
         self.backend = backend
         self.law = law
@@ -73,6 +74,11 @@ class Controller:
         self.reconnect_every_ticks = max(1, reconnect_every_ticks)
         self.consecutive_failures = 0
         self.reconnects = 0
+        from mrctl.estimate import VelocityLead
+
+        #: latency compensation (mrctl/estimate.py); None when lead_s == 0
+        self.lead = VelocityLead(lead_s, dt) if lead_s > 0.0 else None
+        self._k_prev = -1
         self.split = bool(getattr(backend, "split", False))
         self._begin = getattr(backend, "begin_tick", None) if getattr(backend, "host_clocked", False) else None
         self._truth = (lambda: backend.true_force_N) if hasattr(backend, "true_force_N") else (lambda: NAN)
@@ -133,6 +139,10 @@ class Controller:
         if s is not None:
             x = s.x_m
             v = s.v_mps
+            lead = self.lead
+            if lead is not None:  # the state when this current will act
+                v = lead.update(v, k - self._k_prev if self._k_prev >= 0 else 1)
+                self._k_prev = k
             F_des = self.demand.force(t, x, v)
             I_law = self.law.current(v, F_des)
         else:

@@ -53,10 +53,11 @@ def wire_time_s(backend_cfg: Any) -> float | None:
 
         return exchange_wire_time_s(backend_cfg.baudrate)
     if kind == "modbus-rtu":
-        from mrctl.io.modbus import rtu_transaction_wire_time_s
+        from mrctl.io.modbus import rtu_bits_per_char, rtu_transaction_wire_time_s
 
         fc23 = backend_cfg.use_fc23 if backend_cfg.use_fc23 is not None else True
-        return rtu_transaction_wire_time_s(backend_cfg.registers, backend_cfg.baudrate, fc23)
+        bits = rtu_bits_per_char(getattr(backend_cfg, "parity", "E"), getattr(backend_cfg, "stopbits", 1))
+        return rtu_transaction_wire_time_s(backend_cfg.registers, backend_cfg.baudrate, fc23, bits)
     return None
 
 

@@ -227,10 +227,17 @@ def make_backend(exp: Experiment) -> Any:
         from mrctl.io.serial import SerialLink
 
         return SerialLink(cfg.url, cfg.baudrate, timeout_s=cfg.timeout_s, watchdog_ms=cfg.watchdog_ms)
-    if kind in ("modbus-tcp", "modbus-rtu"):
-        from mrctl.io import modbus
+    if kind == "modbus-tcp":
+        from mrctl.io.modbus import ModbusLink
 
-        return modbus.from_config(cfg)
+        return ModbusLink("tcp", host=cfg.host, port=cfg.port, unit_id=cfg.unit_id, register_map=cfg.registers,
+                          timeout_s=cfg.timeout_s, use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms)
+    if kind == "modbus-rtu":
+        from mrctl.io.modbus import ModbusLink
+
+        return ModbusLink("rtu", url=cfg.url, baudrate=cfg.baudrate, parity=cfg.parity, stopbits=cfg.stopbits,
+                          unit_id=cfg.unit_id, register_map=cfg.registers, timeout_s=cfg.timeout_s,
+                          use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms)
     raise ConfigError([f"backend.type: {kind!r} not supported"])  # pragma: no cover - schema prevents it
 
 
@@ -243,6 +250,15 @@ def safety_config(cfg: Node, dt: float) -> SafetyConfig:
         status_fault_mask=int(Status.FAULTS) if s.fault_on_device_status else 0,
         auto_resume=s.auto_resume, resume_good_ticks=s.resume_good_ticks, dt_s=dt,
     )
+
+
+def lead_s(cfg: Node, backend: Any) -> float:
+    """Latency compensation lead (s): explicit, or 'auto' = 1.5 ticks on exchange
+    links (one request/reply per tick + the device's own tick), 0 when split."""
+    lead = cfg.latency.lead_s
+    if lead == "auto":
+        return 0.0 if getattr(backend, "split", False) else 1.5 / cfg.rate_hz
+    return float(lead)
 
 
 def rt_settings(cfg: Node) -> RtSettings:
@@ -443,7 +459,8 @@ class Service:
         ctl = self.ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt,
                                     driver_retries=cfg.safety.driver_retries,
                                     link_loss_ticks=max(1, round(cfg.safety.link_loss_s * cfg.rate_hz)),
-                                    reconnect_every_ticks=max(1, round(cfg.safety.reconnect_interval_s * cfg.rate_hz)))
+                                    reconnect_every_ticks=max(1, round(cfg.safety.reconnect_interval_s * cfg.rate_hz)),
+                                    lead_s=lead_s(cfg, backend))
         # the first thing a (re)start does on the wire: 0 A
         err = ctl.safe_stop()
         if err:
