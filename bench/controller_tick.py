@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
-from mrctl.controller import RUN_COLUMNS, Controller  # noqa: E402
+from mrctl.controller import RUN_COLUMNS, RUN_FORMATS, Controller  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.recorder import Recorder  # noqa: E402
 from mrctl.safety import SafetySupervisor  # noqa: E402
@@ -33,7 +33,8 @@ def make_tick(period_s: float) -> Callable[[int, int], object]:
     backend.open()
     sup = SafetySupervisor(safety_config(exp.config, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
-    rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536)
+    rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
+                   fmt=RUN_FORMATS)
     ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record)
     atexit.register(rec.close)
     return ctl.tick

@@ -37,6 +37,11 @@ RUN_COLUMNS = (
     "t", "x", "v", "F_des", "F", "I",
     "k", "seq", "t_dev", "I_applied", "F_true", "late_us", "compute_us", "fault", "link_errors",
 )
+#: Their text formats. 9 significant digits are far below any sensor's
+#: resolution, and format 5x faster than exact repr (2.9 vs 14 us per row):
+#: the writer thread shares the GIL with the loop. Counters and clocks get 10
+#: digits, exact for integers below 1e10 and to 1 us for device times.
+RUN_FORMATS = {c: "%.9g" for c in RUN_COLUMNS} | {"t": "%.10g", "k": "%.10g", "seq": "%.10g", "t_dev": "%.10g"}
 
 NAN = math.nan
 
@@ -169,7 +174,7 @@ class Controller:
             lp = self.loop
             late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
             rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self._truth(), late_us,
-                (end - now_ns) * 1e-3, int(sup.fault), self.link_errors)
+                (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
         return True
 
     def _write(self, I: float) -> bool:

@@ -438,10 +438,15 @@ class Recorder:
         step = _CHUNK_ROWS * self._ncols
         full = self._chunk_fmt
         parts = []
+        yield_gil = time.sleep
         for a in range(0, len(vals), step):
             seg = vals[a : a + step]
             fmt = full if len(seg) == step else self._row_fmt * (len(seg) // self._ncols)
             parts.append(fmt % tuple(seg))
+            # one chunk is one uninterruptible C call: hand the GIL back to the
+            # control loop after each, instead of making it wait for the
+            # interpreter's switch interval
+            yield_gil(0)
         return "".join(parts).encode("ascii")
 
     def _lose(self, n: int, tick0: int) -> None:

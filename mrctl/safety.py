@@ -458,6 +458,12 @@ class SafetySupervisor:
         return Fault(self._fault)
 
     @property
+    def fault_bits(self) -> int:
+        """The same bits as a plain int: for the per-tick log (building the
+        IntFlag costs ~1 us)."""
+        return self._fault
+
+    @property
     def reason(self) -> str:
         """Human-readable cause of the current FAULT ("" when not in FAULT)."""
         return self._reason

@@ -37,7 +37,7 @@ from typing import Any, Callable, TextIO
 
 from mrctl import __version__
 from mrctl.config import ConfigError, Node, load_experiment
-from mrctl.controller import RUN_COLUMNS, Controller
+from mrctl.controller import RUN_COLUMNS, RUN_FORMATS, Controller
 from mrctl.experiment import Experiment, build
 from mrctl.io.base import LinkError, Status
 from mrctl.loop import FixedRateLoop
@@ -497,7 +497,8 @@ class Service:
                 from mrctl.recorder import Recorder
 
                 self.rec = Recorder(o.out, RUN_COLUMNS, meta, capacity_ticks=cfg.record.buffer_ticks,
-                                    flush_interval_s=cfg.record.flush_interval_s, rate_hz=cfg.rate_hz)
+                                    flush_interval_s=cfg.record.flush_interval_s, rate_hz=cfg.rate_hz,
+                                    fmt=RUN_FORMATS)
                 ctl.record = self.rec.record
             try:
                 status.start()
