@@ -31,7 +31,6 @@ from typing import Callable, Protocol
 
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import LuGreParams
-from mrctl.safety import clamp_current as _clamp  # NaN (0/0 in eq 12) → 0 A
 
 
 class InverseLaw(Protocol):
@@ -108,11 +107,12 @@ class PaperInverse(_ModelBasedLaw):
         s0A, s1A, s2A = self._A
         num = F_des - (s0B * z + s1B * zdot + s2B * v)
         den = s0A * z + s1A * zdot + s2A * v
-        if den == 0.0:
-            I = math.inf if num > 0.0 else (-math.inf if num < 0.0 else math.nan)
-        else:
+        if den != 0.0:
             I = num / den
-        I = _clamp(I, self.I_max)
+        else:  # the published law divides by zero here: ±inf, or NaN for 0/0
+            I = math.inf if num > 0.0 else (-math.inf if num < 0.0 else math.nan)
+        # clamp to [0, I_max], NaN → 0 A (safety.clamp_current, inlined: every tick)
+        I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0
         self.I_prev = I
         return I
 
