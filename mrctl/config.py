@@ -468,9 +468,10 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                                         doc="exchange links: reopen a disconnected link at most this often"),
         }),
         "latency": Section({
-            "lead_s": Custom(_lead_check, default="auto",
+            "lead_s": Custom(_lead_check, default=0.0,
                              doc="latency compensation: predict v this far ahead (s); 'auto' = 1.5 ticks on "
-                                 "exchange links (serial, Modbus), 0 on the in-process sim"),
+                                 "exchange links (serial, Modbus), 0 on the in-process sim. Off by default: "
+                                 "not yet shown to help (docs/performance.md)"),
         }, doc="what the controller does about actuation delay (mrctl/estimate.py)"),
         "loop": Section({
             "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),
