@@ -198,17 +198,31 @@ class Controller:
         except (LinkError, OSError):
             pass
 
-    def safe_stop(self) -> str | None:
-        """Command 0 A on the way out, whatever the reason; returns an error
-        text if even that failed (the caller reports it)."""
-        try:
-            if self.split:
-                self.backend.write(0.0)
-            else:
-                self.backend.exchange(0.0)
-            self.I_last = 0.0
-            return None
-        except LinkError as exc:
-            return f"could not command 0 A on exit: {exc}"
-        except Exception as exc:  # noqa: BLE001 - the last line of defence must not raise
-            return f"could not command 0 A on exit: {type(exc).__name__}: {exc}"
+    def safe_stop(self, budget_s: float = 0.25, min_attempts: int = 3) -> str | None:
+        """Command 0 A, at start and on the way out, whatever the reason;
+        returns what went wrong if even that failed (the caller reports it,
+        saying when), None on success.
+        Retried for ``budget_s`` (at least ``min_attempts`` times): a link
+        that stalls at that moment must not leave the coil energised or the
+        start refused (the device's own watchdog is the last resort)."""
+        last = ""
+        n = 0
+        deadline = time.monotonic() + budget_s
+        while n < min_attempts or time.monotonic() < deadline:
+            n += 1
+            try:
+                if self.split:
+                    self.backend.write(0.0)
+                else:
+                    self.backend.exchange(0.0)
+                self.I_last = 0.0
+                self.I_next = 0.0
+                return None
+            except Disconnected as exc:
+                last = str(exc)
+                self._reconnect()
+            except LinkError as exc:
+                last = str(exc)
+            except Exception as exc:  # noqa: BLE001 - the last line of defence must not raise
+                return f"{type(exc).__name__}: {exc}"
+        return f"{last} ({n} attempts in {budget_s:g} s)"

@@ -464,7 +464,7 @@ class Service:
         # the first thing a (re)start does on the wire: 0 A
         err = ctl.safe_stop()
         if err:
-            self.warn(err)
+            self.warn(f"could not command 0 A at start: {err}")
             backend.close()
             return EXIT_LINK
         if cfg.backend.type != "sim":
@@ -539,7 +539,7 @@ class Service:
                 status.close()
             backend.close()
             if err:
-                self.warn(err)
+                self.warn(f"could not command 0 A on exit: {err}")
                 exit_code = exit_code or EXIT_LINK
         return self._finish(exit_code)
 

@@ -82,3 +82,14 @@ def test_disconnected_link_is_reopened_at_a_bounded_rate():
         assert ctl.tick(k, 0) is True
     assert ctl.reconnects == 3  # failures 1, 11, 21 of the 30-tick outage
     assert link.opens == 3
+
+
+def test_safe_stop_retries_until_zero_amps_is_delivered():
+    link = FakeExchangeLink(silent={0, 1, 2})  # the first three exchanges get no reply
+    ctl, _ = _ctl(link)
+    assert ctl.safe_stop() is None
+    assert link.sent == [(3, 0.0)]
+    dead = FakeExchangeLink(silent=set(range(10**6)))
+    ctl, _ = _ctl(dead)
+    err = ctl.safe_stop(budget_s=0.0, min_attempts=5)
+    assert err is not None and "no reply" in err and "(5 attempts" in err and dead.k == 5

@@ -7,7 +7,7 @@ link on a shared VM is a timing figure (it depends on skipped deadlines and
 late replies), so the issue's "NRMSE within 2x of simulate" target is
 measured by bench/hil_loop.py as a median over repeated runs and reported in
 docs/performance.md; here the NRMSE bound only proves the loop is closed
-(an uncontrolled damper is at ~40 %), and the measured ratio is printed.
+(the best constant current is at 7.5 %), and the measured ratio is printed.
 """
 
 from pathlib import Path
@@ -21,6 +21,8 @@ from mrctl.recorder import read_run, read_sidecar
 pytestmark = pytest.mark.hil
 BENCH = str(ROOT / "config" / "hil_fig5_bench.yaml")
 EXP = ROOT / "config" / "experiments"
+# The best open-loop constant current scores 7.5 % on this scenario (0.35 A;
+# 0 A: 31 %), so staying under 5 % proves the loop is closed.
 CLOSED_LOOP_NRMSE = 0.05
 
 
@@ -33,30 +35,72 @@ def _experiment(tmp_path: Path, name: str, **replace: str) -> Path:
     return p
 
 
-def _check(tmp_path, cfg, hil):
-    out = tmp_path / "run.csv"
-    try:
-        res = run_daemon(cfg, out, duration_s=3.5)
-    finally:
-        code = hil.stop()
+#: an attempt in which the daemon skipped more than this share of its deadlines
+#: ran on a machine that could not keep 1 kHz (a shared VM stalls at times)
+OVERLOADED_SKIP_SHARE = 0.10
+ATTEMPTS = 3
+
+
+def _overloaded(res, side) -> str | None:
+    """Why this attempt says nothing about the code (None: it was a fair run)."""
+    if res.returncode == 3 and any(m in res.stderr for m in (
+            "refusing to start", "link lost", "could not command 0 A at start")):
+        return res.stderr.strip().splitlines()[0]
+    if side is not None:
+        t = side["summary"]["timing"]
+        share = t["skipped_deadlines"] / max(1, t["skipped_deadlines"] + t["ticks"])
+        if share > OVERLOADED_SKIP_SHARE:
+            return f"{t['skipped_deadlines']} deadlines skipped ({100 * share:.0f} %)"
+    return None
+
+
+def _run_hil(tmp_path, start, make_cfg):
+    """Run the daemon against a fresh hil_sim; retry only runs the machine could
+    not time (its own statistics say so), skip if every attempt was such a run."""
+    reasons = []
+    for attempt in range(ATTEMPTS):
+        d = tmp_path / f"attempt{attempt}"
+        d.mkdir()
+        hil = start(d)
+        cfg = make_cfg(d, hil)
+        out = d / "run.csv"
+        try:
+            res = run_daemon(cfg, out, duration_s=3.5)
+        finally:
+            code = hil.stop()
+        side = read_sidecar(out) if out.with_suffix(".json").exists() else None
+        why = _overloaded(res, side)
+        if why is None:
+            return d, cfg, res, code
+        reasons.append(why)
+    pytest.skip(f"machine too loaded for a 1 kHz HIL run in {ATTEMPTS} attempts: {'; '.join(reasons)}")
+
+
+def _check(tmp_path, start, make_cfg):
+    d, cfg, res, code = _run_hil(tmp_path, start, make_cfg)
+    out = d / "run.csv"
     assert res.returncode == 0, res.stderr
     assert code == 0
     run = read_run(out)
-    truth = read_run(tmp_path / "truth.csv")
+    truth = read_run(d / "truth.csv")
     side = read_sidecar(out)
     assert side["complete"] is True and side["summary"]["exit_current_A"] == 0.0
     assert side["rows_written"] == side["summary"]["ticks"]  # every tick run is logged
-    # the device followed the daemon: each current sent after the sample of
-    # tick s shows up as the device's I_cmd within its next few ticks
-    ok = np.isfinite(run["seq"]) & (run["I"] > 0)
-    seq, I = run["seq"][ok].astype(np.int64), run["I"][ok]
+    # the device followed the daemon. On an exchange link the current of row i
+    # travels in exchange i+1, whose reply carries the device tick s[i+1] that
+    # was current when it arrived; the device applies it at its next tick,
+    # unless the next setpoint overtook it (the daemon catching up after a
+    # stall), so any current sent around then counts
+    rows = np.flatnonzero(np.isfinite(run["seq"][:-2]) & np.isfinite(run["seq"][1:-1]) & (run["I"][:-2] > 0))
+    rows = rows[rows >= 1]
     k_truth, I_truth = truth["k"].astype(np.int64), truth["I_cmd"]
-    applied = 0
-    for s, i in zip(seq[::10], I[::10]):
-        j = np.searchsorted(k_truth, s + 1)
-        if np.any(np.abs(I_truth[j:j + 4] - i) < 1e-6):
-            applied += 1
-    assert applied >= 0.8 * len(seq[::10]), (applied, len(seq[::10]))
+    checked = applied = 0
+    for i in rows[::10]:
+        j = np.searchsorted(k_truth, int(run["seq"][i + 1]) + 1)
+        sent = run["I"][i - 1:i + 3]
+        checked += 1
+        applied += bool(np.any(np.abs(I_truth[j:j + 3, None] - sent[None, :]) < 1e-6))
+    assert checked > 100 and applied >= 0.8 * checked, (applied, checked)
     tr = hil_tracking(run, truth)
     print(f"{cfg.name}: HIL force NRMSE {100 * tr['nrmse']:.3f} % over {tr['rows']} ticks, "
           f"skipped deadlines {side['summary']['timing']['skipped_deadlines']}, "
@@ -66,21 +110,25 @@ def _check(tmp_path, cfg, hil):
 
 
 def test_fig5_over_serial_on_a_pty(tmp_path):
-    link = tmp_path / "tty"
-    hil = HilSim("--config", BENCH, "--transport", "serial", "--link", str(link),
-                 "--truth", str(tmp_path / "truth.csv"), "--duration", "30")
-    _check(tmp_path, _experiment(tmp_path, "hil_serial.yaml", **{"/tmp/mrctl-sim-tty": str(link)}), hil)
+    def start(d):
+        return HilSim("--config", BENCH, "--transport", "serial", "--link", str(d / "tty"),
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, start, lambda d, hil: _experiment(d, "hil_serial.yaml", **{"/tmp/mrctl-sim-tty": str(d / "tty")}))
 
 
 def test_fig5_over_modbus_tcp_on_loopback(tmp_path):
-    hil = HilSim("--config", BENCH, "--transport", "modbus-tcp", "--bind", "127.0.0.1:0",
-                 "--truth", str(tmp_path / "truth.csv"), "--duration", "30")
-    port = hil.field("bind").rsplit(":", 1)[1]
-    _check(tmp_path, _experiment(tmp_path, "hil_modbus_tcp.yaml", **{"port: 5020": f"port: {port}"}), hil)
+    def start(d):
+        return HilSim("--config", BENCH, "--transport", "modbus-tcp", "--bind", "127.0.0.1:0",
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, start, lambda d, hil: _experiment(
+        d, "hil_modbus_tcp.yaml", **{"port: 5020": f"port: {hil.field('bind').rsplit(':', 1)[1]}"}))
 
 
 def test_fig5_over_modbus_rtu_on_a_pty(tmp_path):
-    link = tmp_path / "rtu"
-    hil = HilSim("--config", BENCH, "--transport", "modbus-rtu", "--link", str(link), "--baud", "921600",
-                 "--truth", str(tmp_path / "truth.csv"), "--duration", "30")
-    _check(tmp_path, _experiment(tmp_path, "hil_modbus_rtu.yaml", **{"/tmp/mrctl-sim-rtu": str(link)}), hil)
+    def start(d):
+        return HilSim("--config", BENCH, "--transport", "modbus-rtu", "--link", str(d / "rtu"), "--baud", "921600",
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, start, lambda d, hil: _experiment(d, "hil_modbus_rtu.yaml", **{"/tmp/mrctl-sim-rtu": str(d / "rtu")}))
