@@ -96,7 +96,11 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
                         raise ReportError(
                             f"{p}: line {lineno}: column {c} is not a number: {text!r}"
                         ) from None
-                    if not math.isfinite(value):
+                    # NaN is "no value": a daemon log has it in x, v, F_des
+                    # while the safety supervisor holds the damper at 0 A, and
+                    # in F without a load cell. It plots as a gap and is left
+                    # out of the metrics. Time and current are always logged.
+                    if math.isinf(value) or (math.isnan(value) and c in ("t", "I")):
                         raise ReportError(
                             f"{p}: line {lineno}: column {c} is not finite: {text!r}"
                         )
@@ -136,10 +140,14 @@ def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S) -> 
     if np.count_nonzero(window) < 2:
         window = np.ones_like(t, dtype=bool)
 
-    err = F[window] - F_des[window]
-    rms = float(np.sqrt(np.mean(err * err)))
-    span = float(np.ptp(F_des[window]))
-    nrmse = rms / span if span > 0.0 else math.nan
+    valid = window & np.isfinite(F) & np.isfinite(F_des)  # NaN: no value (a fault, no load cell)
+    if np.count_nonzero(valid) >= 2:
+        err = F[valid] - F_des[valid]
+        rms = float(np.sqrt(np.mean(err * err)))
+        span = float(np.ptp(F_des[valid]))
+        nrmse = rms / span if span > 0.0 else math.nan
+    else:
+        nrmse = math.nan
 
     Iw = I[window]
     return {

@@ -67,3 +67,20 @@ def test_check_refuses_a_link_that_cannot_do_the_rate(tmp_path, capsys):
     cfg.write_text(text + "link: {on_infeasible: reduce_rate}\n")
     assert main(["check", str(cfg)]) == 0  # a warning, the run would go at 100 Hz
     assert "warning" in capsys.readouterr().err
+
+
+def test_report_of_a_daemon_run_with_faults(tmp_path):
+    """NaN rows (sample faults, 0 A held) are gaps, not errors."""
+    pytest.importorskip("matplotlib")
+    cfg = tmp_path / "f.yaml"
+    cfg.write_text("version: 1\nduration_s: 1.5\n"
+                   "excitation: {type: sine, amplitude_m: 0.01, frequency_hz: 1.0}\n"
+                   "demand: {type: viscous, c_des: 500}\ninverse: {law: smooth}\n"
+                   "safety: {I_max: 0.6, hold_ticks: 2, v_range_mps: [-0.05, 0.05], auto_resume: true}\n")
+    out = tmp_path / "run.csv"
+    assert main(["run", str(cfg), "--out", str(out), "--quiet", "--status-socket", str(tmp_path / "s")]) == 0
+    text = out.read_text()
+    assert "nan" in text  # the supervisor did fault (|v| > 0.05 m/s near the peaks)
+    png = tmp_path / "r.png"
+    assert main(["report", str(out), "--out", str(png)]) == 0
+    assert png.read_bytes()[:4] == b"\x89PNG"

@@ -192,11 +192,19 @@ def test_non_numeric_names_line_and_column(tmp_path: Path) -> None:
         load_run(path)
 
 
-def test_non_finite_rejected(tmp_path: Path) -> None:
+def test_infinite_rejected_nan_is_no_value(tmp_path: Path) -> None:
     path = tmp_path / "run.csv"
-    path.write_text("t,x,v,F_des,F,I\n0,0,0,0,0,0\n0.001,0,nan,0,0,0\n")
+    path.write_text("t,x,v,F_des,F,I\n0,0,0,0,0,0\n0.001,0,inf,0,0,0\n")
     with pytest.raises(ReportError, match=r"line 3\b.*column v\b"):
         load_run(path)
+    path.write_text("t,x,v,F_des,F,I\n0,0,0,0,0,0\nnan,0,0,0,0,0\n")
+    with pytest.raises(ReportError, match=r"line 3\b.*column t\b"):
+        load_run(path)
+    # a daemon log while the supervisor held the damper at 0 A, no load cell
+    path.write_text("t,x,v,F_des,F,I\n0,0,0,0,nan,0\n0.001,nan,nan,nan,nan,0\n0.002,0,1,2,nan,0.1\n")
+    cols = load_run(path)
+    assert np.isnan(cols["x"][1]) and np.isnan(cols["F"]).all()
+    assert math.isnan(summarize(cols)["nrmse"])  # no measured force: no tracking figure
 
 
 def test_ragged_row_names_line(tmp_path: Path) -> None:
