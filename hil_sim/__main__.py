@@ -3,6 +3,7 @@
     python -m hil_sim [--config config/hil_bench.yaml] [--transport serial]
                       [--link /tmp/mrctl-sim-tty] [--bind 127.0.0.1:5020] [--baud N]
                       [--duration S] [--seed N] [--truth truth.csv] [--wait hybrid]
+                      [--fault KIND@AT_S+FOR_S[,param=value]] ...
 
 Prints one ``hil_sim ready ...`` line on stdout once it serves; SIGTERM or
 SIGINT (or ``--duration``) stops it cleanly: 0 A, truth log flushed, symlink
@@ -48,9 +49,13 @@ class StartupError(Exception):
 
 
 def _parse_bind(text: str) -> tuple[str, int]:
+    """``HOST:PORT``, or ``PORT`` alone = loopback (``127.0.0.1:PORT``): nothing
+    listens beyond this machine unless a host is named."""
+    if text.isdigit():
+        text = f"{DEFAULT_BIND.rpartition(':')[0]}:{text}"
     host, sep, port = text.rpartition(":")
     if not sep or not host:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT or PORT, got {text!r}")
     host = host.strip("[]")
     try:
         p = int(port)
@@ -93,8 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--link", default=DEFAULT_LINK,
                     help=f"serial/modbus-rtu: symlink to create for the host side of the pty (default {DEFAULT_LINK})")
     ap.add_argument("--bind", type=_parse_bind, default=_parse_bind(DEFAULT_BIND), metavar="HOST:PORT",
-                    help=f"modbus-tcp: address to listen on (default {DEFAULT_BIND}, loopback; port 0 = any free "
-                         "port, shown in the READY line)")
+                    help=f"modbus-tcp: address to listen on (default {DEFAULT_BIND}, loopback; PORT alone = "
+                         "127.0.0.1:PORT; port 0 = any free port, shown in the READY line)")
     ap.add_argument("--baud", type=int, default=DEFAULT_BAUD,
                     help=f"modbus-rtu: baud rate (default {DEFAULT_BAUD}); sets the RTU inter-frame silence, "
                          "the pty itself has no baud rate")
@@ -108,6 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "lowest latency, one busy core) or from a blocking server thread")
     ap.add_argument("--wait", choices=("hybrid", "sleep", "spin"), default="hybrid",
                     help="clock wait strategy (default hybrid: sleep, then spin the last 0.2 ms)")
+    ap.add_argument("--fault", action="append", default=[], metavar="KIND@AT_S+FOR_S[,param=value]",
+                    help="schedule a fault on the device clock (repeatable; added to the config's faults), "
+                         "e.g. drop_replies@2.0+0.05 or delay_replies@3+0.3,delay_s=0.003; kinds: "
+                         "drop_replies, delay_replies, corrupt_crc, garbage, stale_seq, nan, out_of_range, "
+                         "modbus_exception, disconnect, ignore_writes, ignore_setpoints (docs/hil_sim.md)")
     return ap
 
 
@@ -120,17 +130,24 @@ def _fail(lines: list[str]) -> int:
 
 def _load_config(args: argparse.Namespace):
     from hil_sim.config import ConfigError, load_bench_config, validate_bench
+    from hil_sim.faults import check_transport
 
+    kw = dict(seed=args.seed, duration_s=args.duration, faults=args.fault)
     try:
         if args.config is not None:
-            return load_bench_config(args.config, seed=args.seed, duration_s=args.duration)
-        if DEFAULT_CONFIG.is_file():
-            return load_bench_config(DEFAULT_CONFIG, seed=args.seed, duration_s=args.duration)
-        return validate_bench(dict(BUILTIN_CONFIG), Path.cwd(), "built-in defaults",
-                              seed=args.seed, duration_s=args.duration)
+            cfg = load_bench_config(args.config, **kw)
+        elif DEFAULT_CONFIG.is_file():
+            cfg = load_bench_config(DEFAULT_CONFIG, **kw)
+        else:
+            cfg = validate_bench(dict(BUILTIN_CONFIG), Path.cwd(), "built-in defaults", **kw)
     except ConfigError as e:
         head = f"{e.source}: " if e.source else ""
         raise StartupError(*(f"{head}{err}" for err in e.errors)) from None
+    errors = check_transport(cfg.faults, args.transport)
+    if errors:
+        head = f"{cfg.source}: " if cfg.source and any(not f.source.startswith("--") for f in cfg.faults) else ""
+        raise StartupError(*(e if e.startswith("--") else f"{head}{e}" for e in errors))
+    return cfg
 
 
 def _check_tcp_free(host: str, port: int) -> None:
@@ -186,6 +203,7 @@ def _run(args: argparse.Namespace) -> int:
     state = DeviceState()
     stop = threading.Event()
     device = None
+    modbus_dev: list[Any] = []  # the ModbusDevice, for its counters in the summary
 
     def on_signal(signum: int, _frame: object) -> None:
         stop.set()
@@ -224,7 +242,7 @@ def _run(args: argparse.Namespace) -> int:
             cleanups.append(endpoint.close)
             ready_info.update(link=str(args.link), tty=endpoint.tty_path)
         if args.transport == "serial":
-            server = SerialDevice(state, endpoint.master_fd, stop, cfg.I_max_A)
+            server = SerialDevice(state, endpoint.master_fd, stop, cfg.I_max_A, endpoint=endpoint, seed=cfg.seed)
             if inline:
                 # one thread spins, ticks the bench on time and serves the pty in
                 # between: a reply never waits for a thread wake-up (docs/hil_sim.md)
@@ -246,7 +264,8 @@ def _run(args: argparse.Namespace) -> int:
             ready_info["baud"] = str(args.baud)
             threads.append(run_server(
                 lambda: modbus.serve_modbus_rtu(state, endpoint.master_fd, args.baud, regs, stop,
-                                                ready=lambda _msg: server_ready.set()),
+                                                ready=lambda _msg: server_ready.set(), endpoint=endpoint,
+                                                on_device=modbus_dev.append),
                 "modbus-rtu", failed, stop))
         else:  # modbus-tcp
             host, port = args.bind
@@ -259,7 +278,8 @@ def _run(args: argparse.Namespace) -> int:
                 server_ready.set()
 
             threads.append(run_server(
-                lambda: modbus.serve_modbus_tcp(state, host, port, regs, stop, ready=tcp_ready),
+                lambda: modbus.serve_modbus_tcp(state, host, port, regs, stop, ready=tcp_ready,
+                                                on_device=modbus_dev.append),
                 "modbus-tcp", failed, stop))
 
         # -- wait for the server, then start the clock -----------------------------
@@ -305,6 +325,8 @@ def _run(args: argparse.Namespace) -> int:
         summary: dict[str, Any] = {}
         if device is not None:
             summary = {"config": cfg.describe(), "transport": args.transport, "bench": device.summary()}
+            if modbus_dev:
+                summary["modbus"] = modbus_dev[0].counters()
             if server is not None:
                 summary["serial"] = server.counters()
             if failed:

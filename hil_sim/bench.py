@@ -15,6 +15,13 @@ Each tick k (absolute deadlines on ``time.monotonic_ns``, via
 5. ``Sample(seq=k mod 2**32, t_dev_s=k·dt, x, v, F, status, I_applied)`` is
    published for the protocol servers, and the truth row is logged.
 
+Scheduled faults (:mod:`hil_sim.faults`): the clock computes the active bits
+of tick k, publishes them for the servers (``DeviceState.fault_bits``) and
+applies the sample faults itself: ``stale_seq`` freezes the published seq,
+``nan`` / ``out_of_range`` replace x (or v), ``ignore_setpoints`` keeps the
+setpoint of the fault's first tick. The truth row records the faulted
+measurement and the bits (``fault`` column).
+
 Status bits: ``OUTPUT_ENABLED`` while a live, enabled setpoint is applied;
 ``WATCHDOG_TRIPPED`` latched from the first expiry until a CLEAR_FAULTS
 request; ``CURRENT_CLAMPED`` when the last setpoint was out of range or
@@ -38,6 +45,7 @@ from mrctl.loop import FixedRateLoop
 from mrctl.model.bench import SimBench
 
 from hil_sim.config import BenchConfig
+from hil_sim.faults import FaultBit, FaultSchedule, bit_names
 from hil_sim.state import DeviceState
 from hil_sim.truth import TruthLog
 
@@ -48,6 +56,10 @@ _OUTPUT_ENABLED = int(Status.OUTPUT_ENABLED)
 _WATCHDOG_TRIPPED = int(Status.WATCHDOG_TRIPPED)
 _CURRENT_CLAMPED = int(Status.CURRENT_CLAMPED)
 _NO_LOAD_CELL = int(Status.NO_LOAD_CELL)
+_STALE = int(FaultBit.STALE_SEQ)
+_NAN = int(FaultBit.NAN)
+_OOR = int(FaultBit.OUT_OF_RANGE)
+_IGNORE_SP = int(FaultBit.IGNORE_SETPOINTS)
 
 
 def clamp_setpoint(I: float, I_max: float) -> tuple[float, bool]:
@@ -85,6 +97,20 @@ class BenchDevice:
         self.watchdog_trips = 0
         self.first_trip_k: int | None = None
         self.clamped_ticks = 0
+        # scheduled faults (hil_sim/faults.py): None = none, no per-tick cost
+        self.faults = FaultSchedule(cfg.faults, cfg.rate_hz) if cfg.faults else None
+        state.faults = self.faults
+        self._fbits = 0
+        self._frozen_seq = 0
+        self._frozen_sp: tuple[float, bool] = (0.0, False)
+        self._prev_sp: tuple[float, bool] = (0.0, False)
+        #: fault windows as they opened/closed: [{k, start|end}]
+        self.fault_events: list[dict] = []
+        #: every watchdog expiry: {k, last_setpoint_age_ms, last_setpoint_k}
+        self.watchdog_events: list[dict] = []
+        #: setpoint sessions (first setpoint after silence) with the tick that applied it
+        self.sessions: list[dict] = []
+        self._sessions_seen = 0
         #: set once the first sample is published (the process may say READY)
         self.first_tick = threading.Event()
 
@@ -95,7 +121,30 @@ class BenchDevice:
             self._skip_noise(k - self.k_last - 1)
         b.begin_tick(k)
         x_m, v_m, F_m = b.sample()
-        I_req, enable, sp_ns, wd_ms, clears = self.state.setpoint_ex()
+        state = self.state
+        I_req, enable, sp_ns, wd_ms, clears = state.setpoint_ex()
+        fbits = 0
+        seq = k & _U32
+        sched = self.faults
+        if sched is not None:
+            fbits = sched.active(k)
+            if fbits != self._fbits:
+                self._fault_change(fbits, k)
+            if fbits:
+                if fbits & _STALE:
+                    seq = self._frozen_seq
+                if fbits & _NAN:
+                    if sched.param(_NAN, "field") == "v":
+                        v_m = math.nan
+                    else:
+                        x_m = math.nan
+                if fbits & _OOR:
+                    x_m = sched.param(_OOR, "x_m")
+                if fbits & _IGNORE_SP:
+                    I_req, enable = self._frozen_sp
+            self._prev_sp = (I_req, enable)
+        if len(state.sessions) != self._sessions_seen:
+            self._tag_sessions(k)
         if clears != self._clears_seen:
             self._clears_seen = clears
             self._tripped = False
@@ -110,6 +159,11 @@ class BenchDevice:
                 self.watchdog_trips += 1
                 if self.first_trip_k is None:
                     self.first_trip_k = k
+                if len(self.watchdog_events) < 1000:
+                    # the device tick the last setpoint arrived in, from its age
+                    age = now_ns - sp_ns
+                    self.watchdog_events.append({"k": k, "last_setpoint_age_ms": round(age / 1e6, 3),
+                                                 "last_setpoint_k": k - int(age // self.loop.period_ns)})
             self._tripped = True
         else:
             self._expired = False
@@ -126,13 +180,35 @@ class BenchDevice:
         b.command(I)
         t = b.t
         I_app = b.I_applied
-        self.state.publish(Sample(k & _U32, t, x_m, v_m, F_m, status, I_app))
+        state.publish(Sample(seq, t, x_m, v_m, F_m, status, I_app))
         if self.truth is not None:
-            self.truth.record((k, t, b.x, b.v, b.F, b.I_cmd, I_app, x_m, v_m, F_m, status))
+            self.truth.record((k, t, b.x, b.v, b.F, b.I_cmd, I_app, x_m, v_m, F_m, status, fbits))
         self.k_last = k
         self.ticks += 1
         if not self.first_tick.is_set():
             self.first_tick.set()
+
+    def _fault_change(self, fbits: int, k: int) -> None:
+        """A fault window opened or closed at this tick (rare: not the hot path)."""
+        started = fbits & ~self._fbits
+        if started & _STALE:
+            self._frozen_seq = self.k_last & _U32 if self.k_last >= 0 else 0
+        if started & _IGNORE_SP:
+            self._frozen_sp = self._prev_sp  # what the driver had before this tick
+        for bit in FaultBit:
+            if started & bit:
+                self.fault_events.append({"k": k, "start": bit_names(int(bit))})
+            elif self._fbits & ~fbits & bit:
+                self.fault_events.append({"k": k, "end": bit_names(int(bit))})
+        self._fbits = fbits
+        self.state.fault_bits = fbits
+
+    def _tag_sessions(self, k: int) -> None:
+        """Give the setpoint sessions that began since the last tick their tick k."""
+        new = self.state.sessions[self._sessions_seen:]
+        self._sessions_seen += len(new)
+        for ns, I, en in new:
+            self.sessions.append({"k": k, "first_setpoint_A": I, "enable": en, "t_mono_ns": ns})
 
     def _skip_noise(self, n: int) -> None:
         """Draw the noise of ``n`` skipped ticks, so tick k's noise depends on
@@ -153,7 +229,7 @@ class BenchDevice:
         status = self._base_status | (_WATCHDOG_TRIPPED if self._tripped else 0)
         self.state.publish(Sample(k & _U32, b.t, x_m, v_m, F_m, status, b.I_applied))
         if self.truth is not None:
-            self.truth.record((k, b.t, b.x, b.v, b.F, b.I_cmd, b.I_applied, x_m, v_m, F_m, status))
+            self.truth.record((k, b.t, b.x, b.v, b.F, b.I_cmd, b.I_applied, x_m, v_m, F_m, status, 0))
         self.k_last = k
         self.ticks += 1
 
@@ -183,4 +259,8 @@ class BenchDevice:
             "setpoints_received": self.state.setpoints_received,
             "requests_served": self.state.requests_served,
             "timing": timing,
+            "faults": self.faults.describe() if self.faults is not None else [],
+            "fault_events": self.fault_events,
+            "watchdog_events": self.watchdog_events,
+            "setpoint_sessions": self.sessions,
         }

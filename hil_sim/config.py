@@ -12,13 +12,14 @@ The sensor-noise seed is the top-level ``seed`` (overridable with
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from mrctl.config import (
     Bool,
     ConfigError,
+    Custom,
     Node,
     Num,
     Section,
@@ -30,6 +31,8 @@ from mrctl.config import (
 from mrctl.experiment import EXCITATIONS
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import Sensors
+
+from hil_sim.faults import FaultSpec, check_fault_list, parse_fault_arg
 
 __all__ = ["BenchConfig", "bench_schema", "load_bench_config", "validate_bench", "ConfigError"]
 
@@ -63,6 +66,8 @@ def bench_schema(base_dir: Path) -> dict[str, Any]:
                            doc="device watchdog when the host asks for the default (SETPOINT watchdog_ms 0, Modbus)"),
         "I_max_A": Num(default=DEFAULT_I_MAX_A, min=0.0, min_exclusive=True, max=10.0,
                        doc="driver range: larger setpoints are clamped and flagged CURRENT_CLAMPED"),
+        "faults": Custom(check_fault_list, default=None,
+                         doc="scheduled faults: [{kind, at_s, for_s, ...}] (hil_sim/faults.py)"),
     }
 
 
@@ -82,6 +87,7 @@ class BenchConfig:
     load_cell: bool
     watchdog_ms: int
     I_max_A: float
+    faults: list[FaultSpec] = field(default_factory=list)
 
     @property
     def dt(self) -> float:
@@ -100,12 +106,17 @@ class BenchConfig:
         d["seed"] = self.seed
         d["duration_s"] = self.duration_s
         d["source"] = self.source
+        d["faults"] = [f.as_dict(self.rate_hz) for f in self.faults]
         return d
 
 
 def validate_bench(data: Any, base_dir: Path, source: str | None = None,
-                   seed: int | None = None, duration_s: float | None = None) -> BenchConfig:
-    """Validate parsed YAML (+ CLI overrides); raises ConfigError listing every problem."""
+                   seed: int | None = None, duration_s: float | None = None,
+                   faults: list[str] | None = None) -> BenchConfig:
+    """Validate parsed YAML (+ CLI overrides); raises ConfigError listing every problem.
+
+    ``faults``: ``--fault`` texts (``KIND@AT_S+FOR_S[,param=value]``), added to
+    the YAML's ``faults`` list."""
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -118,6 +129,12 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         errors.append(f"--seed: must be >= 0, got {seed}")
     if duration_s is not None and not (duration_s > 0 and math.isfinite(duration_s)):
         errors.append(f"--duration: must be a positive number of seconds, got {duration_s!r}")
+    fault_specs: list[FaultSpec] = list(node.get("faults") or [])
+    for i, text in enumerate(faults or ()):
+        spec, errs = parse_fault_arg(text, i)
+        errors += errs
+        if spec is not None:
+            fault_specs.append(spec)
     if errors:
         raise ConfigError(errors, source)
     try:
@@ -138,12 +155,13 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         load_cell=bool(node.load_cell),
         watchdog_ms=int(node.watchdog_ms),
         I_max_A=float(node.I_max_A),
+        faults=fault_specs,
     )
 
 
 def load_bench_config(path: str | Path, seed: int | None = None,
-                      duration_s: float | None = None) -> BenchConfig:
+                      duration_s: float | None = None, faults: list[str] | None = None) -> BenchConfig:
     """Load and validate a bench YAML file (CLI overrides applied on top)."""
     p = Path(path)
-    return validate_bench(load_yaml(p), p.parent, str(p), seed=seed, duration_s=duration_s)
+    return validate_bench(load_yaml(p), p.parent, str(p), seed=seed, duration_s=duration_s, faults=faults)
 

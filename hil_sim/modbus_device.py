@@ -32,12 +32,16 @@ answers its own unit id only; unit 0 is broadcast (writes applied, no reply).
 from __future__ import annotations
 
 import os
+import random
 import select
 import socket
 import struct
 import threading
+import time
+from collections import deque
 from typing import Any, Callable
 
+from hil_sim.faults import FaultBit
 from hil_sim.state import DeviceState
 from mrctl.io.base import FrameError
 from mrctl.io.modbus import (
@@ -77,6 +81,17 @@ _RW_FULL = struct.Struct(">BHHHHB")
 _MBAP = struct.Struct(">HHHB")
 _MAX_CLIENTS = 16
 _POLL_S = 0.05  # how often idle loops look at ``stop``
+_FAULT_POLL_S = 0.001  # ... and at the fault bits, when faults are scheduled
+SLAVE_DEVICE_FAILURE = 0x04
+
+_DROP = int(FaultBit.DROP_REPLIES)
+_DELAY = int(FaultBit.DELAY_REPLIES)
+_CORRUPT = int(FaultBit.CORRUPT_CRC)
+_GARBAGE = int(FaultBit.GARBAGE)
+_EXCEPTION = int(FaultBit.MODBUS_EXCEPTION)
+_DISCONNECT = int(FaultBit.DISCONNECT)
+_IGNORE = int(FaultBit.IGNORE_WRITES)
+_REPLY_FAULTS = _DROP | _DELAY | _CORRUPT | _GARBAGE
 
 
 def default_register_map() -> RegisterMap:
@@ -162,6 +177,51 @@ class ModbusDevice:
         self.crc_errors = 0  #: RTU candidates failing their CRC while hunting
         self.bytes_discarded = 0  #: RTU junk bytes skipped
         self.watchdog_ms: float | None = None  #: last written watchdog (passed to the bench's clock)
+        self._rng = random.Random(0)
+        self.fault_counts = {"requests_ignored": 0, "exceptions_injected": 0, "replies_dropped": 0,
+                             "replies_delayed": 0, "replies_corrupted": 0, "garbage_bytes": 0,
+                             "disconnects": 0, "connections_refused": 0}
+
+    def counters(self) -> dict[str, Any]:
+        return {"requests": self.requests, "exceptions": self.exceptions, "setpoints": self.setpoints,
+                "frames_dropped": self.frames_dropped, "crc_errors": self.crc_errors,
+                "bytes_discarded": self.bytes_discarded, "faults": dict(self.fault_counts)}
+
+    # -- faults (hil_sim/faults.py) -------------------------------------------------
+    def _fault_pdu(self, pdu: bytes | bytearray | memoryview, fbits: int) -> bytes | None:
+        """Request-side faults: None = ignore the request (no reply, nothing applied),
+        else the exception reply. Called only while a fault bit is set."""
+        if fbits & _IGNORE:
+            self.fault_counts["requests_ignored"] += 1
+            return None
+        self.fault_counts["exceptions_injected"] += 1
+        return self._exc(pdu[0] if len(pdu) else 0, SLAVE_DEVICE_FAILURE)
+
+    def fault_reply(self, adu: bytes, tcp: bool) -> tuple[bytes | None, float]:
+        """Reply-side faults for one response ADU: (bytes to send or None, delay s)."""
+        fbits = self.state.fault_bits
+        if not fbits & _REPLY_FAULTS:
+            return adu, 0.0
+        fc = self.fault_counts
+        if fbits & _DROP:
+            fc["replies_dropped"] += 1
+            return None, 0.0
+        faults = self.state.faults
+        if fbits & _CORRUPT:
+            fc["replies_corrupted"] += 1
+            if tcp:  # an impossible MBAP length: the client must resynchronise
+                adu = adu[:4] + b"\x00\x00" + adu[6:]
+            else:  # RTU: flip the CRC's high byte
+                adu = adu[:-1] + bytes((adu[-1] ^ 0xFF,))
+        if fbits & _GARBAGE:
+            n = int(faults.param(_GARBAGE, "n_bytes") or 16) if faults is not None else 16
+            adu = self._rng.randbytes(n) + adu
+            fc["garbage_bytes"] += n
+        delay = 0.0
+        if fbits & _DELAY:
+            delay = float(faults.param(_DELAY, "delay_s") or 0.0) if faults is not None else 0.0
+            fc["replies_delayed"] += 1
+        return adu, delay
 
     # -- PDU level ---------------------------------------------------------------
     def handle_pdu(self, pdu: bytes | bytearray | memoryview) -> bytes | None:
@@ -280,6 +340,8 @@ class ModbusDevice:
         tid, _pid, _length, unit = _MBAP.unpack_from(frame, 0)
         if unit != self.unit_id and unit not in (0, 255):
             resp: bytes | None = self._exc(frame[7], GATEWAY_NO_RESPONSE)
+        elif self.state.fault_bits & (_IGNORE | _EXCEPTION):
+            resp = self._fault_pdu(memoryview(frame)[7:], self.state.fault_bits)
         else:
             resp = self.handle_pdu(memoryview(frame)[7:])
         if resp is None:
@@ -298,7 +360,10 @@ class ModbusDevice:
         unit = frame[0]
         if unit != self.unit_id and unit != 0:
             return None
-        resp = self.handle_pdu(memoryview(frame)[1 : n - 2])
+        if self.state.fault_bits & (_IGNORE | _EXCEPTION):
+            resp = self._fault_pdu(memoryview(frame)[1 : n - 2], self.state.fault_bits)
+        else:
+            resp = self.handle_pdu(memoryview(frame)[1 : n - 2])
         if resp is None or unit == 0:
             return None
         body = bytes((unit,)) + resp
@@ -317,6 +382,7 @@ def serve_modbus_tcp(
     *,
     fc23: bool = True,
     max_clients: int = _MAX_CLIENTS,
+    on_device: Callable[[ModbusDevice], None] | None = None,
 ) -> None:
     """Serve Modbus TCP on (host, port) until ``stop`` is set.
 
@@ -325,16 +391,45 @@ def serve_modbus_tcp(
     poll alongside the loop); at most ``max_clients`` at once, further
     connections are closed on accept. On stop every connection is closed
     (clients see Disconnected) before returning.
+
+    The ``disconnect`` fault closes every client connection and the listening
+    socket (new connections are refused) until the window ends, then listens
+    again on the same port.
     """
     dev = ModbusDevice(state, register_map, fc23=fc23)
-    lsock = socket.create_server((host, port))
-    lsock.settimeout(_POLL_S)
+    if on_device is not None:
+        on_device(dev)
+    poll_s = _FAULT_POLL_S if state.faults else _POLL_S
+    lsock: socket.socket | None = socket.create_server((host, port))
+    lsock.settimeout(poll_s)
     actual = lsock.getsockname()[1]
     conns: dict[threading.Thread, socket.socket] = {}
+
+    def drop_all() -> None:
+        for t, conn in conns.items():
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        for t in conns:
+            t.join(1.0)
+        conns.clear()
+
     try:
         if ready is not None:
             ready(f"modbus-tcp {host}:{actual}")
         while not stop.is_set():
+            if state.fault_bits & _DISCONNECT:
+                if lsock is not None:
+                    dev.fault_counts["disconnects"] += 1
+                    lsock.close()
+                    lsock = None
+                    drop_all()
+                stop.wait(_FAULT_POLL_S)
+                continue
+            if lsock is None:  # the disconnect window is over: listen again
+                lsock = socket.create_server((host, actual))
+                lsock.settimeout(poll_s)
             try:
                 conn, _addr = lsock.accept()
             except (socket.timeout, InterruptedError):
@@ -352,22 +447,27 @@ def serve_modbus_tcp(
             conns[t] = conn
             t.start()
     finally:
-        lsock.close()
-        for t, conn in conns.items():
-            try:
-                conn.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-        for t in conns:
-            t.join(1.0)
+        if lsock is not None:
+            lsock.close()
+        drop_all()
 
 
 def _tcp_connection(dev: ModbusDevice, conn: socket.socket, stop: threading.Event) -> None:
+    state = dev.state
+    delayed: deque[tuple[float, bytes]] = deque()  # (due monotonic s, bytes): delay_replies
     try:
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        conn.settimeout(_POLL_S)
+        poll_s = _FAULT_POLL_S if state.faults else _POLL_S
+        conn.settimeout(poll_s)
         buf = bytearray()
         while not stop.is_set():
+            if state.fault_bits & _DISCONNECT:
+                return  # the listener closes the rest
+            if delayed:
+                now = time.monotonic()
+                while delayed and delayed[0][0] <= now:
+                    conn.sendall(delayed.popleft()[1])
+                conn.settimeout(max(1e-4, min(poll_s, delayed[0][0] - now)) if delayed else poll_s)
             try:
                 chunk = conn.recv(4096)
             except socket.timeout:
@@ -386,8 +486,21 @@ def _tcp_connection(dev: ModbusDevice, conn: socket.socket, stop: threading.Even
                 frame = bytes(buf[:total])
                 del buf[:total]
                 resp = dev.handle_tcp_frame(frame)
-                if resp is not None:
-                    conn.sendall(resp)
+                if resp is None:
+                    continue
+                if state.fault_bits & _REPLY_FAULTS or delayed:
+                    out, delay = dev.fault_reply(resp, tcp=True)
+                    if out is None:
+                        continue
+                    if delay > 0 or delayed:
+                        due = time.monotonic() + delay
+                        if delayed and delayed[-1][0] > due:
+                            due = delayed[-1][0]  # FIFO
+                        delayed.append((due, out))
+                        conn.settimeout(max(1e-4, min(poll_s, delayed[0][0] - time.monotonic())))
+                        continue
+                    resp = out
+                conn.sendall(resp)
     except OSError:
         return
     finally:
@@ -410,8 +523,14 @@ def serve_modbus_rtu(
     fc23: bool = True,
     parity: str = "E",
     stopbits: float = 1,
+    endpoint: Any = None,
+    on_device: Callable[[ModbusDevice], None] | None = None,
 ) -> None:
     """Serve Modbus RTU on a tty until ``stop`` is set.
+
+    ``endpoint``: the :class:`hil_sim.serial_device.PtyEndpoint` whose master fd
+    ``port_path`` is; needed for the ``disconnect`` fault (pty hung up, then a
+    new one linked at the same path).
 
     ``port_path``: a tty path (opened with pyserial at ``baudrate``, 8
     data bits, ``parity``/``stopbits``), or an open fd (int, e.g. a pty
@@ -425,6 +544,8 @@ def serve_modbus_rtu(
     :func:`mrctl.io.modbus.open_serial_port`).
     """
     dev = ModbusDevice(state, register_map, fc23=fc23)
+    if on_device is not None:
+        on_device(dev)
     owner: Any = None
     if isinstance(port_path, int):
         fd = port_path
@@ -437,7 +558,7 @@ def serve_modbus_rtu(
     try:
         if ready is not None:
             ready(f"modbus-rtu {port_path} @ {baudrate} Bd")
-        _rtu_loop(dev, fd, stop, silence_s)
+        _rtu_loop(dev, fd, stop, silence_s, endpoint)
     finally:
         if owner is not None:
             try:
@@ -505,11 +626,49 @@ def rtu_feed(dev: ModbusDevice, buf: bytearray) -> list[bytes]:
     return out
 
 
-def _rtu_loop(dev: ModbusDevice, fd: int, stop: threading.Event, silence_s: float) -> None:
+def _rtu_loop(dev: ModbusDevice, fd: int, stop: threading.Event, silence_s: float, endpoint: Any = None) -> None:
+    state = dev.state
+    idle_s = _FAULT_POLL_S if state.faults else _POLL_S
+    delayed: deque[tuple[float, bytes]] = deque()  # (due monotonic s, bytes): delay_replies
     buf = bytearray()
+
+    def send(resp: bytes) -> bool:
+        if state.fault_bits & _REPLY_FAULTS or delayed:
+            out, delay = dev.fault_reply(resp, tcp=False)
+            if out is None:
+                return True
+            if delay > 0 or delayed:
+                due = time.monotonic() + delay
+                if delayed and delayed[-1][0] > due:
+                    due = delayed[-1][0]
+                delayed.append((due, out))
+                return True
+            resp = out
+        return _write_all(fd, resp)
+
     while not stop.is_set():
+        if state.fault_bits & _DISCONNECT and endpoint is not None:
+            dev.fault_counts["disconnects"] += 1
+            delayed.clear()
+            buf.clear()
+            endpoint.hangup()
+            while state.fault_bits & _DISCONNECT and not stop.is_set():
+                stop.wait(_FAULT_POLL_S)
+            if stop.is_set():
+                return
+            endpoint.reopen()
+            fd = endpoint.master_fd
+            continue
+        wait = silence_s if buf else idle_s
+        if delayed:
+            now = time.monotonic()
+            while delayed and delayed[0][0] <= now:
+                if not _write_all(fd, delayed.popleft()[1]):
+                    return
+            if delayed:
+                wait = max(1e-4, min(wait, delayed[0][0] - now))
         try:
-            ready = select.select([fd], [], [], silence_s if buf else _POLL_S)[0]
+            ready = select.select([fd], [], [], wait)[0]
             chunk = os.read(fd, 4096) if ready else None
         except BlockingIOError:
             continue
@@ -518,20 +677,26 @@ def _rtu_loop(dev: ModbusDevice, fd: int, stop: threading.Event, silence_s: floa
         if ready and not chunk:
             return  # readable but empty: device gone
         if chunk:
+            if state.fault_bits & _IGNORE:
+                dev.fault_counts["requests_ignored"] += 1
+                buf.clear()
+                continue
             buf += chunk
             for resp in rtu_feed(dev, buf):
-                if not _write_all(fd, resp):
+                if not send(resp):
                     return
             if len(buf) > 1024:  # nothing valid in a whole kilobyte: start over
                 dev.bytes_discarded += len(buf)
                 buf.clear()
             continue
+        if delayed and not ready:
+            continue  # woke up for a delayed reply, not for line silence
         # Line silence: what's buffered is a whole frame of an unknown
         # function (→ ILLEGAL_FUNCTION if its CRC is good) or junk.
         if buf:
             resp = dev.handle_rtu_frame(bytes(buf)) if rtu_request_length(buf) == -1 else None
             if resp is not None:
-                if not _write_all(fd, resp):
+                if not send(resp):
                     return
             else:
                 dev.bytes_discarded += len(buf)

@@ -37,12 +37,14 @@ from __future__ import annotations
 
 import errno
 import os
+import random
 import select
 import stat
 import sys
 import threading
 import time
 import tty
+from collections import deque
 from pathlib import Path
 
 from mrctl.io.base import Status
@@ -60,6 +62,7 @@ from mrctl.io.protocol import (
 )
 
 from hil_sim.bench import clamp_setpoint
+from hil_sim.faults import FaultBit
 from hil_sim.state import DeviceState
 
 __all__ = ["LinkPathError", "PtyEndpoint", "SerialDevice", "run_server"]
@@ -70,6 +73,13 @@ _CLEAR = int(SetpointFlag.CLEAR_FAULTS)
 _RX_ERROR = int(Status.RX_ERROR)
 _CLAMPED = int(Status.CURRENT_CLAMPED)
 _WATCHDOG_TRIPPED = int(Status.WATCHDOG_TRIPPED)
+_DROP = int(FaultBit.DROP_REPLIES)
+_DELAY = int(FaultBit.DELAY_REPLIES)
+_CORRUPT = int(FaultBit.CORRUPT_CRC)
+_GARBAGE = int(FaultBit.GARBAGE)
+_DISCONNECT = int(FaultBit.DISCONNECT)
+_IGNORE = int(FaultBit.IGNORE_WRITES)
+_REPLY_FAULTS = _DROP | _DELAY | _CORRUPT | _GARBAGE
 _POLL_S = 0.05  # how often the server looks at its stop event
 _WRITE_BUDGET_S = 0.01  # how long a reply may wait for room in the pty buffer
 
@@ -101,8 +111,14 @@ class PtyEndpoint:
                                 "(remove it or choose another --link)")
         if not self.link.parent.is_dir():
             raise LinkPathError(f"link path {self.link}: directory {self.link.parent} does not exist")
-        self.master_fd, self.slave_fd = os.openpty()
+        self.master_fd = self.slave_fd = -1
         self._linked = False
+        self.tty_path = ""
+        self.hangups = 0
+        self._open()
+
+    def _open(self) -> None:
+        self.master_fd, self.slave_fd = os.openpty()
         try:
             tty.setraw(self.slave_fd)  # no echo / CR-LF mangling before the host configures it
             self.tty_path = os.ttyname(self.slave_fd)
@@ -119,6 +135,26 @@ class PtyEndpoint:
             self._close_fds()
             raise LinkPathError(f"link path {self.link}: cannot create symlink: {e.strerror}") from None
 
+    @property
+    def is_open(self) -> bool:
+        return self.master_fd >= 0
+
+    def hangup(self) -> None:
+        """The ``disconnect`` fault: remove the symlink and close both ends of the
+        pty, as if the USB-serial adapter were unplugged. The host's open port
+        then fails every read/write with EIO (pyserial: ``SerialException`` →
+        mrctl ``Disconnected``) and reopening the link path fails (no such file)
+        until :meth:`reopen`."""
+        self._unlink()
+        if self.master_fd >= 0:
+            self._close_fds()
+        self.hangups += 1
+
+    def reopen(self) -> None:
+        """After :meth:`hangup`: a new pty (a new ``/dev/pts/N``) at the same link path."""
+        if self.master_fd < 0:
+            self._open()
+
     def _close_fds(self) -> None:
         for fd in (self.master_fd, self.slave_fd):
             try:
@@ -127,8 +163,7 @@ class PtyEndpoint:
                 pass
         self.master_fd = self.slave_fd = -1
 
-    def close(self) -> None:
-        """Remove the symlink (if still ours) and close the pty. Idempotent."""
+    def _unlink(self) -> None:
         if self._linked:
             self._linked = False
             try:
@@ -136,6 +171,10 @@ class PtyEndpoint:
                     os.unlink(self.link)
             except OSError:
                 pass
+
+    def close(self) -> None:
+        """Remove the symlink (if still ours) and close the pty. Idempotent."""
+        self._unlink()
         if self.master_fd >= 0:
             self._close_fds()
 
@@ -147,13 +186,22 @@ class PtyEndpoint:
 
 
 class SerialDevice:
-    """Serves the binary protocol on a (non-blocking) fd until ``stop`` is set."""
+    """Serves the binary protocol on a (non-blocking) fd until ``stop`` is set.
 
-    def __init__(self, state: DeviceState, fd: int, stop: threading.Event, I_max_A: float = 2.0) -> None:
+    Link faults (:mod:`hil_sim.faults`) are applied from ``state.fault_bits``:
+    replies dropped, delayed (a FIFO of timed replies, sent from
+    :meth:`poll_once` / the serve loop), CRC-corrupted or preceded by junk;
+    ``ignore_writes`` discards input unanswered; ``disconnect`` hangs up the
+    pty (``endpoint``) and brings a new one up when the window ends.
+    """
+
+    def __init__(self, state: DeviceState, fd: int, stop: threading.Event, I_max_A: float = 2.0,
+                 endpoint: PtyEndpoint | None = None, seed: int = 0) -> None:
         self.state = state
         self.fd = fd
         self.stop = stop
         self.I_max = I_max_A
+        self.endpoint = endpoint
         self.dec = FrameDecoder()
         self._rx_error = False  # latched RX_ERROR
         self._clear_seq: int | None = None  # sample seq whose WATCHDOG bit a CLEAR_FAULTS masks
@@ -164,6 +212,12 @@ class SerialDevice:
         self.replies_dropped = 0
         self.bad_version = 0
         self.unknown_type = 0
+        # faults
+        self._delayed: deque[tuple[int, bytes]] = deque()
+        self._rng = random.Random(seed)
+        self._hung = False
+        self.fault_counts = {"replies_dropped": 0, "replies_delayed": 0, "replies_corrupted": 0,
+                             "garbage_bytes": 0, "bytes_ignored": 0, "hangups": 0}
 
     def counters(self) -> dict[str, int]:
         d = self.dec
@@ -178,23 +232,38 @@ class SerialDevice:
             "unknown_frames": d.unknown_frames,
             "bad_version": self.bad_version,
             "unknown_type": self.unknown_type,
+            "faults": dict(self.fault_counts),
         }
 
     # -- I/O ------------------------------------------------------------------
     def serve(self) -> None:
         poller = select.poll()
-        poller.register(self.fd, select.POLLIN)
-        timeout_ms = int(_POLL_S * 1000)
+        reg_fd = -1
+        # with faults scheduled, look at the fault bits often (a disconnect or a
+        # delayed reply must not wait for the 50 ms idle poll)
+        idle_ms = 1 if self.state.faults else int(_POLL_S * 1000)
         while not self.stop.is_set():
-            if not poller.poll(timeout_ms):
+            if self.state.fault_bits or self._hung or self._delayed:
+                if self._fault_io(self.state.fault_bits):
+                    self.stop.wait(0.001)
+                    continue
+            if reg_fd != self.fd:
+                if reg_fd >= 0:
+                    try:
+                        poller.unregister(reg_fd)
+                    except (KeyError, ValueError):
+                        pass
+                poller.register(self.fd, select.POLLIN)
+                reg_fd = self.fd
+            if not poller.poll(idle_ms if not self._delayed else 1):
                 continue
             try:
                 data = os.read(self.fd, 4096)
             except BlockingIOError:
                 continue
             except OSError as e:
-                if e.errno == errno.EIO:  # no host has the tty open (cannot happen while we hold it)
-                    time.sleep(_POLL_S)
+                if e.errno in (errno.EIO, errno.EBADF):  # no host has the tty open / fd just replaced
+                    time.sleep(0.001)
                     continue
                 raise
             if data:
@@ -203,6 +272,9 @@ class SerialDevice:
     def poll_once(self) -> None:
         """Serve whatever has arrived, without blocking (inline serving from the
         clock's spin phase: no thread hand-off, no wake-up latency)."""
+        if self.state.fault_bits or self._hung or self._delayed:
+            if self._fault_io(self.state.fault_bits):
+                return
         try:
             data = os.read(self.fd, 4096)
         except (BlockingIOError, InterruptedError):
@@ -214,7 +286,64 @@ class SerialDevice:
         if data:
             self.handle(data)
 
+    def _fault_io(self, fbits: int) -> bool:
+        """Disconnect transitions and due delayed replies; True = no link right now."""
+        if fbits & _DISCONNECT:
+            if not self._hung:
+                self._hung = True
+                self._delayed.clear()  # in flight when the cable was pulled
+                self.fault_counts["hangups"] += 1
+                if self.endpoint is not None:
+                    self.endpoint.hangup()
+                    self.fd = -1
+            return True
+        if self._hung:
+            self._hung = False
+            self.dec.reset()
+            if self.endpoint is not None:
+                self.endpoint.reopen()
+                self.fd = self.endpoint.master_fd
+        if self._delayed:
+            now = time.monotonic_ns()
+            q = self._delayed
+            while q and q[0][0] <= now:
+                frame = q.popleft()[1]
+                if not _write_all(self.fd, frame):
+                    self.replies_dropped += 1
+        return False
+
     def _send(self, frame: bytes) -> bool:
+        fbits = self.state.fault_bits
+        if fbits & _REPLY_FAULTS or self._delayed:
+            return self._send_faulted(frame, fbits)
+        if _write_all(self.fd, frame):
+            return True
+        self.replies_dropped += 1
+        return False
+
+    def _send_faulted(self, frame: bytes, fbits: int) -> bool:
+        fc = self.fault_counts
+        if fbits & _DROP:
+            fc["replies_dropped"] += 1
+            return False
+        if fbits & _CORRUPT:
+            frame = frame[:-1] + bytes((frame[-1] ^ 0xFF,))  # the CRC's high byte
+            fc["replies_corrupted"] += 1
+        if fbits & _GARBAGE:
+            n = int(self.state.faults.param(_GARBAGE, "n_bytes") or 16) if self.state.faults else 16
+            frame = self._rng.randbytes(n) + frame
+            fc["garbage_bytes"] += n
+        now = time.monotonic_ns()
+        due = now
+        if fbits & _DELAY:
+            delay = (self.state.faults.param(_DELAY, "delay_s") or 0.0) if self.state.faults else 0.0
+            due = now + int(delay * 1e9)
+            fc["replies_delayed"] += 1
+        if self._delayed or due > now:
+            if self._delayed and self._delayed[-1][0] > due:
+                due = self._delayed[-1][0]  # FIFO: never overtake an earlier reply
+            self._delayed.append((due, frame))
+            return True
         if _write_all(self.fd, frame):
             return True
         self.replies_dropped += 1
@@ -223,6 +352,10 @@ class SerialDevice:
     # -- protocol ---------------------------------------------------------------
     def handle(self, data: bytes) -> None:
         """Feed received bytes; answer every complete frame."""
+        if self.state.fault_bits & _IGNORE:
+            # a dead device: the bytes are lost, nothing is applied or answered
+            self.fault_counts["bytes_ignored"] += len(data)
+            return
         dec = self.dec
         crc0, bad0 = dec.crc_errors, dec.bytes_discarded
         frames = dec.feed(data)

@@ -13,6 +13,12 @@ import time
 
 from mrctl.io.base import Sample
 
+#: a setpoint after this much silence starts a new "session" (a host (re)start,
+#: a reconnect): the first setpoint of each is kept, to show what a restarted
+#: host commands first (docs/hil_sim.md)
+SESSION_GAP_NS = 20_000_000
+MAX_SESSIONS = 1000
+
 
 class DeviceState:
     """Latest sample out, latest setpoint in; plus link bookkeeping."""
@@ -27,6 +33,14 @@ class DeviceState:
         self._clear_requests = 0  # CLEAR_FAULTS requests so far (the clock acts on changes)
         self.setpoints_received = 0
         self.requests_served = 0
+        #: fault bits of the latest device tick (hil_sim.faults.FaultBit); written by
+        #: the clock only, read by the servers (a plain int attribute: atomic)
+        self.fault_bits = 0
+        #: the FaultSchedule (parameters of the active faults), or None
+        self.faults = None
+        #: "session starts": (monotonic ns, current A, enable) of every setpoint that
+        #: arrived after SESSION_GAP_NS of silence (or the very first); bounded
+        self.sessions: list[tuple[int, float, bool]] = []
 
     # -- clock side -------------------------------------------------------
     def publish(self, sample: Sample) -> None:
@@ -56,10 +70,14 @@ class DeviceState:
         """Accept a setpoint (restarts the device watchdog). ``watchdog_ms``:
         the host's requested watchdog, 0 = device default; ``clear_faults``:
         also clear latched status bits (serial CLEAR_FAULTS flag)."""
+        now = time.monotonic_ns()
         with self._lock:
+            if (self._setpoint_ns == 0 or now - self._setpoint_ns > SESSION_GAP_NS) \
+                    and len(self.sessions) < MAX_SESSIONS:
+                self.sessions.append((now, float(current_A), bool(enable)))
             self._setpoint_A = current_A
             self._enable = enable
-            self._setpoint_ns = time.monotonic_ns()
+            self._setpoint_ns = now
             self._watchdog_ms = watchdog_ms
             if clear_faults:
                 self._clear_requests += 1

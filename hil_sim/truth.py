@@ -2,7 +2,7 @@
 
 Columns (SI units)::
 
-    k,t,x,v,F_true,I_cmd,I_applied,x_meas,v_meas,F_meas,status
+    k,t,x,v,F_true,I_cmd,I_applied,x_meas,v_meas,F_meas,status,fault
 
 ``k`` is the tick index, which is also the device ``seq`` of the sample
 published at that tick (``seq = k mod 2**32``), so a host log that records
@@ -11,7 +11,10 @@ true values at tick k, ``I_cmd`` the driver input the device applied at tick
 k (after enable, watchdog and clamping), ``I_applied`` the driver output
 (after its lag), ``*_meas`` what the sensors reported in the sample of tick k
 (``F_meas`` is the previous tick's force, NaN without a load cell) and
-``status`` the sample's :class:`mrctl.io.base.Status` bits.
+``status`` the sample's :class:`mrctl.io.base.Status` bits, ``fault`` the
+scheduled-fault bits active at tick k (:class:`hil_sim.faults.FaultBit`; 0
+outside any fault window). During a sample fault the ``*_meas`` columns hold
+what was published (e.g. NaN), so the log shows what the host was sent.
 
 Design — the clock thread never waits on the disk: :meth:`TruthLog.record`
 appends the row tuple to a list; every ``batch_ticks`` rows (0.1 s) the list
@@ -45,8 +48,13 @@ from typing import Any
 
 __all__ = ["COLUMNS", "TruthLog", "summary_path"]
 
-COLUMNS = ("k", "t", "x", "v", "F_true", "I_cmd", "I_applied", "x_meas", "v_meas", "F_meas", "status")
-_ROW_FMT = "%d,%r,%r,%r,%r,%r,%r,%r,%r,%r,%d\n"
+COLUMNS = ("k", "t", "x", "v", "F_true", "I_cmd", "I_applied", "x_meas", "v_meas", "F_meas", "status", "fault")
+_ROW_FMT = "%d,%r,%r,%r,%r,%r,%r,%r,%r,%r,%d,%d\n"
+_ROW_FMT_NO_FAULT = "%d,%r,%r,%r,%r,%r,%r,%r,%r,%r,%d,0\n"  # an 11-field row: no fault
+
+
+def _fmt(r: tuple) -> str:
+    return (_ROW_FMT if len(r) == 12 else _ROW_FMT_NO_FAULT) % r
 _STOP = None
 
 
@@ -114,8 +122,7 @@ class TruthLog:
         if self._pos >= len(p):
             return
         end = min(len(p), self._pos + max_rows)
-        fmt = _ROW_FMT
-        self._text.extend([fmt % r for r in p[self._pos:end]])
+        self._text.extend([_fmt(r) for r in p[self._pos:end]])
         self._pos = end
         if end == len(p):
             self._write_text()
@@ -157,7 +164,6 @@ class TruthLog:
     # -- writer side ----------------------------------------------------------
     def _writer(self) -> None:
         fh = self._fh
-        fmt = _ROW_FMT
         while True:
             batch = self._q.get()
             if batch is _STOP:
@@ -166,7 +172,7 @@ class TruthLog:
                 self.lost_rows += len(batch)
                 continue
             try:
-                fh.write("".join([fmt % r for r in batch]))
+                fh.write("".join([_fmt(r) for r in batch]))
                 fh.flush()
                 self.flushes += 1
                 self.written_rows += len(batch)
