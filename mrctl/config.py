@@ -257,7 +257,7 @@ def _validate_union(spec: Union, data: Any, path: str, present: bool) -> tuple[N
     kind = data.get(spec.key, spec.default)
     if kind is None:
         return Node({}), [f"{_path(path, spec.key)}: missing (one of {', '.join(spec.variants)})"]
-    if kind not in spec.variants:
+    if not isinstance(kind, str) or kind not in spec.variants:
         return Node({}), [f"{_path(path, spec.key)}: {kind!r} not allowed (allowed: {', '.join(spec.variants)})"]
     variant = {spec.key: Str(default=kind), **spec.variants[kind]}
     return _validate_fields(variant, data, path)

@@ -132,12 +132,13 @@ class Controller:
         except LinkError:
             self.link_errors += 1
             self.consecutive_failures += 1
+        go_on = True
         if not self.split and self.consecutive_failures > self.link_loss_ticks:
             # the setpoint travels on the same link: the driver is unreachable
             self.sup.driver_failed()
             self.stopped_reason = (f"link lost: no successful exchange for {self.consecutive_failures} ticks "
                                    f"(the device's own watchdog applies 0 A)")
-            return False
+            go_on = False
         age_s = (self.clock_ns() - t0) * 1e-9
         s = sup.check_sample(sample, age_s)
         t = k * self.dt
@@ -156,10 +157,13 @@ class Controller:
         I = sup.limit(I_law)
         if I != I_law:
             self.law.applied(I)  # the law's state follows what is commanded
-        if self.split:
-            if not self._write(I):
-                return False
-            self.I_last = I
+        if not go_on:
+            I = 0.0  # the run ends: the service's way out commands 0 A
+        elif self.split:
+            if self._write(I):
+                self.I_last = I
+            else:
+                go_on = False
         else:
             self.I_next = I
         self.ticks += 1
@@ -175,7 +179,7 @@ class Controller:
             late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
             rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self._truth(), late_us,
                 (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
-        return True
+        return go_on  # even the tick that ends the run is logged
 
     def _write(self, I: float) -> bool:
         for _ in range(self.driver_retries + 1):

@@ -346,7 +346,13 @@ class SafetySupervisor:
         self._bad_bits |= kind
         if self._bad_run > self._longest_bad:
             self._longest_bad = self._bad_run
-        self._good_run = 0
+        if kind != _STALE or self._state is not _FAULT:
+            # A repeated sequence number while recovering is no evidence either
+            # way: an exchange link polls faster than the device publishes now
+            # and then (~7 % of ticks on the HIL bench). It must not restart
+            # the count of good samples (recovery took 655 ticks that way); a
+            # frozen seq still never resumes, since no fresh sample arrives.
+            self._good_run = 0
         self._out_ok = False
 
         if self._state is _FAULT:

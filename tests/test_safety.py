@@ -485,3 +485,24 @@ def test_output_always_safe(ticks, hold, slew, auto, resume_n, seq0):
     cnt = sup.counters()
     assert cnt.good + cnt.bad == len(ticks)
     event(f"faults={min(cnt.faults_entered, 2)} resumes={min(cnt.resumes, 1)} holds={min(cnt.holds_used, 1)}")
+
+
+def test_repeated_seq_while_recovering_does_not_restart_the_resume_count():
+    """Exchange links repeat a seq now and then in normal running; in FAULT that
+    is neither a good nor a bad sample for resuming. A frozen seq never resumes."""
+    from types import SimpleNamespace as NS
+
+    sup = SafetySupervisor(SafetyConfig(I_max=0.6, hold_ticks=0, auto_resume=True, resume_good_ticks=4))
+    ok = lambda seq: NS(seq=seq, x_m=0.0, v_mps=0.1, F_N=float("nan"), status=0)  # noqa: E731
+    sup.check_sample(ok(1))
+    assert sup.check_sample(None) is None and sup.in_fault
+    # good, repeat, good, repeat, good, good -> resumes on the 4th *fresh* sample
+    seqs = [2, 2, 3, 3, 4, 5]
+    out = [sup.check_sample(ok(s)) for s in seqs]
+    assert [o is not None for o in out] == [False, False, False, False, False, True]
+    # a frozen seq after a fault never brings the current back
+    sup2 = SafetySupervisor(SafetyConfig(I_max=0.6, hold_ticks=0, auto_resume=True, resume_good_ticks=4))
+    sup2.check_sample(ok(1))
+    sup2.check_sample(None)
+    assert all(sup2.check_sample(ok(7 if i else 6)) is None for i in range(50))
+    assert sup2.in_fault

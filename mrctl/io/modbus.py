@@ -1004,18 +1004,17 @@ class ModbusLink:
     # decode ---------------------------------------------------------------------
     def _to_sample(self) -> Sample:
         seq, t_raw, x, v, F, status, I_app = self.register_map.decode_read(*self._read_bufs)
-        # x, v must be finite; t too; F and I may be NaN ("unknown") but not ±inf.
+        # A well-formed reply with non-finite values is a healthy link carrying
+        # bad data: return it and let the safety supervisor judge it (bad
+        # sample: hold, then 0 A), as the serial backend does. Raising here
+        # made NaN data look like a dead link (exit 3). Counted for the log.
         if not (x - x == 0.0 and v - v == 0.0):
             self.invalid_values += 1
-            self.frame_errors += 1
-            raise FrameError(f"non-finite sample values: x_m={x!r}, v_mps={v!r}")
         if F is None:
             F = math.nan
             status = (status or 0) | _NO_LOAD_CELL
         elif F == _INF or F == -_INF:
             self.invalid_values += 1
-            self.frame_errors += 1
-            raise FrameError(f"F_N decoded to {F!r}")
         if status is None:
             status = 0
         elif status & _NO_LOAD_CELL:
@@ -1024,8 +1023,6 @@ class ModbusLink:
             I_app = math.nan
         elif I_app == _INF or I_app == -_INF:
             self.invalid_values += 1
-            self.frame_errors += 1
-            raise FrameError(f"current_applied_A decoded to {I_app!r}")
         # seq: extend narrower counters to 32 bits so the safety layer's
         # modulo-2**32 staleness test works across the wrap.
         if self._has_seq:
