@@ -22,9 +22,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
 
-from hil_util import HilSim, hil_tracking, run_daemon  # noqa: E402
+from hil_sim.harness import HilSim, hil_tracking, run_daemon  # noqa: E402
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.recorder import read_run, read_sidecar  # noqa: E402

@@ -19,7 +19,6 @@ docs/inverse-laws.md. Figures are deterministic (no timing involved).
 from __future__ import annotations
 
 import argparse
-import math
 import re
 import sys
 from pathlib import Path

@@ -26,9 +26,6 @@ What is measured, and from where (never from wall-clock latency):
 from __future__ import annotations
 
 import json
-import math
-import os
-import select
 import signal
 import subprocess
 import sys
@@ -40,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from hil_sim.faults import parse_fault_arg
+from hil_sim.harness import HilSim, env
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "config" / "hil_fig5_bench.yaml"
@@ -77,59 +75,8 @@ PINNED_SAFETY = {"hold_ticks": 5, "auto_resume": True, "resume_good_ticks": 10, 
                  "reconnect_interval_s": 0.05}
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    return env
-
-
 # ----------------------------------------------------------------------------
 # processes
-class HilSimProcess:
-    """``python -m hil_sim`` with a READY line; ``stop()`` = SIGTERM, wait."""
-
-    def __init__(self, args: list[str], workdir: Path, timeout_s: float = 30.0) -> None:
-        self.err_path = workdir / f"hil_sim-{time.monotonic_ns()}.stderr"
-        self._err = open(self.err_path, "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "hil_sim", *args], cwd=ROOT, env=_env(),
-                                     stdout=subprocess.PIPE, stderr=self._err, text=True)
-        self.ready = ""
-        self.t_ready = math.nan
-        deadline = time.monotonic() + timeout_s
-        assert self.proc.stdout is not None
-        while time.monotonic() < deadline:
-            r, _, _ = select.select([self.proc.stdout], [], [], 0.1)
-            if r:
-                line = self.proc.stdout.readline()
-                if line.startswith("hil_sim ready"):
-                    self.ready = line.strip()
-                    self.t_ready = time.monotonic()
-                    return
-                if not line:
-                    break
-            if self.proc.poll() is not None:
-                break
-        self.stop()
-        raise RuntimeError(f"hil_sim did not become ready: {self.err_path.read_text()}")
-
-    def field(self, name: str) -> str:
-        for part in self.ready.split():
-            if part.startswith(name + "="):
-                return part.split("=", 1)[1]
-        raise KeyError(name)
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._err.close()
-        return self.proc.returncode
-
-
 class Daemon:
     """``mrctl run CONFIG --out OUT --quiet`` as a subprocess."""
 
@@ -141,7 +88,7 @@ class Daemon:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "mrctl", "run", str(config), "--out", str(out), "--duration", str(duration_s),
              "--quiet", "--status-socket", self.sock],
-            cwd=ROOT, env=_env(), stdout=subprocess.DEVNULL, stderr=self._err)
+            cwd=ROOT, env=env(), stdout=subprocess.DEVNULL, stderr=self._err)
 
     def status(self) -> dict[str, Any] | None:
         from mrctl.service import query_status
@@ -231,7 +178,7 @@ def experiment_config(sc: Scenario, workdir: Path, link: str | None = None, port
     return path
 
 
-def _start_bench(sc: Scenario, workdir: Path) -> tuple[HilSimProcess, Path]:
+def _start_bench(sc: Scenario, workdir: Path) -> tuple[HilSim, Path]:
     truth = workdir / "truth.csv"
     args = ["--config", str(BENCH), "--transport", sc.transport, "--truth", str(truth),
             "--duration", str(sc.bench_duration_s)]
@@ -243,7 +190,7 @@ def _start_bench(sc: Scenario, workdir: Path) -> tuple[HilSimProcess, Path]:
         args += ["--serve", "inline" if sc.shipped else sc.serve]
     for f in sc.faults:
         args += ["--fault", f]
-    return HilSimProcess(args, workdir), truth
+    return HilSim(*args, workdir=workdir), truth
 
 
 def warm_up(transport: str, link: str | None, port: int | None, n: int = 20) -> int:

@@ -100,8 +100,8 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
     if need <= budget and (not rtts or errors <= len(rtts) // 10):
         tail = ""
         if p99 is not None and p99 > budget:
-            tail = (f"; warning: the p99 exceeds it, expect some late samples "
-                    f"(bridged by safety.hold_ticks, counted in the run log)")
+            tail = ("; warning: the p99 exceeds it, expect some late samples "
+                    "(bridged by safety.hold_ticks, counted in the run log)")
         return Feasibility(rate_hz, wire_s, p50, p99, errors, True, None,
                            f"{what}: {how} per tick fits {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed){tail}")
     if need <= budget:

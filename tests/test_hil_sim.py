@@ -377,20 +377,6 @@ def test_truth_path_unwritable_exits_2(tmp_path: Path) -> None:
     assert not (tmp_path / "tty").is_symlink()
 
 
-def _modbus_available() -> bool:
-    try:
-        import hil_sim.modbus_device  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(_modbus_available(), reason="hil_sim.modbus_device is present")
-def test_modbus_transport_not_available_exits_2(tmp_path: Path) -> None:
-    r = run_to_exit(["--transport", "modbus-tcp", "--duration", "1"])
-    assert r.returncode == 2 and "not available" in r.stderr and "Traceback" not in r.stderr
-
-
 def _modbus_exchanges(link, n: int = 30) -> list:
     sine = Sine(0.010, 1.0)
     link.open()
@@ -411,7 +397,6 @@ def _modbus_exchanges(link, n: int = 30) -> list:
     return got
 
 
-@pytest.mark.skipif(not _modbus_available(), reason="hil_sim.modbus_device not written yet")
 def test_modbus_tcp_serves_and_stops(spawn) -> None:
     from mrctl.io.modbus import ModbusLink
 
@@ -425,7 +410,6 @@ def test_modbus_tcp_serves_and_stops(spawn) -> None:
     assert sim.wait() == 0, sim.stderr()
 
 
-@pytest.mark.skipif(not _modbus_available(), reason="hil_sim.modbus_device not written yet")
 def test_modbus_rtu_serves_on_a_pty_and_stops(spawn, tmp_path: Path) -> None:
     from mrctl.io.modbus import ModbusLink
 
@@ -438,7 +422,6 @@ def test_modbus_rtu_serves_on_a_pty_and_stops(spawn, tmp_path: Path) -> None:
     assert not link_path.is_symlink()
 
 
-@pytest.mark.skipif(not _modbus_available(), reason="hil_sim.modbus_device not written yet")
 def test_modbus_tcp_port_in_use_exits_2() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

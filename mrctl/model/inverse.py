@@ -27,7 +27,7 @@ Laws, by the name used in YAML (``inverse.law``):
 from __future__ import annotations
 
 import math
-from typing import Callable, Protocol
+from typing import Protocol
 
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import LuGreParams
