@@ -408,7 +408,8 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
     modbus_common = {
         "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
         "use_fc23": Custom(_optional_bool, default=None, doc="one FC23 transaction per tick; null = probe at start"),
-        "registers": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+        "register_map": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+        "open_timeout_s": Num(default=1.0, min=0.0, min_exclusive=True, max=60.0, doc="connect and FC23 probe (s)"),
         "watchdog_ms": Num(default=50, integer=True, min=0, max=65535,
                            doc="device applies 0 A if setpoints stop this long (0 = device default)"),
     }
@@ -529,6 +530,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                 "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud"),
                 "parity": Str(default="E", choices=("E", "O", "N"), doc="RTU standard: E (8E1); N needs stopbits 2"),
                 "stopbits": Num(default=1, min=1, max=2, doc="stop bits"),
+                "rtu_local_echo": Bool(default=False, doc="an RS-485 adapter echoes our requests: read and drop them"),
                 "unit_id": Num(default=1, integer=True, min=1, max=247, doc="Modbus unit id (RTU: 1-247)"),
                 **modbus_common,
             },

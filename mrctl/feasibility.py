@@ -57,7 +57,7 @@ def wire_time_s(backend_cfg: Any) -> float | None:
 
         fc23 = backend_cfg.use_fc23 if backend_cfg.use_fc23 is not None else True
         bits = rtu_bits_per_char(getattr(backend_cfg, "parity", "E"), getattr(backend_cfg, "stopbits", 1))
-        return rtu_transaction_wire_time_s(backend_cfg.registers, backend_cfg.baudrate, fc23, bits)
+        return rtu_transaction_wire_time_s(backend_cfg.register_map, backend_cfg.baudrate, fc23, bits)
     return None
 
 

@@ -23,7 +23,7 @@ def test_modbus_rtu_115200_cannot_do_1khz():
     pytest.importorskip("mrctl.io.registers")
     from mrctl.io.registers import default_register_map
 
-    cfg = SimpleNamespace(type="modbus-rtu", baudrate=115200, use_fc23=None, registers=default_register_map())
+    cfg = SimpleNamespace(type="modbus-rtu", baudrate=115200, use_fc23=None, register_map=default_register_map())
     w = wire_time_s(cfg)
     assert w > 3.2e-3  # the 37-byte figure is a floor; 8E1 and gaps add more
     f = assess(1000.0, w, what="modbus-rtu 115200 Bd")
