@@ -38,13 +38,14 @@ wake-up, which on a VM can be milliseconds late. Instead the clock calls
 from __future__ import annotations
 
 import json
-import math
 import queue
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
+
+from mrctl.jsonutil import jsonable
 
 __all__ = ["COLUMNS", "TruthLog", "summary_path"]
 
@@ -63,18 +64,6 @@ def summary_path(csv_path: str | Path) -> Path:
     p = Path(csv_path)
     s = p.with_suffix(".json")
     return s if s != p else p.with_name(p.name + ".summary.json")
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else repr(obj)
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    return str(obj)
 
 
 class TruthLog:
@@ -221,7 +210,7 @@ class TruthLog:
         }
         try:
             sp = summary_path(self.path)
-            sp.write_text(json.dumps(_jsonable(out), indent=2) + "\n")
+            sp.write_text(json.dumps(jsonable(out), indent=2) + "\n")
         except OSError as e:
             print(f"hil_sim: cannot write truth summary: {e}", file=sys.stderr)
         return out

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mrctl import __version__
+from mrctl.jsonutil import jsonable
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -44,7 +45,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "python": platform.python_version(),
         "host": platform.node(),
         "config_file": str(Path(args.config).resolve()),
-        "config": _jsonable(exp.config.to_dict()),
+        "config": jsonable(exp.config),
         "parameters": exp.params.as_dict(),
         "summary": s,
     }
@@ -58,16 +59,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.out:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     return EXIT_OK
-
-
-def _jsonable(obj):
-    from mrctl.model.params import LuGreParams
-
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, LuGreParams):
-        return obj.as_dict()
-    return obj
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -86,6 +86,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from mrctl.jsonutil import jsonable
+
 __all__ = ["CORE_COLUMNS", "Recorder", "read_run", "read_sidecar", "sidecar_path"]
 
 #: Core columns every run CSV starts with, in this order (SI: s, m, m/s, N, N, A).
@@ -106,33 +108,9 @@ def sidecar_path(path: str | os.PathLike[str]) -> Path:
     return Path(path).with_suffix(".json")
 
 
-def _jsonable(obj: Any) -> Any:
-    """Make ``obj`` strict-JSON-serializable (non-finite floats → strings)."""
-    if isinstance(obj, float) or isinstance(obj, np.floating):
-        f = float(obj)
-        return f if math.isfinite(f) else repr(f)  # 'nan', 'inf', '-inf'
-    if obj is None or isinstance(obj, (str, bool, int)):
-        return obj
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple, set, frozenset, deque)):
-        return [_jsonable(v) for v in obj]
-    if hasattr(obj, "__dataclass_fields__"):
-        import dataclasses
-
-        return _jsonable(dataclasses.asdict(obj))
-    return str(obj)
-
-
 def _write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
     """Write JSON to a temp file in the same directory, fsync, ``os.replace``."""
-    text = json.dumps(_jsonable(data), indent=2, allow_nan=False) + "\n"
+    text = json.dumps(jsonable(data), indent=2, allow_nan=False) + "\n"
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
     try:
         with open(tmp, "w", encoding="utf-8") as fh:

@@ -40,6 +40,7 @@ from mrctl.config import ConfigError, Node, load_experiment
 from mrctl.controller import RUN_COLUMNS, RUN_FORMATS, Controller
 from mrctl.experiment import Experiment, build
 from mrctl.io.base import LinkError, Status
+from mrctl.jsonutil import jsonable
 from mrctl.loop import FixedRateLoop
 from mrctl.metrics import format_summary, tracking_summary
 from mrctl.rt import RtSettings, apply_rt, restore
@@ -145,7 +146,7 @@ class StatusServer:
             with conn:
                 try:
                     conn.settimeout(1.0)
-                    conn.sendall((json.dumps(_jsonable(self.snapshot())) + "\n").encode())
+                    conn.sendall((json.dumps(jsonable(self.snapshot(), nonfinite="null")) + "\n").encode())
                 except OSError:
                     pass
 
@@ -193,22 +194,6 @@ def query_status(path: str, timeout_s: float = 2.0) -> dict[str, Any]:
     finally:
         s.close()
     return json.loads(b"".join(chunks).decode())
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple, frozenset, set)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if hasattr(obj, "as_dict"):
-        return _jsonable(obj.as_dict())
-    if hasattr(obj, "to_dict"):
-        return _jsonable(obj.to_dict())
-    if isinstance(obj, (str, int, float, bool)) or obj is None:
-        return obj
-    return str(obj)
 
 
 # ----------------------------------------------------------------------------
@@ -483,7 +468,7 @@ class Service:
         ctl.loop = loop
         meta = {
             "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
-            "config_file": str(Path(o.config_path).resolve()), "config": _jsonable(cfg.to_dict()),
+            "config_file": str(Path(o.config_path).resolve()), "config": jsonable(cfg),
             "parameters": exp.params.as_dict(), "backend": backend.describe(),
             "columns_units": dict(zip(RUN_COLUMNS, ("s", "m", "m/s", "N", "N", "A", "tick", "", "s", "A", "N",
                                                     "us", "us", "flags", "count"))),

@@ -84,3 +84,15 @@ def test_report_of_a_daemon_run_with_faults(tmp_path):
     png = tmp_path / "r.png"
     assert main(["report", str(out), "--out", str(png)]) == 0
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_simulate_sidecar_with_sets_and_ranges_in_the_config(tmp_path, capsys):
+    """rt.cpus (a set) and safety ranges (tuples) must reach the JSON sidecar."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(Path(FIG5).read_text().replace("safety: {I_max: 0.6}",
+                   "safety: {I_max: 0.6, x_range_m: [-0.05, 0.05]}") + "rt: {cpus: [0]}\n")
+    out = tmp_path / "run.csv"
+    assert main(["simulate", str(cfg), "--out", str(out), "--duration", "0.5"]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["config"]["rt"]["cpus"] == [0]
+    assert meta["config"]["safety"]["x_range_m"] == [-0.05, 0.05]
