@@ -19,23 +19,39 @@ _AT_LIMIT_A = 1e-9
 
 
 def tracking_summary(
-    t: np.ndarray, F_des: np.ndarray, F: np.ndarray, I: np.ndarray, I_max: float, settle_s: float
+    t: np.ndarray, F_des: np.ndarray, F: np.ndarray, I: np.ndarray, I_max: float | None, settle_s: float
 ) -> dict[str, float]:
-    """Figures over t ≥ t[0] + settle_s (the whole run if that leaves < 2 ticks)."""
+    """Figures over t ≥ t[0] + settle_s (the whole run if that leaves < 2 ticks).
+
+    Rows where F or F_des is NaN carry no value (a daemon log while the safety
+    supervisor held 0 A, no load cell): they are left out of the force
+    figures, which are NaN only if fewer than 2 rows are left. ``I_max`` None
+    means the run's own largest current in the window (reports of a log
+    whose limit is not known)."""
     t = np.asarray(t, float)
+    F_des = np.asarray(F_des, float)
+    F = np.asarray(F, float)
     m = t >= t[0] + settle_s
     if m.sum() < 2:
         m = np.ones_like(t, dtype=bool)
-    e = np.asarray(F, float)[m] - np.asarray(F_des, float)[m]
-    p2p = float(np.ptp(np.asarray(F_des, float)[m]))
+    valid = m & np.isfinite(F) & np.isfinite(F_des)
+    if valid.sum() >= 2:
+        e = F[valid] - F_des[valid]
+        rmse = float(math.sqrt(np.mean(e * e)))
+        p2p = float(np.ptp(F_des[valid]))
+        nrmse = rmse / p2p if p2p > 0 else math.nan
+    else:
+        rmse = nrmse = math.nan
     Iw = np.asarray(I, float)[m]
+    top = float(np.max(Iw)) if I_max is None else I_max
     return {
         "window_start_s": float(t[m][0]),
-        "force_rmse_N": float(math.sqrt(np.mean(e * e))),
-        "force_nrmse": float(math.sqrt(np.mean(e * e)) / p2p) if p2p > 0 else math.nan,
+        "window_ticks": float(m.sum()),
+        "force_rmse_N": rmse,
+        "force_nrmse": nrmse,
         "max_current_step_A": float(np.max(np.abs(np.diff(Iw)))) if Iw.size > 1 else 0.0,
         "share_at_zero": float(np.mean(Iw <= _AT_LIMIT_A)),
-        "share_at_I_max": float(np.mean(Iw >= I_max - _AT_LIMIT_A)),
+        "share_at_I_max": float(np.mean(Iw >= top - _AT_LIMIT_A)),
     }
 
 

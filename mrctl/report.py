@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mrctl.metrics import tracking_summary
+
 __all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
 
 #: Columns a run CSV must have (SI units: s, m, m/s, N, N, A). Others are ignored.
@@ -119,44 +121,27 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S) -> dict[str, float]:
     """Tracking metrics of a run, over ``t >= t[0] + settle``.
 
-    Kept as one pure function (arrays in, floats out) so it can move to
-    ``mrctl.metrics`` unchanged. The window drops the start-up transient; a
-    run shorter than ``settle`` (or leaving fewer than 2 rows) is taken whole
-    rather than refused, since a short bench run still deserves a number.
+    The figures are :func:`mrctl.metrics.tracking_summary`'s (the daemon and
+    ``mrctl simulate`` use the same), renamed for the figure title. The
+    window drops the start-up transient; a run shorter than ``settle`` (or
+    leaving fewer than 2 rows) is taken whole rather than refused, since a
+    short bench run still deserves a number. NaN rows carry no value.
 
     Returns:
         nrmse: RMS(F - F_des) / peak-to-peak(F_des); ``nan`` if F_des is flat.
         max_dI: largest |I[k+1] - I[k]| (A) between consecutive rows.
-        share_zero: fraction of rows with I == 0 (driver switched off).
+        share_zero: fraction of rows with I <= 1 nA (driver switched off).
         share_max: fraction of rows at the run's maximum current (saturation).
         t_start: first time (s) in the window; n: rows in the window.
     """
-    t = np.asarray(cols["t"], dtype=float)
-    F_des = np.asarray(cols["F_des"], dtype=float)
-    F = np.asarray(cols["F"], dtype=float)
-    I = np.asarray(cols["I"], dtype=float)
-
-    window = t >= t[0] + settle
-    if np.count_nonzero(window) < 2:
-        window = np.ones_like(t, dtype=bool)
-
-    valid = window & np.isfinite(F) & np.isfinite(F_des)  # NaN: no value (a fault, no load cell)
-    if np.count_nonzero(valid) >= 2:
-        err = F[valid] - F_des[valid]
-        rms = float(np.sqrt(np.mean(err * err)))
-        span = float(np.ptp(F_des[valid]))
-        nrmse = rms / span if span > 0.0 else math.nan
-    else:
-        nrmse = math.nan
-
-    Iw = I[window]
+    m = tracking_summary(cols["t"], cols["F_des"], cols["F"], cols["I"], None, settle)
     return {
-        "nrmse": nrmse,
-        "max_dI": float(np.max(np.abs(np.diff(Iw)))),
-        "share_zero": float(np.mean(Iw == 0.0)),
-        "share_max": float(np.mean(Iw >= np.max(Iw) - 1e-9)),
-        "t_start": float(t[window][0]),
-        "n": float(np.count_nonzero(window)),
+        "nrmse": m["force_nrmse"],
+        "max_dI": m["max_current_step_A"],
+        "share_zero": m["share_at_zero"],
+        "share_max": m["share_at_I_max"],
+        "t_start": m["window_start_s"],
+        "n": m["window_ticks"],
     }
 
 

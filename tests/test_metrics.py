@@ -1,0 +1,44 @@
+"""Tracking figures: the one definition behind simulate, run and report."""
+
+import math
+
+import numpy as np
+
+from mrctl.metrics import tracking_summary
+
+
+def _run(n=3000):
+    t = np.arange(n) * 1e-3
+    F_des = 30 * np.sin(2 * np.pi * t)
+    F = F_des + 0.3  # known constant error
+    I = np.abs(np.sin(2 * np.pi * t)) * 0.6
+    return t, F_des, F, I
+
+
+def test_known_error_and_window():
+    t, F_des, F, I = _run()
+    s = tracking_summary(t, F_des, F, I, 0.6, 1.0)
+    w = t >= 1.0
+    assert s["window_start_s"] == 1.0 and s["window_ticks"] == w.sum()
+    assert math.isclose(s["force_rmse_N"], 0.3, rel_tol=1e-12)
+    assert math.isclose(s["force_nrmse"], 0.3 / np.ptp(F_des[w]), rel_tol=1e-12)
+
+
+def test_nan_rows_carry_no_value():
+    """A daemon log with sample faults (NaN F_des) or no load cell (NaN F)."""
+    t, F_des, F, I = _run()
+    ref = tracking_summary(t, F_des, F, I, 0.6, 1.0)
+    F_des2, F2 = F_des.copy(), F.copy()
+    F_des2[1500:1600] = np.nan  # held at 0 A: no demand logged
+    F2[2000:2010] = np.nan
+    s = tracking_summary(t, F_des2, F2, I, 0.6, 1.0)
+    assert math.isclose(s["force_rmse_N"], 0.3, rel_tol=1e-12)
+    assert math.isclose(s["force_nrmse"], ref["force_nrmse"], rel_tol=1e-3)
+    s = tracking_summary(t, F_des, np.full_like(F, np.nan), I, 0.6, 1.0)
+    assert math.isnan(s["force_nrmse"]) and math.isnan(s["force_rmse_N"])
+
+
+def test_i_max_none_uses_the_runs_own_maximum():
+    t, F_des, F, I = _run()
+    assert tracking_summary(t, F_des, F, I, None, 1.0)["share_at_I_max"] > 0
+    assert tracking_summary(t, F_des, F, I * 0.5, 0.6, 1.0)["share_at_I_max"] == 0.0
