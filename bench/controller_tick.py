@@ -24,6 +24,7 @@ from mrctl.safety import SafetySupervisor  # noqa: E402
 from mrctl.service import make_backend, safety_config  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
+DEFER_FORMAT = True
 
 
 def make_tick(period_s: float) -> Callable[[int, int], object]:
@@ -34,7 +35,23 @@ def make_tick(period_s: float) -> Callable[[int, int], object]:
     sup = SafetySupervisor(safety_config(exp.config, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
     rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
-                   fmt=RUN_FORMATS)
+                   fmt=RUN_FORMATS, defer_format=DEFER_FORMAT)
     ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record)
     atexit.register(rec.close)
-    return ctl.tick
+    tick = ctl.tick
+    if DEFER_FORMAT:  # as mrctl run does: the loop formats the log in its idle time
+        def tick(k: int, now_ns: int, _t=ctl.tick) -> object:
+            return _t(k, now_ns)
+        tick.background = rec.format_pending  # type: ignore[attr-defined]
+    return tick
+
+
+def make_tick_thread_format(period_s: float) -> Callable[[int, int], object]:
+    """The same, with the log formatted by the writer thread (the old design),
+    for comparison: ``--tick controller_tick:make_tick_thread_format``."""
+    global DEFER_FORMAT
+    DEFER_FORMAT = False
+    try:
+        return make_tick(period_s)
+    finally:
+        DEFER_FORMAT = True

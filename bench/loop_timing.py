@@ -206,6 +206,7 @@ def run_strategy(
     stats = TimingStats(capacity=max(1, int(seconds * rate_hz) + 16))
     loop = FixedRateLoop(rate_hz, wait=strategy, spin_margin_s=spin_margin_s, stats=stats)
     tick = tick_factory(loop.period_ns * 1e-9)
+    loop.background = getattr(tick, "background", None)  # e.g. the recorder's idle-time formatting
     with tempfile.TemporaryDirectory() as tmp:
         histfile = os.path.join(tmp, "hist.txt")
         proc = (start_cyclictest(seconds, rate_hz, rt_settings.fifo_priority, histfile)

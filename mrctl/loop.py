@@ -61,6 +61,8 @@ class FixedRateLoop:
         sleep: Callable[[float], object] = time.sleep,
         stats: TimingStats | None = None,
         idle: Callable[[], object] | None = None,
+        background: Callable[[int], object] | None = None,
+        background_guard_s: float = 2e-4,
     ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
@@ -83,6 +85,13 @@ class FixedRateLoop:
         #: lets a single-threaded device serve its link while it waits, with no
         #: thread wake-up in between (hil_sim's inline serving).
         self._idle = idle
+        #: background(until_ns): bounded work done in the loop thread after a
+        #: tick, to be finished by until_ns = the moment the wait must begin
+        #: (hybrid: deadline − spin margin) minus ``background_guard_s``.
+        #: Used to format the run log here rather than in a second thread
+        #: that would take the GIL from the loop (see mrctl/recorder.py).
+        self.background = background
+        self.background_guard_ns = round(background_guard_s * 1e9)
 
     def stop(self) -> None:
         """Ask the loop to end after the current tick.
@@ -125,6 +134,8 @@ class FixedRateLoop:
             # First deadline index at or past the duration: ceil(duration / period).
             k_end = -(-round(duration_s * 1e9) // period)
 
+        bg = self.background
+        bg_lead = self.background_guard_ns + (margin if mode == _HYBRID else 0)
         t0 = clock()
         self.t_start_ns = t0
         k = 0
@@ -135,6 +146,9 @@ class FixedRateLoop:
                 break
             deadline = t0 + k * period
             now = clock()
+            if bg is not None and now < deadline - bg_lead:
+                bg(deadline - bg_lead)
+                now = clock()
             idle = self._idle
             if mode == _SPIN:
                 if idle is None:

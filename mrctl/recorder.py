@@ -59,6 +59,21 @@ unchanged tick after tick, so it was chosen (0.5 µs/tick is 0.05 % of a
 (``'%.9g'`` about half that), i.e. 1–2 % of a core at 1 kHz, in chunks of
 ``_CHUNK_ROWS`` rows so no single C call holds the GIL for long.
 
+**Formatting in the loop's idle time** (``defer_format=True``, what
+``mrctl run`` uses): a full block is not handed to the writer thread but
+kept for :meth:`Recorder.format_pending`, which the loop calls after each
+tick with the time by which it must start waiting for the next deadline; it
+formats ``_CHUNK_ROWS`` rows at a time while that time has not come, then
+hands the finished text to the writer thread, which only ``write()``\ s and
+``fsync``\ s (system calls that release the GIL). Why: a second thread
+running Python code takes the GIL away from the loop, and on this VM every
+hand-over of the GIL between the two threads can cost a cross-CPU wake-up of
+tens to hundreds of µs, landing inside a tick (bench/loop_timing.py: compute
+p99 ≈ 100–180 µs with the spinning strategies when the thread formatted).
+If the loop gets no idle time (a second block fills while one is still
+waiting), every waiting block goes to the writer thread to be formatted
+there, in order, so the data at risk stays within one flush interval.
+
 **GIL note for the daemon**: the writer is a SCHED_OTHER Python thread;
 while it holds the GIL the loop thread can wait up to
 ``sys.getswitchinterval()`` (5 ms by default) for it. Set e.g.
@@ -176,6 +191,9 @@ class Recorder:
             the bytes written) and ``close`` — and ``fileno`` for fsync;
             default: unbuffered ``open(path, "wb", buffering=0)``. For tests
             (stalled or failing disks).
+        defer_format: full blocks wait for :meth:`format_pending` (called
+            by the loop in its idle time) instead of being formatted by the
+            writer thread; see the module docstring.
 
     Raises at construction (before any tick) if the CSV or the sidecar cannot
     be created; after that, errors are only reported (:meth:`stats`).
@@ -197,6 +215,7 @@ class Recorder:
         "path", "sidecar", "columns", "meta", "rate_hz", "flush_interval_s",
         "block_ticks", "n_blocks", "capacity_ticks", "flush_every_ticks",
         "_ncols", "_row_fmt", "_chunk_fmt", "_fh", "_thread", "_closed", "_close_stats",
+        "defer_format", "_pending", "_unpack_chunk", "_tail_fmts",
         "_sidecar_base", "_sidecar_error",
     )
 
@@ -213,6 +232,7 @@ class Recorder:
         fmt: str | Mapping[str, str] = "%r",
         require_core: bool = True,
         opener: Callable[[Path], BinaryIO] | None = None,
+        defer_format: bool = False,
     ) -> None:
         cols = tuple(str(c) for c in columns)
         if not cols:
@@ -269,6 +289,12 @@ class Recorder:
         self._row_fmt = row_fmt
         self._chunk_fmt = row_fmt * _CHUNK_ROWS
         self._ncols = len(cols)
+        self.defer_format = bool(defer_format)
+        #: loop thread only: [block, rows, first tick, rows formatted, text parts]
+        self._pending: deque[list] = deque()
+        self._unpack_chunk = struct.Struct("=" + "d" * (len(cols) * _CHUNK_ROWS)).unpack_from
+        self._tail_fmts = {m: (struct.Struct("=" + "d" * (len(cols) * m)).unpack_from, row_fmt * m)
+                           for m in range(1, _CHUNK_ROWS)}
 
         # Hot-path state.
         self._rb = 8 * len(cols)  # bytes per row
@@ -368,7 +394,14 @@ class Recorder:
 
     def _handover(self) -> None:
         n = self._off // self._rb
-        self._q.put((self._buf, n, self._tick))
+        if self.defer_format:
+            if self._pending:  # the loop had no idle time for the last one
+                self._release_pending()
+                self._q.put((self._buf, n, self._tick))
+            else:
+                self._pending.append([self._buf, n, self._tick, 0, []])
+        else:
+            self._q.put((self._buf, n, self._tick))
         self._tick += n
         self._buf = None
         self._off = 0
@@ -382,6 +415,42 @@ class Recorder:
         """
         if self._buf is not None and self._off > 0 and not self._closed:
             self._handover()
+        self._release_pending()
+
+    def _release_pending(self) -> None:
+        """Hand every block still waiting to be formatted to the writer
+        thread, oldest first (it formats them itself)."""
+        pend = self._pending
+        while pend:
+            buf, n, tick0, _, _ = pend.popleft()
+            self._q.put((buf, n, tick0))
+
+    def format_pending(self, until_ns: int, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        """Format waiting rows, a chunk at a time, while ``clock() < until_ns``.
+
+        For the loop thread's idle time (``defer_format=True``): a chunk of
+        ``_CHUNK_ROWS`` rows costs ~25 µs, so stop a little earlier than
+        the moment the loop must start waiting. A finished block's text goes
+        to the writer thread and the block back to the free list.
+        """
+        pend = self._pending
+        while pend and clock() < until_ns:
+            job = pend[0]
+            buf, n, _, row, parts = job
+            m = n - row
+            if m >= _CHUNK_ROWS:
+                parts.append(self._chunk_fmt % self._unpack_chunk(buf, row * self._rb))
+                row += _CHUNK_ROWS
+            else:
+                unpack, fmt = self._tail_fmts[m]
+                parts.append(fmt % unpack(buf, row * self._rb))
+                row = n
+            if row < n:
+                job[3] = row
+                continue
+            pend.popleft()
+            self._q.put(("".join(parts).encode("ascii"), n, job[2]))
+            self._free.append(buf)
 
     # -- writer thread ----------------------------------------------------
     def _write_all(self, data: bytes) -> tuple[int, BaseException | None]:
@@ -463,7 +532,7 @@ class Recorder:
                     self._lose(n, tick0)
                 else:
                     try:
-                        data = self._format(buf, n)
+                        data = buf if isinstance(buf, bytes) else self._format(buf, n)
                     except Exception as exc:  # noqa: BLE001
                         self._fail(exc)
                         self._lose(n, tick0)
@@ -482,7 +551,8 @@ class Recorder:
                             self._rows_written += ok
                             self._lose(n - ok, tick0 + ok)
                             self._fail(exc)
-                free.append(buf)  # recycle: the loop may fill it again
+                if not isinstance(buf, bytes):
+                    free.append(buf)  # recycle: the loop may fill it again
             if dirty and self._error is None and clock() - last_sync >= interval:
                 dirty = not self._timed_sync()
                 last_sync = clock()
@@ -574,6 +644,7 @@ class Recorder:
         if not self._closed:
             if self._buf is not None and self._off > 0:
                 self._handover()
+            self._release_pending()
             self._closed = True
             self._buf = None
             self._off = self._end = 0

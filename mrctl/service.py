@@ -485,8 +485,9 @@ class Service:
 
                 self.rec = Recorder(o.out, RUN_COLUMNS, meta, capacity_ticks=cfg.record.buffer_ticks,
                                     flush_interval_s=cfg.record.flush_interval_s, rate_hz=cfg.rate_hz,
-                                    fmt=RUN_FORMATS)
+                                    fmt=RUN_FORMATS, defer_format=True)
                 ctl.record = self.rec.record
+                loop.background = self.rec.format_pending  # format the log in the loop's idle time
             try:
                 status.start()
             except OSError as exc:

@@ -522,3 +522,28 @@ def test_idle_hook_runs_only_in_the_spin_phase(wait):
             assert e[1] - clk.read_ns < loop.t_start_ns + next_k * loop.period_ns
     if wait == "hybrid":  # the sleep covers all but the 0.2 ms margin
         assert len(idles) <= 5 * (200_000 // 1000 + 2)
+
+
+@pytest.mark.parametrize("wait", ["sleep", "spin", "hybrid"])
+def test_background_work_ends_before_the_wait_must_begin(wait):
+    """The recorder formats its log in this hook: it is called once per
+    tick with the moment the wait must begin (deadline, less the hybrid spin
+    margin, less the guard), and only when that moment is still ahead."""
+    clk = FakeClock(read_ns=1000)
+    calls = []
+
+    def background(until_ns):
+        calls.append((clk.t, until_ns))
+        clk.work(max(0, until_ns - clk.t - 5_000))  # use nearly all the time given
+
+    loop = FixedRateLoop(1000.0, wait=wait, spin_margin_s=3e-4, clock=clk, sleep=clk.sleep,
+                         background=background, background_guard_s=1e-4)
+    loop.run(lambda k, now: clk.work(50_000), max_ticks=6)
+    lead = 100_000 + (300_000 if wait == "hybrid" else 0)
+    assert len(calls) == 5  # not before tick 0 (already due)
+    for k, (t_call, until) in enumerate(calls, start=1):
+        assert until == loop.t_start_ns + k * P - lead
+        assert t_call < until
+    st = loop.stats.summary()
+    assert st["overruns"] == 0  # the work never pushed a tick past its deadline
+    assert st["lateness_max_us"] < 10  # fake-clock reads only

@@ -365,3 +365,57 @@ def test_sigkill_leaves_valid_csv_missing_at_most_about_one_second(tmp_path):
     assert lost <= 1000 + 300, f"lost {lost} ticks of {reported}"
     side = read_sidecar(path)
     assert side["complete"] is False and side["meta"] == {"child": True}
+
+
+# -- formatting in the loop's idle time (defer_format) --------------------------
+def test_deferred_format_writes_the_same_file_as_the_writer_thread(tmp_path):
+    """Blocks formatted by format_pending (chunks and a tail of < 8 rows) give
+    byte-for-byte the CSV the writer thread gives."""
+    n = 5 * 64 + 13
+    rows = [row(k) for k in range(n)]
+    fmt = {c: "%.9g" for c in COLS}
+    with Recorder(tmp_path / "thread.csv", COLS, capacity_ticks=1024, block_ticks=64, fmt=fmt) as rec:
+        for r in rows:
+            rec.record(*r)
+    with Recorder(tmp_path / "loop.csv", COLS, capacity_ticks=1024, block_ticks=64, fmt=fmt,
+                  defer_format=True) as rec:
+        for k, r in enumerate(rows):
+            rec.record(*r)
+            rec.format_pending(time.monotonic_ns() + 10**9)  # plenty of idle time
+            if k == 64:  # block 0 was handed over and formatted here, not by the thread
+                assert not rec._pending
+        st = rec.close()
+    assert st["rows_written"] == n and st["dropped_rows"] == 0
+    assert (tmp_path / "loop.csv").read_bytes() == (tmp_path / "thread.csv").read_bytes()
+
+
+def test_deferred_format_stops_at_the_deadline_and_resumes(tmp_path):
+    """format_pending does one chunk per clock check: with a fake clock that
+    runs out after 3 checks it formats 2 chunks and leaves the rest."""
+    rec = Recorder(tmp_path / "run.csv", COLS, capacity_ticks=256, block_ticks=64, defer_format=True)
+    for k in range(65):  # one full block handed over by the 65th row
+        rec.record(*row(k))
+    assert len(rec._pending) == 1
+    ticks = iter([0, 0, 5])
+    rec.format_pending(5, clock=lambda: next(ticks))
+    assert rec._pending[0][3] == 16  # two chunks of 8 rows done, block still waiting
+    rec.format_pending(time.monotonic_ns() + 10**9)
+    assert not rec._pending
+    st = rec.close()
+    assert st["rows_written"] == 65
+    assert np.array_equal(read_run(tmp_path / "run.csv")["t"], np.array([row(k)[0] for k in range(65)]))
+
+
+def test_deferred_format_without_idle_time_falls_back_to_the_thread_in_order(tmp_path):
+    """A loop that never calls format_pending loses nothing: the second full
+    block sends every waiting block to the writer thread, oldest first."""
+    n = 6 * 32 + 5
+    rows = [row(k) for k in range(n)]
+    with Recorder(tmp_path / "run.csv", COLS, capacity_ticks=4096, block_ticks=32, defer_format=True) as rec:
+        for r in rows:
+            rec.record(*r)
+            assert len(rec._pending) <= 1
+        st = rec.close()
+    assert st["rows_written"] == n and st["dropped_rows"] == 0
+    got = read_run(tmp_path / "run.csv")
+    assert np.array_equal(np.column_stack([got[c] for c in COLS]), np.array(rows))
