@@ -181,6 +181,8 @@ class BenchDevice:
         t = b.t
         I_app = b.I_applied
         state.publish(Sample(seq, t, x_m, v_m, F_m, status, I_app))
+        if state.owed_now:  # device pacing: answer SYNC requests with this sample
+            state.run_owed()
         if self.truth is not None:
             self.truth.record((k, t, b.x, b.v, b.F, b.I_cmd, I_app, x_m, v_m, F_m, status, fbits))
         self.k_last = k

@@ -173,6 +173,9 @@ def experiment_config(sc: Scenario, workdir: Path, link: str | None = None, port
         be.update(sc.backend)
         data["link"] = {**data.get("link", {}), **sc.link}
     data["backend"] = be
+    # the suite's figures (ticks to 0 A, reply timeouts) are for host pacing;
+    # device pacing adds one period to every reply deadline
+    data["loop"] = {**data.get("loop", {}), "pacing": "host"}
     path = workdir / "experiment.yaml"
     path.write_text(json.dumps(data, indent=1) + "\n")
     return path

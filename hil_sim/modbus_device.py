@@ -39,10 +39,10 @@ import struct
 import threading
 import time
 from collections import deque
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from hil_sim.faults import FaultBit
-from hil_sim.state import DeviceState
+from hil_sim.state import DeviceState, OwedReply
 from mrctl.io.base import FrameError
 from mrctl.io.modbus import (
     FC_READ_HOLDING,
@@ -137,6 +137,14 @@ def rtu_request_length(buf: bytes | bytearray) -> int | None:
     return -1
 
 
+class Deferred(NamedTuple):
+    """A reply to a SYNC request: sent by the clock after the tick that
+    applies its setpoint (``owed``), built then from that tick's sample."""
+
+    owed: OwedReply
+    build: Callable[[], bytes]
+
+
 class ModbusDevice:
     """Register image + request handling shared by the TCP and RTU servers.
 
@@ -151,6 +159,7 @@ class ModbusDevice:
         self.fc23 = fc23
         self.unit_id = rmap.unit_id
         self._lock = threading.Lock()
+        self._local = threading.local()  # .owed: the OwedReply of the request being handled
         self._spans = rmap.spans()
         self._read_blocks = list(rmap.read_blocks)
         wb = rmap.write_block
@@ -321,16 +330,41 @@ class ModbusDevice:
         return True
 
     def _apply(self, w: Any) -> None:
-        """Hand a (finite) setpoint to the bench; caller holds the lock."""
+        """Hand a (finite) setpoint to the bench; caller holds the lock.
+        With SYNC (bit 2 of enable) the reply is owed until the clock's next
+        tick: the ADU layer picks the :class:`OwedReply` up from ``_local``."""
         self.setpoints += 1
         wd = w.watchdog_ms
         self.watchdog_ms = wd
+        owed = None
+        if w.sync:
+            owed = self._local.owed = OwedReply()
         self.state.set_setpoint(
             w.current_setpoint_A,
             True if w.enable is None else w.enable,
             watchdog_ms=int(wd) if wd is not None and wd > 0 else 0,
             clear_faults=w.clear_faults,
+            owe=owed,
         )
+
+    def _take_owed(self, pdu: bytes | bytearray | memoryview, wrap: Callable[[bytes], bytes]) -> Deferred | None:
+        """The request just handled set SYNC: its reply, rebuilt from the
+        sample of the tick that applies it, is sent by the clock thread."""
+        owed = getattr(self._local, "owed", None)
+        if owed is None:
+            return None
+        self._local.owed = None
+        req = bytes(pdu)
+        fc = req[0]
+
+        def build() -> bytes:
+            if fc == FC_READ_WRITE:
+                ra, rc = _HH.unpack_from(req, 1)
+                data = self._read("holding", ra, rc)
+                return wrap(bytes((fc, 2 * rc)) + (data or b""))
+            return wrap(req[:5])  # FC16: the echo
+
+        return Deferred(owed, build)
 
     # -- ADU level -----------------------------------------------------------------
     def handle_tcp_frame(self, frame: bytes | bytearray) -> bytes | None:
@@ -344,6 +378,10 @@ class ModbusDevice:
             resp = self._fault_pdu(memoryview(frame)[7:], self.state.fault_bits)
         else:
             resp = self.handle_pdu(memoryview(frame)[7:])
+            if resp is not None and not resp[0] & 0x80:
+                d = self._take_owed(memoryview(frame)[7:], lambda r: _MBAP.pack(tid, 0, len(r) + 1, unit) + r)
+                if d is not None:
+                    return d  # type: ignore[return-value]
         if resp is None:
             return None
         return _MBAP.pack(tid, 0, len(resp) + 1, unit) + resp
@@ -364,6 +402,15 @@ class ModbusDevice:
             resp = self._fault_pdu(memoryview(frame)[1 : n - 2], self.state.fault_bits)
         else:
             resp = self.handle_pdu(memoryview(frame)[1 : n - 2])
+            if resp is not None and not resp[0] & 0x80 and unit != 0:
+                def wrap(r: bytes, unit: int = unit) -> bytes:
+                    body = bytes((unit,)) + r
+                    return body + crc16_modbus(body).to_bytes(2, "little")
+
+                d = self._take_owed(memoryview(frame)[1 : n - 2], wrap)
+                if d is not None:
+                    return d  # type: ignore[return-value]
+        self._local.owed = None
         if resp is None or unit == 0:
             return None
         body = bytes((unit,)) + resp
@@ -487,6 +534,9 @@ def _tcp_connection(dev: ModbusDevice, conn: socket.socket, stop: threading.Even
                 del buf[:total]
                 resp = dev.handle_tcp_frame(frame)
                 if resp is None:
+                    continue
+                if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
+                    resp.owed.attach(lambda r=resp: conn.sendall(r.build()))
                     continue
                 if state.fault_bits & _REPLY_FAULTS or delayed:
                     out, delay = dev.fault_reply(resp, tcp=True)
@@ -683,6 +733,9 @@ def _rtu_loop(dev: ModbusDevice, fd: int, stop: threading.Event, silence_s: floa
                 continue
             buf += chunk
             for resp in rtu_feed(dev, buf):
+                if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
+                    resp.owed.attach(lambda r=resp: _write_all(fd, r.build()))
+                    continue
                 if not send(resp):
                     return
             if len(buf) > 1024:  # nothing valid in a whole kilobyte: start over

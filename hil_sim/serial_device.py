@@ -47,7 +47,7 @@ import tty
 from collections import deque
 from pathlib import Path
 
-from mrctl.io.base import Status
+from mrctl.io.base import Sample, Status
 from mrctl.io.protocol import (
     PROTOCOL_VERSION,
     ErrorCode,
@@ -70,6 +70,7 @@ __all__ = ["LinkPathError", "PtyEndpoint", "SerialDevice", "run_server"]
 _U32 = 0xFFFFFFFF
 _ENABLE = int(SetpointFlag.ENABLE)
 _CLEAR = int(SetpointFlag.CLEAR_FAULTS)
+_SYNC = int(SetpointFlag.SYNC)
 _RX_ERROR = int(Status.RX_ERROR)
 _CLAMPED = int(Status.CURRENT_CLAMPED)
 _WATCHDOG_TRIPPED = int(Status.WATCHDOG_TRIPPED)
@@ -377,13 +378,27 @@ class SerialDevice:
 
     def _setpoint(self, f: SetpointFrame) -> None:
         clear = bool(f.flags & _CLEAR)
-        self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear)
         self.setpoints += 1
         self._last_good_seq = f.seq
+        if f.flags & _SYNC:
+            # device pacing: answered by the clock right after the tick that
+            # applies this setpoint, with that tick's sample (docs/protocol.md §6.1)
+            if clear:
+                self._rx_error = False
+            self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear,
+                                    owe=lambda: self._reply(f, None))
+            return
+        self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear)
         s = self.state.latest_sample()
         if clear:
             self._rx_error = False
             self._clear_seq = s.seq
+        self._reply(f, s)
+
+    def _reply(self, f: SetpointFrame, s: Sample | None) -> None:
+        """SAMPLE answering ``f``: with ``s``, or the latest sample (SYNC)."""
+        if s is None:
+            s = self.state.latest_sample()
         status = s.status & ~_CLAMPED
         if clamp_setpoint(f.current_A, self.I_max)[1]:
             status |= _CLAMPED

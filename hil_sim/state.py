@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Callable
 
 from mrctl.io.base import Sample
 
@@ -18,6 +19,36 @@ from mrctl.io.base import Sample
 #: host commands first (docs/hil_sim.md)
 SESSION_GAP_NS = 20_000_000
 MAX_SESSIONS = 1000
+
+
+class OwedReply:
+    """A SYNC (device-paced) reply whose sender is known only after the
+    setpoint is in: the clock calls it after the tick that applied the
+    setpoint, the transport gives the sender with :meth:`attach` once it has parsed
+    the request; whichever comes second sends (the clock is normally later,
+    by most of a period)."""
+
+    __slots__ = ("_send", "_due", "_lock")
+
+    def __init__(self) -> None:
+        self._send: Callable[[], object] | None = None
+        self._due = False
+        self._lock = threading.Lock()
+
+    def __call__(self) -> None:
+        with self._lock:
+            send = self._send
+            if send is None:
+                self._due = True
+                return
+        send()
+
+    def attach(self, send: Callable[[], object]) -> None:
+        with self._lock:
+            self._send = send
+            due = self._due
+        if due:
+            send()
 
 
 class DeviceState:
@@ -38,6 +69,11 @@ class DeviceState:
         self.fault_bits = 0
         #: the FaultSchedule (parameters of the active faults), or None
         self.faults = None
+        #: replies owed to SYNC (device-paced) requests: callables the clock runs
+        #: right after it publishes the sample of the tick that applied them
+        self._owed: list = []
+        #: clock side: the owed replies taken with this tick's setpoint
+        self.owed_now: list = []
         #: "session starts": (monotonic ns, current A, enable) of every setpoint that
         #: arrived after SESSION_GAP_NS of silence (or the very first); bounded
         self.sessions: list[tuple[int, float, bool]] = []
@@ -53,10 +89,24 @@ class DeviceState:
             return self._setpoint_A, self._enable, self._setpoint_ns
 
     def setpoint_ex(self) -> tuple[float, bool, int, int, int]:
-        """:meth:`setpoint` plus (requested watchdog ms or 0, CLEAR_FAULTS request count)."""
+        """:meth:`setpoint` plus (requested watchdog ms or 0, CLEAR_FAULTS request count).
+
+        Also moves the replies owed so far to :attr:`owed_now`, in the same
+        locked step: a SYNC request whose setpoint this tick applies is
+        answered with this tick's sample, one that arrives later with the
+        next tick's."""
         with self._lock:
+            if self._owed:
+                self.owed_now, self._owed = self._owed, self.owed_now
             return (self._setpoint_A, self._enable, self._setpoint_ns,
                     self._watchdog_ms, self._clear_requests)
+
+    def run_owed(self) -> None:
+        """Clock side, after :meth:`publish`: send the replies taken with this
+        tick's setpoint (each builds its reply from the sample just published)."""
+        owed = self.owed_now
+        while owed:
+            owed.pop(0)()
 
     # -- protocol side ----------------------------------------------------
     def latest_sample(self) -> Sample:
@@ -65,11 +115,14 @@ class DeviceState:
             return self._sample
 
     def set_setpoint(
-        self, current_A: float, enable: bool = True, watchdog_ms: int = 0, clear_faults: bool = False
+        self, current_A: float, enable: bool = True, watchdog_ms: int = 0, clear_faults: bool = False,
+        owe: Callable[[], object] | None = None,
     ) -> None:
         """Accept a setpoint (restarts the device watchdog). ``watchdog_ms``:
         the host's requested watchdog, 0 = device default; ``clear_faults``:
-        also clear latched status bits (serial CLEAR_FAULTS flag)."""
+        also clear latched status bits (serial CLEAR_FAULTS flag); ``owe``:
+        a SYNC request's reply, run by the clock after the tick that applies
+        this setpoint (taken in the same locked step, so never earlier)."""
         now = time.monotonic_ns()
         with self._lock:
             if (self._setpoint_ns == 0 or now - self._setpoint_ns > SESSION_GAP_NS) \
@@ -82,6 +135,8 @@ class DeviceState:
             if clear_faults:
                 self._clear_requests += 1
             self.setpoints_received += 1
+            if owe is not None:
+                self._owed.append(owe)
 
     def request_clear_faults(self) -> None:
         """Clear latched status bits (WATCHDOG_TRIPPED) at the next tick."""

@@ -477,6 +477,10 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
         "loop": Section({
             "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),
             "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01, doc="hybrid: spin this long before the deadline"),
+            "pacing": Str(default="host", choices=("host", "device"),
+                          doc="host: the loop keeps its own deadlines; device: each exchange asks the device to "
+                              "answer after its next tick (SYNC flag, docs/protocol.md), so the loop runs on the "
+                              "device's clock with one tick of actuation latency (serial and Modbus links)"),
         }, doc="pacing of the real-time loop (mrctl run)"),
         "rt": Section({
             "fifo_priority": Num(default=None, optional=True, integer=True, min=1, max=99, doc="SCHED_FIFO priority; null = normal"),
@@ -563,6 +567,10 @@ def _cross_checks(cfg: Node) -> list[str]:
         for i, cur in enumerate(inv.get("currents_A") or []):
             if isinstance(cur, float) and cur > I_max:
                 errors.append(f"inverse.currents_A[{i}]: {cur:g} A exceeds safety.I_max = {I_max:g} A")
+    loop, backend = cfg.get("loop"), cfg.get("backend")
+    if loop is not None and loop.get("pacing") == "device" and backend is not None and backend.get("type") == "sim":
+        errors.append("loop.pacing: 'device' needs a device with its own clock (a serial or Modbus backend); "
+                      "the in-process sim bench is ticked by the loop itself")
     exc = cfg.get("excitation")
     if exc is not None and exc.get("type") == "chirp":
         f0, f1 = exc.get("f0_hz"), exc.get("f1_hz")

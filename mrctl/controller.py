@@ -96,6 +96,13 @@ class Controller:
         self.pending: tuple[Any, Any] | None = None  # (law, demand) from a reload
         # live values for the status socket (plain attribute stores per tick)
         self.last_x = self.last_v = self.last_F_des = NAN
+        # device pacing state (acquire / tick_paced)
+        self._acq: tuple[Any, bool] = (None, True)
+        self._seq0: int | None = None
+        self._k0 = 0
+        self._k_paced = -1
+        self._prev_now = 0
+        self._period_ns = round(dt * 1e9)
 
     # ------------------------------------------------------------------
     def swap_laws(self, law: Any, demand: Any) -> None:
@@ -113,9 +120,43 @@ class Controller:
             self.swap_laws(law, demand)
         if self._begin is not None:
             self._begin(k)
-        backend = self.backend
-        sup = self.sup
         t0 = self.clock_ns()
+        sample, go_on = self._acquire()
+        return self._finish(k, now_ns, sample, (self.clock_ns() - t0) * 1e-9, go_on, NAN)
+
+    # -- device pacing (FixedRateLoop.run_device_paced) -------------------------
+    def acquire(self) -> Controller:
+        """Device pacing, the blocking half of a tick: the exchange, which
+        returns at the device's next tick (the SYNC flag). Never None: a
+        failed exchange is a tick too, for the safety hold and link loss."""
+        if self.pending is not None:
+            law, demand = self.pending
+            self.pending = None
+            self.swap_laws(law, demand)
+        self._acq = self._acquire()
+        return self
+
+    def tick_paced(self, n: int, now_ns: int, _token: object) -> bool:
+        """Device pacing, the rest of the tick. ``k`` (time t = k·dt) follows
+        the device's sample counter, so device ticks with no reply leave a gap
+        as host-paced skipped deadlines do. The sample's age is not checked
+        (the wait is the pacing); lateness is the jitter of reply arrivals."""
+        sample, go_on = self._acq
+        k = self._k_paced + 1 if n else 0  # k always advances (a stale seq too)
+        if sample is not None:
+            d = (sample.seq - self._seq0) & 0xFFFFFFFF if self._seq0 is not None else 0x80000000
+            if d >= 0x80000000:  # first sample, or the device's counter went back (a restart)
+                self._seq0, self._k0 = sample.seq, k
+            elif self._k0 + d > k:  # device ticks with no reply: leave the gap
+                k = self._k0 + d
+        prev, self._prev_now = self._prev_now, now_ns
+        late_us = (now_ns - prev - self._period_ns) * 1e-3 if n else 0.0
+        self._k_paced = k
+        return self._finish(k, now_ns, sample, 0.0, go_on, late_us)
+
+    def _acquire(self) -> tuple[Any, bool]:
+        """Read (split) or exchange; (sample or None, go on)."""
+        backend = self.backend
         sample = None
         try:
             if self.split:
@@ -139,7 +180,11 @@ class Controller:
             self.stopped_reason = (f"link lost: no successful exchange for {self.consecutive_failures} ticks "
                                    f"(the device's own watchdog applies 0 A)")
             go_on = False
-        age_s = (self.clock_ns() - t0) * 1e-9
+        return sample, go_on
+
+    def _finish(self, k: int, now_ns: int, sample: Any, age_s: float, go_on: bool, late_us: float) -> bool:
+        """Safety check, laws, command, record: the non-blocking part of a tick."""
+        sup = self.sup
         s = sup.check_sample(sample, age_s)
         t = k * self.dt
         if s is not None:
@@ -176,7 +221,8 @@ class Controller:
                 seq = t_dev = F = I_app = NAN
             end = self.clock_ns()
             lp = self.loop
-            late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
+            if late_us != late_us and lp is not None:  # host pacing: wake-up minus deadline
+                late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3
             rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self._truth(), late_us,
                 (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
         return go_on  # even the tick that ends the run is logged

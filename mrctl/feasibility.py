@@ -114,3 +114,32 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
               if best else "No standard rate down to 10 Hz fits")
            + "; or use a faster baud rate / Modbus TCP.")
     return Feasibility(rate_hz, wire_s, p50, p99, errors, False, best, msg)
+
+
+def check_device_pacing(link: Any, period_s: float, n: int = 20) -> str | None:
+    """With device pacing on, ``n`` exchanges at 0 A must come about one
+    device period apart. A device that ignores the SYNC flag (firmware from
+    before it) answers at once, and a loop paced by it would run as fast as
+    the link allows: refuse then. Returns why not, or None when it is paced."""
+    gaps: list[float] = []
+    pc = time.perf_counter
+    prev = None
+    errors = 0
+    for _ in range(n):
+        try:
+            link.exchange(0.0)
+        except LinkError:
+            errors += 1
+            prev = None
+            continue
+        now = pc()
+        if prev is not None:
+            gaps.append(now - prev)
+        prev = now
+    if len(gaps) < n // 2:
+        return f"device pacing: only {n - errors} of {n} exchanges answered during the check"
+    med = statistics.median(gaps)
+    if med < 0.5 * period_s:
+        return (f"device pacing: replies come {med * 1e6:.0f} µs apart, not one period "
+                f"({period_s * 1e6:.0f} µs): the device ignores the SYNC flag; use loop.pacing: host")
+    return None

@@ -462,6 +462,17 @@ class Service:
             cfg = exp.config
             ctl.law, ctl.demand, ctl.dt = exp.law, exp.demand, exp.dt
             total_ticks = int(round(duration * cfg.rate_hz)) if duration else None
+        if cfg.loop.pacing == "device":
+            from mrctl.feasibility import check_device_pacing
+
+            backend.set_device_paced(True, exp.dt, cfg.loop.spin_margin_s)
+            why = check_device_pacing(backend, exp.dt)
+            if why:
+                self.warn(f"refusing to start: {why}")
+                ctl.safe_stop()
+                backend.close()
+                return EXIT_LINK
+            self.say(f"device pacing: the loop runs on the device's clock ({cfg.rate_hz:g} Hz)")
         exp.law.reset()
         loop = self.loop = FixedRateLoop(cfg.rate_hz, wait=cfg.loop.wait, spin_margin_s=cfg.loop.spin_margin_s,
                                          clock=o.clock_ns, sleep=o.sleep)
@@ -483,11 +494,16 @@ class Service:
             if o.out:
                 from mrctl.recorder import Recorder
 
+                # host pacing: the loop formats the log in its idle time; device
+                # pacing has no idle time between compute and send, but sleeps
+                # in the exchange, when the writer thread can format
+                host_paced = cfg.loop.pacing == "host"
                 self.rec = Recorder(o.out, RUN_COLUMNS, meta, capacity_ticks=cfg.record.buffer_ticks,
                                     flush_interval_s=cfg.record.flush_interval_s, rate_hz=cfg.rate_hz,
-                                    fmt=RUN_FORMATS, defer_format=True)
+                                    fmt=RUN_FORMATS, defer_format=host_paced)
                 ctl.record = self.rec.record
-                loop.background = self.rec.format_pending  # format the log in the loop's idle time
+                if host_paced:
+                    loop.background = self.rec.format_pending
             try:
                 status.start()
             except OSError as exc:
@@ -503,7 +519,10 @@ class Service:
                 self.say(f"rt: {r}")
             sys.setswitchinterval(2e-4)  # a writer thread must not hold the GIL for 5 ms
             self.notifier.send("READY=1", f"STATUS=running {exp.name}")
-            loop.run(ctl.tick, duration_s=duration)
+            if cfg.loop.pacing == "device":
+                loop.run_device_paced(ctl.acquire, ctl.tick_paced, duration_s=duration)
+            else:
+                loop.run(ctl.tick, duration_s=duration)
             if ctl.stopped_reason:
                 self.warn(ctl.stopped_reason)
                 exit_code = EXIT_LINK

@@ -130,3 +130,13 @@ def test_shipped_experiments_are_valid():
     assert files
     for f in files:
         load_experiment(f)
+
+
+def test_device_pacing_needs_a_device_clock():
+    assert validate_experiment(GOOD, Path(".")).loop.pacing == "host"
+    errs = _errors(_with("loop.pacing", "device"))  # backend defaults to the in-process sim
+    assert len(errs) == 1 and errs[0].startswith("loop.pacing:") and "serial or Modbus" in errs[0]
+    data = _with("loop.pacing", "device")
+    data["backend"] = {"type": "serial", "url": "/dev/ttyUSB0"}
+    assert validate_experiment(data, Path(".")).loop.pacing == "device"
+    assert any(e.startswith("loop.pacing:") for e in _errors(_with("loop.pacing", "devce")))

@@ -93,3 +93,32 @@ def test_safe_stop_retries_until_zero_amps_is_delivered():
     ctl, _ = _ctl(dead)
     err = ctl.safe_stop(budget_s=0.0, min_attempts=5)
     assert err is not None and "no reply" in err and "(5 attempts" in err and dead.k == 5
+
+
+def test_device_paced_ticks_follow_the_device_counter():
+    """Device pacing: the time axis is the device's sample counter (a device
+    tick with no reply leaves a gap, as a skipped deadline does), a silent
+    exchange is still a tick (held, counted), and the current computed from
+    a sample goes out in the very next exchange."""
+    from mrctl.loop import FixedRateLoop
+
+    class Paced(FakeExchangeLink):
+        def exchange(self, I):
+            s = super().exchange(I)
+            self.k += 1 if s.seq == 3 else 0  # the device ran on: seq 5 follows 3
+            return Sample(1000 + s.seq, s.t_dev_s, s.x_m, s.v_mps, s.F_N, 0)
+
+    link = Paced(silent={6})
+    ctl, sup = _ctl(link)
+    rows = []
+    ctl.record = lambda *r: rows.append(r)
+    loop = FixedRateLoop(1000.0, wait="sleep")
+    assert loop.run_device_paced(ctl.acquire, ctl.tick_paced, max_ticks=8) == 8
+    ks = [r[6] for r in rows]
+    seqs = [r[7] for r in rows]
+    assert seqs[:4] == [1000, 1001, 1002, 1003] and seqs[4] == 1005 and math.isnan(seqs[5])
+    assert ks == [0, 1, 2, 3, 5, 6, 7, 8]  # seq-based; the silent tick takes the next index
+    assert [r[0] for r in rows][:5] == pytest.approx([0.0, 1e-3, 2e-3, 3e-3, 5e-3])
+    # each exchange carries the current computed on the previous tick
+    assert [I for _, I in link.sent][1:4] == pytest.approx([r[5] for r in rows][0:3])
+    assert sup.fault_bits == 0  # one silent tick is within the hold

@@ -73,3 +73,22 @@ def test_a_tail_beyond_the_budget_warns_but_the_median_decides():
     assert f.ok and "warning: the p99 exceeds" in f.message
     f = assess(1000.0, 0.0006, [0.0012] * 100)  # the median itself does not fit
     assert not f.ok and f.suggested_rate_hz == 500.0
+
+
+def test_device_pacing_check_refuses_a_device_that_ignores_sync():
+    import time as _time
+
+    from mrctl.feasibility import check_device_pacing
+
+    class Link:
+        def __init__(self, gap_s):
+            self.gap_s = gap_s
+
+        def exchange(self, I):
+            end = _time.perf_counter() + self.gap_s
+            while _time.perf_counter() < end:
+                pass
+
+    why = check_device_pacing(Link(0.0), 1e-3)
+    assert why is not None and "ignores the SYNC flag" in why and "loop.pacing: host" in why
+    assert check_device_pacing(Link(1e-3), 1e-3) is None

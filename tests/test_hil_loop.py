@@ -132,3 +132,24 @@ def test_fig5_over_modbus_rtu_on_a_pty(tmp_path):
                       "--truth", str(d / "truth.csv"), "--duration", "30")
 
     _check(tmp_path, start, lambda d, hil: _experiment(d, "hil_modbus_rtu.yaml", **{"/tmp/mrctl-sim-rtu": str(d / "rtu")}))
+
+
+# -- device pacing (loop.pacing: device, the SYNC flag): the shipped serial and
+# RTU experiments use it; these run the same files with host pacing, so both
+# modes stay covered over the pty transports
+def test_fig5_over_serial_host_paced(tmp_path):
+    def start(d):
+        return HilSim("--config", BENCH, "--transport", "serial", "--link", str(d / "tty"),
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, start, lambda d, hil: _experiment(d, "hil_serial.yaml", **{
+        "/tmp/mrctl-sim-tty": str(d / "tty"), "loop: {pacing: device}": "loop: {pacing: host}"}))
+
+
+def test_fig5_over_modbus_tcp_device_paced(tmp_path):
+    def start(d):
+        return HilSim("--config", BENCH, "--transport", "modbus-tcp", "--bind", "127.0.0.1:0",
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, start, lambda d, hil: _experiment(d, "hil_modbus_tcp.yaml", **{
+        "port: 5020": f"port: {hil.field('bind').rsplit(':', 1)[1]}", "loop: {pacing: host}": "loop: {pacing: device}"}))

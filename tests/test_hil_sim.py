@@ -615,3 +615,78 @@ def test_truth_log_cooperative_mode_writes_every_row_exactly(tmp_path):
     cols = read_run(tmp_path / "t.csv")
     assert list(cols["k"]) == list(range(250))
     assert [float(x) for x in cols["F_true"]] == [r[4] for r in rows]  # %r: exact
+
+
+# -- device pacing: the SYNC flag -------------------------------------------------
+def _replies(fd: int) -> list:
+    os.set_blocking(fd, False)
+    try:
+        data = os.read(fd, 4096)
+    except BlockingIOError:
+        return []
+    return FrameDecoder().feed(data)
+
+
+def test_sync_setpoint_is_answered_after_the_tick_that_applies_it() -> None:
+    """SYNC: no reply on arrival; the tick after it applies the setpoint and
+    the reply carries that tick's sample (seq, applied current). A SYNC
+    request that arrives after a tick has read its setpoint waits for the next."""
+    dev, state = _device()
+    dev.tick(0, 1_000_000)
+    r, w = os.pipe()
+    try:
+        ser = SerialDevice(state, w, threading.Event(), 2.0)
+        ser.handle(encode_setpoint(7, 0.25, int(SetpointFlag.ENABLE | SetpointFlag.SYNC), 50))
+        assert _replies(r) == [] and state.setpoint()[0] == 0.25  # stored, not answered yet
+        dev.tick(1, state.setpoint()[2])
+        (f,) = _replies(r)
+        assert isinstance(f, SampleFrame) and f.echo_seq == 7 and f.seq == 1
+        assert f.current_A == pytest.approx(dev.bench.I_applied, rel=1e-6) and dev.bench.I_cmd == 0.25
+        # without SYNC the answer is immediate, with the latest sample
+        ser.handle(encode_setpoint(8, 0.3, int(SetpointFlag.ENABLE), 50))
+        (f,) = _replies(r)
+        assert f.echo_seq == 8 and f.seq == 1
+        # a SYNC request landing between the setpoint read and the publish of
+        # tick 2 is applied, and answered, at tick 3
+        state.setpoint_ex()  # tick 2 reads its setpoint ...
+        ser.handle(encode_setpoint(9, 0.35, int(SetpointFlag.ENABLE | SetpointFlag.SYNC), 50))
+        state.publish(state.latest_sample()._replace(seq=2))
+        state.run_owed()  # ... and publishes: the request is not for it
+        assert _replies(r) == []
+        dev.tick(3, state.setpoint()[2])
+        (f,) = _replies(r)
+        assert f.echo_seq == 9 and f.seq == 3 and dev.bench.I_cmd == pytest.approx(0.35, rel=1e-6)
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def test_modbus_sync_write_is_answered_by_the_clock_with_the_fresh_sample() -> None:
+    """Modbus: bit 2 of the enable register is SYNC. The FC23 reply is
+    deferred; the clock sends it after the tick, with that tick's registers."""
+    from hil_sim.modbus_device import Deferred, ModbusDevice
+    from mrctl.io.modbus import decode_tcp_response, mbap_frame, read_write_request_pdu
+    from mrctl.io.registers import default_register_map
+
+    dev, state = _device()
+    dev.tick(0, 1_000_000)
+    rmap = default_register_map()
+    mdev = ModbusDevice(state, rmap)
+    rb, wb = rmap.read_blocks[0], rmap.write_block
+    data = bytearray(2 * wb.count)
+    rmap.encode_write_into(data, 0, 0.45, 1 | 4, 50)
+    req = mbap_frame(3, rmap.unit_id, read_write_request_pdu(rb.address, rb.count, wb.address, data))
+    resp = mdev.handle_tcp_frame(req)
+    assert isinstance(resp, Deferred) and state.setpoint()[0] == pytest.approx(0.45)
+    sent: list[bytes] = []
+    resp.owed.attach(lambda: sent.append(resp.build()))
+    assert sent == []
+    dev.tick(1, state.setpoint()[2])
+    (adu,) = sent
+    regs = decode_tcp_response(adu, 3, rmap.unit_id, 23, rb.count)
+    vals = rmap.decode_read(regs)
+    assert vals.seq == 1 and vals.current_applied_A == pytest.approx(dev.bench.I_applied, rel=1e-6)
+    # the same write without SYNC is answered at once
+    rmap.encode_write_into(data, 0, 0.45, 1, 50)
+    req = mbap_frame(4, rmap.unit_id, read_write_request_pdu(rb.address, rb.count, wb.address, data))
+    assert isinstance(mdev.handle_tcp_frame(req), bytes)

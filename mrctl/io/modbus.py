@@ -586,6 +586,10 @@ class ModbusLink:
         self._serial_kwargs = dict(serial_kwargs or {})
         #: False → writes go out with enable = 0 (device holds 0 A).
         self.enabled = True
+        #: device pacing (set_device_paced): SYNC bit set, deadline + one period
+        self.device_paced = False
+        self._sync_bits = 0
+        self._extra_timeout_s = 0.0
         self._clear_pending = False
         self.timeout_s = self._default_timeout(self.use_fc23 if self.use_fc23 is not None else rmap.fc23_capable)
 
@@ -802,17 +806,34 @@ class ModbusLink:
         return f"{where}, {rm.describe()}, {mode}, timeout {self.timeout_s * 1e3:.3g} ms"
 
     # -- the tick ------------------------------------------------------------
+    def set_device_paced(self, on: bool, period_s: float, spin_margin_s: float = 3e-4) -> None:
+        """Device pacing (docs/registers.md): every write sets SYNC (bit 2 of
+        the enable register), so the device applies it at its next tick and
+        answers after it; an exchange then returns at the device's next tick.
+        The deadline grows by one period. Needs an ``enable`` register.
+        ``spin_margin_s`` is accepted for symmetry with the serial link; the
+        wait here is select(), woken by the reply itself."""
+        if on and not self.register_map.has("enable"):
+            raise ValueError("device pacing needs an 'enable' register in the map (its bit 2 is SYNC)")
+        if on and not period_s > 0:
+            raise ValueError(f"period_s must be > 0, got {period_s!r}")
+        self.device_paced = bool(on)
+        self._sync_bits = 4 if on else 0
+        self._extra_timeout_s = period_s if on else 0.0
+
     def exchange(self, current_A: float) -> Sample:
         """Write ``current_A`` (A) (+ enable, watchdog), read and return the sample."""
         if not self.is_open:
             raise Disconnected(f"{self.describe()}: not open")
         if not -3.4e38 < current_A < 3.4e38:
             raise ValueError(f"current_A must be finite, got {current_A!r}")
+        flags = (1 if self.enabled else 0) | self._sync_bits
+        deadline = time.monotonic() + self.timeout_s + self._extra_timeout_s
         if self._clear_pending:
-            self._transact_all(current_A, (1 if self.enabled else 0) | 2, time.monotonic() + self.timeout_s)
+            self._transact_all(current_A, flags | 2, deadline)
             self._clear_pending = False
         else:
-            self._transact_all(current_A, self.enabled, time.monotonic() + self.timeout_s)
+            self._transact_all(current_A, flags, deadline)
         return self._to_sample()
 
     def request_clear_faults(self) -> bool:

@@ -90,6 +90,9 @@ class SetpointFlag(enum.IntFlag):
 
     ENABLE = 0x01  #: clear → device applies 0 A and disables the output
     CLEAR_FAULTS = 0x02  #: ask the device to clear latched faults/status
+    #: device pacing: apply this setpoint at the device's next sampling tick
+    #: and answer after that tick, with its sample (docs/protocol.md §6.1)
+    SYNC = 0x04
 
 
 class ErrorCode(enum.IntEnum):

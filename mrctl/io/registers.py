@@ -179,6 +179,7 @@ class WriteValues(NamedTuple):
     enable: bool | None  #: bit 0 of the enable register
     watchdog_ms: float | None
     clear_faults: bool = False  #: bit 1 of the enable register
+    sync: bool = False  #: bit 2 of the enable register: answer after the next tick (device pacing)
 
 
 # --------------------------------------------------------------------------
@@ -537,7 +538,7 @@ def _compile(rmap: "RegisterMap") -> tuple[dict[str, Any], str]:
             continue
         i, split = wl.slots[name]
         if name == "enable":
-            raw = "(enable & 3)"  # bool, or SetpointFlag bits ENABLE | CLEAR_FAULTS
+            raw = "(enable & 7)"  # bool, or SetpointFlag bits ENABLE | CLEAR_FAULTS | SYNC
         else:
             ns[f"_w_{name}"] = _int_writer(s) if s.is_integer else _float_writer(s)
             raw = f"_w_{name}({arg})"
@@ -602,6 +603,7 @@ def _compile(rmap: "RegisterMap") -> tuple[dict[str, Any], str]:
     lines.append("    w = _unpack_w(data)")
     exprs = []
     clear = "False"
+    sync = "False"
     for name in WRITE_QUANTITIES:
         s = specs.get(name)
         if s is None:
@@ -610,13 +612,14 @@ def _compile(rmap: "RegisterMap") -> tuple[dict[str, Any], str]:
         e = _raw_expr(s, "w", wl.slots[name])
         if name == "enable":
             clear = f"(({e} & 2) != 0)"
+            sync = f"(({e} & 4) != 0)"
             e = f"(({e} & 1) != 0)"
         else:
             ns[f"_ks_{name}"] = s.scale
             ns[f"_ko_{name}"] = s.offset
             e = f"({e} * _ks_{name} + _ko_{name})"
         exprs.append(e)
-    lines.append(f"    return _WV({', '.join(exprs)}, {clear})")
+    lines.append(f"    return _WV({', '.join(exprs)}, {clear}, {sync})")
     src = "\n".join(lines) + "\n"
     exec(compile(src, f"<RegisterMap codec unit {rmap.unit_id}>", "exec"), ns)  # noqa: S102 - our own generated text
     return ns, src

@@ -56,6 +56,9 @@ _U32 = 0xFFFFFFFF
 _HALF_U32 = 1 << 31
 
 
+_ENABLE = int(SetpointFlag.ENABLE)
+
+
 def default_reply_timeout_s(baud: float) -> float:
     """Per-tick reply timeout: wire time + 250 µs turnaround, at least 0.5 ms."""
     return max(MIN_REPLY_TIMEOUT_S, exchange_wire_time_s(baud) + TURNAROUND_ALLOWANCE_S)
@@ -127,6 +130,13 @@ class SerialLink:
         self.enabled = True
         self._serial_kwargs = dict(serial_kwargs or {})
         self.spin_wait = spin_wait
+        #: device pacing (set_device_paced): SYNC flag on, longer deadline
+        self.device_paced = False
+        self._sync_flag = 0
+        self._base_timeout_s = self.timeout_s
+        self._period_ns = 0
+        self._sleep_margin_ns = 0
+        self._t_reply_ns = 0  # monotonic ns of the last good reply (device pacing)
         self._port: Any = None
         self._seq = 0
         self._enc = SetpointEncoder()
@@ -231,6 +241,24 @@ class SerialLink:
         )
 
     # -- the tick ---------------------------------------------------------
+    def set_device_paced(self, on: bool, period_s: float, spin_margin_s: float = 3e-4) -> None:
+        """Device pacing (docs/protocol.md §6.1): every SETPOINT carries SYNC,
+        so the device applies it at its next tick and answers after it; an
+        exchange then blocks until the device's next tick, and the host loop
+        runs at the device's rate with one tick of actuation latency.
+        The reply deadline grows by one period. While waiting, the link
+        sleeps until ``spin_margin_s`` before the reply is due (one period
+        after the previous one), then polls: a sleeping thread wakes late on
+        a VM, a spinning one costs a core."""
+        if on and not period_s > 0:
+            raise ValueError(f"period_s must be > 0, got {period_s!r}")
+        self.device_paced = bool(on)
+        self._sync_flag = int(SetpointFlag.SYNC) if on else 0
+        self.timeout_s = self._base_timeout_s + (period_s if on else 0.0)
+        self._period_ns = round(period_s * 1e9) if on else 0
+        self._sleep_margin_ns = round(spin_margin_s * 1e9)
+        self._t_reply_ns = 0
+
     def exchange(self, current_A: float) -> Sample:
         """Send ``current_A`` (A) as a SETPOINT, return the matching SAMPLE."""
         port = self._port
@@ -240,7 +268,7 @@ class SerialLink:
             raise ValueError(f"current_A must be finite, got {current_A!r}")
         seq = self._seq = (self._seq + 1) & _U32
         frame = self._enc.encode(
-            seq, current_A, SetpointFlag.ENABLE if self.enabled else 0, self.watchdog_ms
+            seq, current_A, (_ENABLE if self.enabled else 0) | self._sync_flag, self.watchdog_ms
         )
         dec = self._dec
         crc0 = dec.crc_errors
@@ -249,6 +277,11 @@ class SerialLink:
         deadline = clock() + self.timeout_s
         try:
             port.write(frame)
+            if self._period_ns and self._t_reply_ns:
+                # device pacing: the reply comes one device period after the last
+                wake = self._t_reply_ns + self._period_ns - self._sleep_margin_ns - time.monotonic_ns()
+                if wake > 0:
+                    time.sleep(wake * 1e-9)
             while True:
                 n = dec.bytes_needed(SAMPLE_FRAME_SIZE)
                 data = port.read(n)
@@ -263,6 +296,8 @@ class SerialLink:
                                 self.stale_replies += 1  # duplicate answer
                     if reply is not None:
                         self.exchanges += 1
+                        if self._period_ns:
+                            self._t_reply_ns = time.monotonic_ns()
                         return self._to_sample(reply)
                 if clock() >= deadline:
                     break
