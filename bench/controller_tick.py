@@ -24,10 +24,11 @@ from mrctl.safety import SafetySupervisor  # noqa: E402
 from mrctl.service import make_backend, safety_config  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
-DEFER_FORMAT = True
 
 
-def make_tick(period_s: float) -> Callable[[int, int], object]:
+def make_tick(period_s: float, defer_format: bool = True) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """(tick, background): as ``mrctl run`` builds them; with ``defer_format``
+    the loop formats the log in its idle time (the background hook)."""
     sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
     exp = build(load_experiment(CONFIG))
     backend = make_backend(exp)
@@ -35,23 +36,13 @@ def make_tick(period_s: float) -> Callable[[int, int], object]:
     sup = SafetySupervisor(safety_config(exp.config, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
     rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
-                   fmt=RUN_FORMATS, defer_format=DEFER_FORMAT)
+                   fmt=RUN_FORMATS, defer_format=defer_format)
     ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record)
     atexit.register(rec.close)
-    tick = ctl.tick
-    if DEFER_FORMAT:  # as mrctl run does: the loop formats the log in its idle time
-        def tick(k: int, now_ns: int, _t=ctl.tick) -> object:
-            return _t(k, now_ns)
-        tick.background = rec.format_pending  # type: ignore[attr-defined]
-    return tick
+    return ctl.tick, (rec.format_pending if defer_format else None)
 
 
-def make_tick_thread_format(period_s: float) -> Callable[[int, int], object]:
+def make_tick_thread_format(period_s: float) -> tuple[Callable[[int, int], object], None]:
     """The same, with the log formatted by the writer thread (the old design),
     for comparison: ``--tick controller_tick:make_tick_thread_format``."""
-    global DEFER_FORMAT
-    DEFER_FORMAT = False
-    try:
-        return make_tick(period_s)
-    finally:
-        DEFER_FORMAT = True
+    return make_tick(period_s, defer_format=False)  # type: ignore[return-value]

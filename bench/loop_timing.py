@@ -14,7 +14,8 @@ and cyclictest's p50/p99/max with the ratio loop p99 / cyclictest p99.
     python bench/loop_timing.py --rt-prio 80 --mlock --timer-slack-ns 1
     python bench/loop_timing.py --tick mypkg.mymod:make_tick   # real controller
 
-``--tick MODULE:FACTORY`` names a callable ``FACTORY(period_s) -> tick`` with
+``--tick MODULE:FACTORY`` names a callable ``FACTORY(period_s) -> tick`` (or
+``(tick, background)``, see ``FixedRateLoop(background=)``) with
 ``tick(k, now_ns) -> bool``; from Python call :func:`run_bench` with
 ``tick_factory=``. The default tick is a plain-float LuGre-style model step
 plus a PI current law (~a few µs), optionally padded by ``--tick-cost-us``.
@@ -205,8 +206,9 @@ def run_strategy(
     """One strategy, with cyclictest alongside; returns a flat result row."""
     stats = TimingStats(capacity=max(1, int(seconds * rate_hz) + 16))
     loop = FixedRateLoop(rate_hz, wait=strategy, spin_margin_s=spin_margin_s, stats=stats)
-    tick = tick_factory(loop.period_ns * 1e-9)
-    loop.background = getattr(tick, "background", None)  # e.g. the recorder's idle-time formatting
+    made = tick_factory(loop.period_ns * 1e-9)
+    # a factory may return (tick, background): e.g. the recorder's idle-time formatting
+    tick, loop.background = made if isinstance(made, tuple) else (made, None)
     with tempfile.TemporaryDirectory() as tmp:
         histfile = os.path.join(tmp, "hist.txt")
         proc = (start_cyclictest(seconds, rate_hz, rt_settings.fifo_priority, histfile)

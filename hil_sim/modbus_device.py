@@ -347,13 +347,16 @@ class ModbusDevice:
             owe=owed,
         )
 
-    def _take_owed(self, pdu: bytes | bytearray | memoryview, wrap: Callable[[bytes], bytes]) -> Deferred | None:
-        """The request just handled set SYNC: its reply, rebuilt from the
-        sample of the tick that applies it, is sent by the clock thread."""
+    def _take_owed(self, pdu: bytes | bytearray | memoryview, resp: bytes | None,
+                   wrap: Callable[[bytes], bytes]) -> Deferred | None:
+        """If the request just handled set SYNC and succeeded: its reply,
+        rebuilt from the sample of the tick that applies it, to be sent by the
+        clock thread. Always clears the thread's owed reply, so it can never
+        be taken by a later request."""
         owed = getattr(self._local, "owed", None)
-        if owed is None:
-            return None
         self._local.owed = None
+        if owed is None or resp is None or resp[0] & 0x80:
+            return None
         req = bytes(pdu)
         fc = req[0]
 
@@ -378,10 +381,9 @@ class ModbusDevice:
             resp = self._fault_pdu(memoryview(frame)[7:], self.state.fault_bits)
         else:
             resp = self.handle_pdu(memoryview(frame)[7:])
-            if resp is not None and not resp[0] & 0x80:
-                d = self._take_owed(memoryview(frame)[7:], lambda r: _MBAP.pack(tid, 0, len(r) + 1, unit) + r)
-                if d is not None:
-                    return d  # type: ignore[return-value]
+            d = self._take_owed(memoryview(frame)[7:], resp, lambda r: _MBAP.pack(tid, 0, len(r) + 1, unit) + r)
+            if d is not None:
+                return d  # type: ignore[return-value]
         if resp is None:
             return None
         return _MBAP.pack(tid, 0, len(resp) + 1, unit) + resp
@@ -402,15 +404,14 @@ class ModbusDevice:
             resp = self._fault_pdu(memoryview(frame)[1 : n - 2], self.state.fault_bits)
         else:
             resp = self.handle_pdu(memoryview(frame)[1 : n - 2])
-            if resp is not None and not resp[0] & 0x80 and unit != 0:
-                def wrap(r: bytes, unit: int = unit) -> bytes:
-                    body = bytes((unit,)) + r
-                    return body + crc16_modbus(body).to_bytes(2, "little")
 
-                d = self._take_owed(memoryview(frame)[1 : n - 2], wrap)
-                if d is not None:
-                    return d  # type: ignore[return-value]
-        self._local.owed = None
+            def wrap(r: bytes, unit: int = unit) -> bytes:
+                body = bytes((unit,)) + r
+                return body + crc16_modbus(body).to_bytes(2, "little")
+
+            d = self._take_owed(memoryview(frame)[1 : n - 2], resp if unit != 0 else None, wrap)
+            if d is not None:
+                return d  # type: ignore[return-value]
         if resp is None or unit == 0:
             return None
         body = bytes((unit,)) + resp

@@ -378,20 +378,19 @@ class SerialDevice:
 
     def _setpoint(self, f: SetpointFrame) -> None:
         clear = bool(f.flags & _CLEAR)
+        sync = f.flags & _SYNC
         self.setpoints += 1
         self._last_good_seq = f.seq
-        if f.flags & _SYNC:
-            # device pacing: answered by the clock right after the tick that
-            # applies this setpoint, with that tick's sample (docs/protocol.md §6.1)
-            if clear:
-                self._rx_error = False
-            self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear,
-                                    owe=lambda: self._reply(f, None))
-            return
-        self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear)
-        s = self.state.latest_sample()
         if clear:
             self._rx_error = False
+        # SYNC (device pacing): answered by the clock right after the tick that
+        # applies this setpoint, with that tick's sample (docs/protocol.md §6.1)
+        self.state.set_setpoint(f.current_A, bool(f.flags & _ENABLE), f.watchdog_ms, clear,
+                                owe=(lambda: self._reply(f, None)) if sync else None)
+        if sync:
+            return
+        s = self.state.latest_sample()
+        if clear:
             self._clear_seq = s.seq
         self._reply(f, s)
 

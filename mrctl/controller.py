@@ -112,27 +112,31 @@ class Controller:
         self.law = law
         self.demand = demand
 
-    def tick(self, k: int, now_ns: int) -> bool:
-        """One control period; returns False to end the run (driver lost)."""
-        if self.pending is not None:  # a reload, taken at the tick boundary
+    def _take_reload(self) -> None:
+        """A reload (SIGHUP) is taken at the tick boundary."""
+        if self.pending is not None:
             law, demand = self.pending
             self.pending = None
             self.swap_laws(law, demand)
+
+    def tick(self, k: int, now_ns: int) -> bool:
+        """One control period; returns False to end the run (driver lost)."""
+        self._take_reload()
         if self._begin is not None:
             self._begin(k)
         t0 = self.clock_ns()
         sample, go_on = self._acquire()
-        return self._finish(k, now_ns, sample, (self.clock_ns() - t0) * 1e-9, go_on, NAN)
+        age_s = (self.clock_ns() - t0) * 1e-9
+        lp = self.loop  # lateness: wake-up minus deadline
+        late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
+        return self._finish(k, now_ns, sample, age_s, go_on, late_us)
 
     # -- device pacing (FixedRateLoop.run_device_paced) -------------------------
     def acquire(self) -> Controller:
         """Device pacing, the blocking half of a tick: the exchange, which
         returns at the device's next tick (the SYNC flag). Never None: a
         failed exchange is a tick too, for the safety hold and link loss."""
-        if self.pending is not None:
-            law, demand = self.pending
-            self.pending = None
-            self.swap_laws(law, demand)
+        self._take_reload()
         self._acq = self._acquire()
         return self
 
@@ -220,9 +224,6 @@ class Controller:
             else:
                 seq = t_dev = F = I_app = NAN
             end = self.clock_ns()
-            lp = self.loop
-            if late_us != late_us and lp is not None:  # host pacing: wake-up minus deadline
-                late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3
             rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self._truth(), late_us,
                 (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
         return go_on  # even the tick that ends the run is logged

@@ -117,29 +117,16 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
 
 
 def check_device_pacing(link: Any, period_s: float, n: int = 20) -> str | None:
-    """With device pacing on, ``n`` exchanges at 0 A must come about one
-    device period apart. A device that ignores the SYNC flag (firmware from
-    before it) answers at once, and a loop paced by it would run as fast as
-    the link allows: refuse then. Returns why not, or None when it is paced."""
-    gaps: list[float] = []
-    pc = time.perf_counter
-    prev = None
-    errors = 0
-    for _ in range(n):
-        try:
-            link.exchange(0.0)
-        except LinkError:
-            errors += 1
-            prev = None
-            continue
-        now = pc()
-        if prev is not None:
-            gaps.append(now - prev)
-        prev = now
-    if len(gaps) < n // 2:
+    """With device pacing on, each of ``n`` back-to-back exchanges at 0 A
+    (:func:`probe`) must wait for the device's next tick, about one period.
+    A device that ignores the SYNC flag (firmware from before it) answers at
+    once, and a loop paced by it would run as fast as the link allows:
+    refuse then. Returns why not, or None when it is paced."""
+    times, errors = probe(link, n)
+    if len(times) < n // 2:
         return f"device pacing: only {n - errors} of {n} exchanges answered during the check"
-    med = statistics.median(gaps)
+    med = statistics.median(times)
     if med < 0.5 * period_s:
-        return (f"device pacing: replies come {med * 1e6:.0f} µs apart, not one period "
+        return (f"device pacing: exchanges take {med * 1e6:.0f} µs, not one period "
                 f"({period_s * 1e6:.0f} µs): the device ignores the SYNC flag; use loop.pacing: host")
     return None

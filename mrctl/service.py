@@ -465,7 +465,13 @@ class Service:
         if cfg.loop.pacing == "device":
             from mrctl.feasibility import check_device_pacing
 
-            backend.set_device_paced(True, exp.dt, cfg.loop.spin_margin_s)
+            try:
+                backend.set_device_paced(True, exp.dt, cfg.loop.spin_margin_s)
+            except ValueError as exc:  # e.g. a Modbus map without an enable register
+                self.warn(f"loop.pacing: {exc}")
+                ctl.safe_stop()
+                backend.close()
+                return EXIT_CONFIG
             why = check_device_pacing(backend, exp.dt)
             if why:
                 self.warn(f"refusing to start: {why}")

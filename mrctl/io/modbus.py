@@ -586,8 +586,7 @@ class ModbusLink:
         self._serial_kwargs = dict(serial_kwargs or {})
         #: False → writes go out with enable = 0 (device holds 0 A).
         self.enabled = True
-        #: device pacing (set_device_paced): SYNC bit set, deadline + one period
-        self.device_paced = False
+        # device pacing (set_device_paced): SYNC bit set, deadline + one period
         self._sync_bits = 0
         self._extra_timeout_s = 0.0
         self._clear_pending = False
@@ -806,6 +805,11 @@ class ModbusLink:
         return f"{where}, {rm.describe()}, {mode}, timeout {self.timeout_s * 1e3:.3g} ms"
 
     # -- the tick ------------------------------------------------------------
+    @property
+    def device_paced(self) -> bool:
+        """True while every write sets SYNC (:meth:`set_device_paced`)."""
+        return self._sync_bits != 0
+
     def set_device_paced(self, on: bool, period_s: float, spin_margin_s: float = 3e-4) -> None:
         """Device pacing (docs/registers.md): every write sets SYNC (bit 2 of
         the enable register), so the device applies it at its next tick and
@@ -817,7 +821,6 @@ class ModbusLink:
             raise ValueError("device pacing needs an 'enable' register in the map (its bit 2 is SYNC)")
         if on and not period_s > 0:
             raise ValueError(f"period_s must be > 0, got {period_s!r}")
-        self.device_paced = bool(on)
         self._sync_bits = 4 if on else 0
         self._extra_timeout_s = period_s if on else 0.0
 

@@ -130,8 +130,7 @@ class SerialLink:
         self.enabled = True
         self._serial_kwargs = dict(serial_kwargs or {})
         self.spin_wait = spin_wait
-        #: device pacing (set_device_paced): SYNC flag on, longer deadline
-        self.device_paced = False
+        # device pacing (set_device_paced): SYNC flag on, longer deadline
         self._sync_flag = 0
         self._base_timeout_s = self.timeout_s
         self._period_ns = 0
@@ -241,6 +240,11 @@ class SerialLink:
         )
 
     # -- the tick ---------------------------------------------------------
+    @property
+    def device_paced(self) -> bool:
+        """True while every SETPOINT carries SYNC (:meth:`set_device_paced`)."""
+        return self._sync_flag != 0
+
     def set_device_paced(self, on: bool, period_s: float, spin_margin_s: float = 3e-4) -> None:
         """Device pacing (docs/protocol.md §6.1): every SETPOINT carries SYNC,
         so the device applies it at its next tick and answers after it; an
@@ -252,7 +256,6 @@ class SerialLink:
         a VM, a spinning one costs a core."""
         if on and not period_s > 0:
             raise ValueError(f"period_s must be > 0, got {period_s!r}")
-        self.device_paced = bool(on)
         self._sync_flag = int(SetpointFlag.SYNC) if on else 0
         self.timeout_s = self._base_timeout_s + (period_s if on else 0.0)
         self._period_ns = round(period_s * 1e9) if on else 0
