@@ -64,8 +64,8 @@ unchanged tick after tick, so it was chosen (0.5 µs/tick is 0.05 % of a
 kept for :meth:`Recorder.format_pending`, which the loop calls after each
 tick with the time by which it must start waiting for the next deadline; it
 formats ``_CHUNK_ROWS`` rows at a time while that time has not come, then
-hands the finished text to the writer thread, which only ``write()``\ s and
-``fsync``\ s (system calls that release the GIL). Why: a second thread
+hands the finished text to the writer thread, which only ``write()``\\ s and
+``fsync``\\ s (system calls that release the GIL). Why: a second thread
 running Python code takes the GIL away from the loop, and on this VM every
 hand-over of the GIL between the two threads can cost a cross-CPU wake-up of
 tens to hundreds of µs, landing inside a tick (bench/loop_timing.py: compute
