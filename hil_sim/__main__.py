@@ -25,6 +25,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 TRANSPORTS = ("serial", "modbus-tcp", "modbus-rtu")
+#: transports --serve inline applies to (RTU is always served from a thread)
+INLINE_TRANSPORTS = ("serial", "modbus-tcp")
 DEFAULT_LINK = "/tmp/mrctl-sim-tty"
 DEFAULT_BIND = "127.0.0.1:5020"
 DEFAULT_BAUD = 921600
@@ -109,8 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--truth", type=Path, default=None, metavar="FILE.csv",
                     help="write the per-tick ground-truth log here (+ FILE.json summary at exit)")
     ap.add_argument("--serve", choices=("inline", "thread"), default="inline",
-                    help="serial: serve the link from the clock thread while it spins (inline, "
-                         "lowest latency, one busy core) or from a blocking server thread")
+                    help="serial and modbus-tcp: serve the link from the clock thread while it spins "
+                         "(inline, lowest latency, one busy core) or from blocking server threads")
     ap.add_argument("--wait", choices=("hybrid", "sleep", "spin"), default="hybrid",
                     help="clock wait strategy (default hybrid: sleep, then spin the last 0.2 ms)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND@AT_S+FOR_S[,param=value]",
@@ -218,17 +220,29 @@ def _run(args: argparse.Namespace) -> int:
     truth = None
     clock_thread = None
     status = 0
+    inline = args.serve == "inline" and args.transport in INLINE_TRANSPORTS
     try:
         if args.truth is not None:
             try:
                 # inline serving: no writer thread (it would cost the spinning
                 # clock GIL hand-offs); the clock formats rows in its idle spin
-                truth = TruthLog(args.truth, cfg.rate_hz,
-                                 threaded=not (args.transport == "serial" and args.serve == "inline"))
+                truth = TruthLog(args.truth, cfg.rate_hz, threaded=not inline)
             except OSError as e:
                 raise StartupError(f"--truth {args.truth}: cannot open: {e.strerror}") from None
-        inline = args.transport == "serial" and args.serve == "inline"
         device = None if inline else BenchDevice(cfg, state, truth, wait=args.wait)
+
+        def inline_device(poll: Callable[[], object]) -> Any:
+            """One thread spins, ticks the bench on time and serves the link in
+            between: a reply never waits for a thread wake-up (docs/hil_sim.md)."""
+            if truth is not None:
+                work = truth.work_once
+
+                def idle() -> None:
+                    poll()
+                    work()
+            else:
+                idle = poll
+            return BenchDevice(cfg, state, truth, wait="spin", idle=idle)
 
         # -- transport -----------------------------------------------------------
         ready_info: dict[str, str] = {"transport": args.transport}
@@ -244,17 +258,7 @@ def _run(args: argparse.Namespace) -> int:
         if args.transport == "serial":
             server = SerialDevice(state, endpoint.master_fd, stop, cfg.I_max_A, endpoint=endpoint, seed=cfg.seed)
             if inline:
-                # one thread spins, ticks the bench on time and serves the pty in
-                # between: a reply never waits for a thread wake-up (docs/hil_sim.md)
-                if truth is not None:
-                    poll, work = server.poll_once, truth.work_once
-
-                    def idle() -> None:
-                        poll()
-                        work()
-                else:
-                    idle = server.poll_once
-                device = BenchDevice(cfg, state, truth, wait="spin", idle=idle)
+                device = inline_device(server.poll_once)
             else:
                 threads.append(run_server(server.serve, "serial", failed, stop))
             server_ready.set()
@@ -267,7 +271,18 @@ def _run(args: argparse.Namespace) -> int:
                                                 ready=lambda _msg: server_ready.set(), endpoint=endpoint,
                                                 on_device=modbus_dev.append),
                 "modbus-rtu", failed, stop))
-        else:  # modbus-tcp
+        elif inline:  # modbus-tcp served from the clock thread
+            host, port = args.bind
+            try:
+                tcp = modbus.ModbusTcpInline(state, host, port, modbus.default_register_map())
+            except OSError as e:
+                raise StartupError(f"--bind {host}:{port}: cannot listen: {e.strerror}") from None
+            cleanups.append(tcp.close)
+            modbus_dev.append(tcp.dev)
+            ready_info["bind"] = f"{host}:{tcp.port}"
+            device = inline_device(tcp.poll_once)
+            server_ready.set()
+        else:  # modbus-tcp, threaded
             host, port = args.bind
             regs = modbus.default_register_map()
             ready_info["bind"] = f"{host}:{port}"

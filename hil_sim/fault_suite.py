@@ -144,8 +144,11 @@ class Scenario:
     process: str | None = None  #: SIGTERM | SIGINT | SIGKILL | reload
     process_at_ticks: int = 1500  #: daemon ticks before the process fault
     bench_duration_s: float = 60.0
-    #: hil_sim --serve for serial: "thread" (default here, see ROBUST_SERVE) or "inline"
+    #: hil_sim --serve for serial and modbus-tcp: "thread" (default here, see ROBUST_SERVE) or "inline"
     serve: str = ROBUST_SERVE
+    #: loop.pacing of the daemon: "host" (default here: the suite's reply
+    #: deadlines and tick counts are for host pacing) or "device"
+    pacing: str = "host"
     #: True: the experiment exactly as shipped (its safety, timeout and link
     #: sections; hil_sim's default inline serving): no suite allowances at all
     shipped: bool = False
@@ -173,9 +176,9 @@ def experiment_config(sc: Scenario, workdir: Path, link: str | None = None, port
         be.update(sc.backend)
         data["link"] = {**data.get("link", {}), **sc.link}
     data["backend"] = be
-    # the suite's figures (ticks to 0 A, reply timeouts) are for host pacing;
-    # device pacing adds one period to every reply deadline
-    data["loop"] = {**data.get("loop", {}), "pacing": "host"}
+    # the suite's figures (ticks to 0 A, reply timeouts) are for host pacing
+    # unless the scenario asks for device pacing (one period more per deadline)
+    data["loop"] = {**data.get("loop", {}), "pacing": sc.pacing}
     path = workdir / "experiment.yaml"
     path.write_text(json.dumps(data, indent=1) + "\n")
     return path
@@ -189,7 +192,7 @@ def _start_bench(sc: Scenario, workdir: Path) -> tuple[HilSim, Path]:
         args += ["--bind", "127.0.0.1:0"]
     else:
         args += ["--link", str(workdir / "tty")]
-    if sc.transport == "serial":
+    if sc.transport in ("serial", "modbus-tcp"):
         args += ["--serve", "inline" if sc.shipped else sc.serve]
     for f in sc.faults:
         args += ["--fault", f]

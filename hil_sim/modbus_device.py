@@ -59,6 +59,8 @@ __all__ = [
     "default_register_map",
     "ModbusDevice",
     "serve_modbus_tcp",
+    "ModbusTcpInline",
+    "serve_modbus_tcp_inline",
     "serve_modbus_rtu",
     "mbap_frame_length",
     "rtu_request_length",
@@ -231,6 +233,23 @@ class ModbusDevice:
             delay = float(faults.param(_DELAY, "delay_s") or 0.0) if faults is not None else 0.0
             fc["replies_delayed"] += 1
         return adu, delay
+
+    def reply_now(self, adu: bytes, tcp: bool, delayed: deque) -> bytes | None:
+        """One response through the reply faults: the bytes to send now, or
+        None (dropped, or queued on ``delayed`` as (due monotonic s, bytes);
+        while anything is queued, later replies queue behind it, in order)."""
+        if not (self.state.fault_bits & _REPLY_FAULTS or delayed):
+            return adu
+        out, delay = self.fault_reply(adu, tcp)
+        if out is None:
+            return None
+        if delay > 0 or delayed:
+            due = time.monotonic() + delay
+            if delayed and delayed[-1][0] > due:
+                due = delayed[-1][0]  # FIFO
+            delayed.append((due, out))
+            return None
+        return out
 
     # -- PDU level ---------------------------------------------------------------
     def handle_pdu(self, pdu: bytes | bytearray | memoryview) -> bytes | None:
@@ -539,19 +558,11 @@ def _tcp_connection(dev: ModbusDevice, conn: socket.socket, stop: threading.Even
                 if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
                     resp.owed.attach(lambda r=resp: conn.sendall(r.build()))
                     continue
-                if state.fault_bits & _REPLY_FAULTS or delayed:
-                    out, delay = dev.fault_reply(resp, tcp=True)
-                    if out is None:
-                        continue
-                    if delay > 0 or delayed:
-                        due = time.monotonic() + delay
-                        if delayed and delayed[-1][0] > due:
-                            due = delayed[-1][0]  # FIFO
-                        delayed.append((due, out))
-                        conn.settimeout(max(1e-4, min(poll_s, delayed[0][0] - time.monotonic())))
-                        continue
-                    resp = out
-                conn.sendall(resp)
+                out = dev.reply_now(resp, True, delayed)
+                if out is not None:
+                    conn.sendall(out)
+                elif delayed:
+                    conn.settimeout(max(1e-4, min(poll_s, delayed[0][0] - time.monotonic())))
     except OSError:
         return
     finally:
@@ -560,6 +571,223 @@ def _tcp_connection(dev: ModbusDevice, conn: socket.socket, stop: threading.Even
         except OSError:
             pass
 
+
+
+class ModbusTcpInline:
+    """Modbus TCP served from the clock thread's spin phase (``--serve inline``).
+
+    The threaded server answers each request only once its connection thread
+    has woken up and taken the GIL from the spinning clock; on this VM that
+    often took longer than the rest of the period, so a device-paced (SYNC)
+    request missed its tick (docs/performance.md). Here the clock itself
+    polls the listening socket and every connection (one ``poll(0)`` system
+    call per pass), parses, answers, and sends SYNC replies right after the
+    tick that applies them: no thread hand-off anywhere.
+
+    Same behaviour as :func:`serve_modbus_tcp` otherwise: up to
+    ``max_clients`` connections, reply faults (drop, delay, corrupt,
+    garbage), the ``disconnect`` window (all connections and the listener
+    closed, then listening again on the same port). A client that does not
+    read its replies (socket buffer full) is disconnected, since the clock
+    must never block on it.
+    """
+
+    def __init__(self, state: DeviceState, host: str, port: int, register_map: RegisterMap | None = None,
+                 *, fc23: bool = True, max_clients: int = _MAX_CLIENTS) -> None:
+        self.dev = ModbusDevice(state, register_map, fc23=fc23)
+        self.state = state
+        self.host = host
+        self.max_clients = max_clients
+        self._poller = select.poll()
+        self._lsock: socket.socket | None = None
+        self.port = port
+        self._listen()
+        self.port = self._lsock.getsockname()[1]  # type: ignore[union-attr]
+        #: fd -> [socket, receive buffer, delayed replies deque[(due monotonic s, bytes)]]
+        self._conns: dict[int, list[Any]] = {}
+        self._n_delayed = 0
+        self._down = False  # inside a disconnect window
+
+    def _listen(self) -> None:
+        s = socket.create_server((self.host, self.port))
+        s.setblocking(False)
+        self._lsock = s
+        self._poller.register(s.fileno(), select.POLLIN)
+
+    def poll_once(self) -> None:
+        """Serve whatever has arrived, without blocking. Never raises for a
+        client's doing (a bad stream or a dead peer closes that connection)."""
+        fbits = self.state.fault_bits
+        if fbits & _DISCONNECT or self._down:
+            if self._disconnect_window(fbits):
+                return
+        if self._n_delayed:
+            self._flush_delayed()
+        lsock = self._lsock
+        lfd = lsock.fileno() if lsock is not None else -1
+        for fd, ev in self._poller.poll(0):
+            if fd == lfd:
+                self._accept()
+            else:
+                self._receive(fd)
+
+    def _disconnect_window(self, fbits: int) -> bool:
+        """Close everything when the window opens, listen again when it ends;
+        True = no link right now."""
+        if fbits & _DISCONNECT:
+            if not self._down:
+                self._down = True
+                self.dev.fault_counts["disconnects"] += 1
+                for fd in list(self._conns):
+                    self._drop(fd)
+                if self._lsock is not None:
+                    self._poller.unregister(self._lsock.fileno())
+                    self._lsock.close()
+                    self._lsock = None
+            return True
+        self._down = False
+        self._listen()
+        return False
+
+    def _accept(self) -> None:
+        assert self._lsock is not None
+        while True:
+            try:
+                conn, _addr = self._lsock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return  # e.g. ECONNABORTED: the client gave up before we took it
+            if len(self._conns) >= self.max_clients:
+                conn.close()
+                continue
+            conn.setblocking(False)
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._conns[conn.fileno()] = [conn, bytearray(), deque()]
+            self._poller.register(conn.fileno(), select.POLLIN)
+
+    def _drop(self, fd: int) -> None:
+        c = self._conns.pop(fd, None)
+        if c is None:
+            return
+        self._n_delayed -= len(c[2])
+        try:
+            self._poller.unregister(fd)
+        except (KeyError, ValueError):
+            pass
+        try:
+            c[0].close()
+        except OSError:
+            pass
+
+    def _receive(self, fd: int) -> None:
+        c = self._conns.get(fd)
+        if c is None:
+            return
+        conn, buf = c[0], c[1]
+        try:
+            chunk = conn.recv(4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self._drop(fd)
+            return
+        if not chunk:
+            self._drop(fd)
+            return
+        buf += chunk
+        dev = self.dev
+        while True:
+            try:
+                total = mbap_frame_length(buf)
+            except FrameError:
+                dev.frames_dropped += 1
+                self._drop(fd)  # unsynchronisable stream: drop the connection
+                return
+            if not total:
+                return
+            frame = bytes(buf[:total])
+            del buf[:total]
+            resp = dev.handle_tcp_frame(frame)
+            if resp is None:
+                continue
+            if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
+                resp.owed.attach(lambda fd=fd, r=resp: self._send(fd, r.build()))
+                continue
+            q = c[2]
+            n_queued = len(q)
+            out = dev.reply_now(resp, True, q)
+            self._n_delayed += len(q) - n_queued
+            if out is not None and not self._send(fd, out):
+                return
+
+    def _send(self, fd: int, data: bytes) -> bool:
+        c = self._conns.get(fd)
+        if c is None:
+            return False  # the connection went away while the reply was owed
+        try:
+            n = c[0].send(data)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        except OSError:
+            self._drop(fd)
+            return False
+        if n != len(data):  # the client is not reading: it can't be waited for
+            self._drop(fd)
+            return False
+        return True
+
+    def _flush_delayed(self) -> None:
+        now = time.monotonic()
+        for fd in list(self._conns):
+            q = self._conns[fd][2]
+            while q and q[0][0] <= now:
+                self._n_delayed -= 1
+                if not self._send(fd, q.popleft()[1]):
+                    break
+
+    def close(self) -> None:
+        """Close every connection (clients see Disconnected) and the listener."""
+        for fd in list(self._conns):
+            self._drop(fd)
+        if self._lsock is not None:
+            try:
+                self._poller.unregister(self._lsock.fileno())
+            except (KeyError, ValueError):
+                pass
+            self._lsock.close()
+            self._lsock = None
+
+
+def serve_modbus_tcp_inline(
+    state: DeviceState,
+    host: str,
+    port: int,
+    register_map: RegisterMap | None,
+    stop: threading.Event,
+    ready: Callable[[str], None] | None = None,
+    *,
+    fc23: bool = True,
+    max_clients: int = _MAX_CLIENTS,
+    on_device: Callable[[ModbusDevice], None] | None = None,
+    pause_s: float = 1e-4,
+) -> None:
+    """:class:`ModbusTcpInline` polled in a loop until ``stop`` (a drop-in for
+    :func:`serve_modbus_tcp`, for tests and benchmarks without a bench clock;
+    ``pause_s`` between polls, 0 = spin a core as hil_sim's clock does)."""
+    srv = ModbusTcpInline(state, host, port, register_map, fc23=fc23, max_clients=max_clients)
+    if on_device is not None:
+        on_device(srv.dev)
+    try:
+        if ready is not None:
+            ready(f"modbus-tcp {host}:{srv.port}")
+        poll = srv.poll_once
+        while not stop.is_set():
+            poll()
+            if pause_s:
+                time.sleep(pause_s)
+    finally:
+        srv.close()
 
 # --------------------------------------------------------------------------
 # RTU
@@ -684,18 +912,8 @@ def _rtu_loop(dev: ModbusDevice, fd: int, stop: threading.Event, silence_s: floa
     buf = bytearray()
 
     def send(resp: bytes) -> bool:
-        if state.fault_bits & _REPLY_FAULTS or delayed:
-            out, delay = dev.fault_reply(resp, tcp=False)
-            if out is None:
-                return True
-            if delay > 0 or delayed:
-                due = time.monotonic() + delay
-                if delayed and delayed[-1][0] > due:
-                    due = delayed[-1][0]
-                delayed.append((due, out))
-                return True
-            resp = out
-        return _write_all(fd, resp)
+        out = dev.reply_now(resp, False, delayed)
+        return True if out is None else _write_all(fd, out)
 
     while not stop.is_set():
         if state.fault_bits & _DISCONNECT and endpoint is not None:

@@ -335,16 +335,19 @@ def test_modbus_exception_ignore_and_corrupt_mbap() -> None:
     assert bad_rtu[-1] == 0x84 ^ 0xFF
 
 
-def test_modbus_tcp_disconnect_closes_and_refuses_then_listens_again() -> None:
-    from hil_sim.modbus_device import serve_modbus_tcp
+@pytest.mark.parametrize("serving", ["thread", "inline"])
+def test_modbus_tcp_disconnect_closes_and_refuses_then_listens_again(serving: str) -> None:
+    from hil_sim.modbus_device import serve_modbus_tcp, serve_modbus_tcp_inline
     from mrctl.io.modbus import ModbusLink
+
+    serve = serve_modbus_tcp if serving == "thread" else serve_modbus_tcp_inline
 
     state = DeviceState()
     state.publish(Sample(5, 0.005, 0.0, 0.0, 0.0, 0, 0.0))
     state.faults = FaultSchedule([parse_fault_arg("disconnect@0+1")[0]], 1000.0)
     stop = threading.Event()
     got: list[str] = []
-    th = threading.Thread(target=serve_modbus_tcp, args=(state, "127.0.0.1", 0, None, stop, got.append), daemon=True)
+    th = threading.Thread(target=serve, args=(state, "127.0.0.1", 0, None, stop, got.append), daemon=True)
     th.start()
     deadline = time.monotonic() + 5
     while not got and time.monotonic() < deadline:
@@ -480,6 +483,23 @@ def test_daemon_commands_0A_within_hold_and_recovers(sample_and_link_faults, ind
     assert w["truth_fault_bits"] == [int(getattr(FaultBit, kind.upper()))], w
     # the device saw the daemon's 0 A (all three leave the setpoint path working)
     assert w["device_0A_by"] == "daemon" and w["device_ticks_to_0A"] < w["k1"] - w["k0"], w
+
+
+def test_device_paced_daemon_commands_0A_within_hold_and_recovers(tmp_path: Path) -> None:
+    """The same sample and link faults with the loop on the device's clock
+    (loop.pacing: device, SYNC): the supervisor's reactions are in daemon
+    ticks, so they must hold unchanged."""
+    sc = Scenario("ci_device_paced", "", ["nan@4.0+0.3", "drop_replies@5.0+0.2"], duration_s=6.5,
+                  pacing="device")
+    r = _run(sc, tmp_path)
+    assert _exit_ok(r), r["daemon_stderr"]
+    for w, safety_bit in zip(r["windows"], (Fault.NON_FINITE, Fault.MISSING)):
+        assert w["valid"], w
+        assert w["daemon_ticks_to_0A"] is not None and w["daemon_ticks_to_0A"] <= HOLD + 2, w
+        assert w["daemon_fault_bits_at_0A"] & int(safety_bit), w
+        assert w["recovered"], w
+        assert w["device_0A_by"] == "daemon" and w["device_ticks_to_0A"] < w["k1"] - w["k0"], w
+    assert r["truth_final_I_cmd"] == 0.0
 
 
 def test_combined_run_loses_no_tick(sample_and_link_faults) -> None:

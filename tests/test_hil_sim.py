@@ -690,3 +690,132 @@ def test_modbus_sync_write_is_answered_by_the_clock_with_the_fresh_sample() -> N
     rmap.encode_write_into(data, 0, 0.45, 1, 50)
     req = mbap_frame(4, rmap.unit_id, read_write_request_pdu(rb.address, rb.count, wb.address, data))
     assert isinstance(mdev.handle_tcp_frame(req), bytes)
+
+
+# -- Modbus TCP served inline from the clock thread (--serve inline) ----------------
+def _fc23_request(tid: int, current_A: float, flags: int):
+    from mrctl.io.modbus import mbap_frame, read_write_request_pdu
+    from mrctl.io.registers import default_register_map
+
+    rmap = default_register_map()
+    rb, wb = rmap.read_blocks[0], rmap.write_block
+    data = bytearray(2 * wb.count)
+    rmap.encode_write_into(data, 0, current_A, flags, 50)
+    return rmap, mbap_frame(tid, rmap.unit_id, read_write_request_pdu(rb.address, rb.count, wb.address, data))
+
+
+def _poll_until(srv, cond, timeout_s: float = 2.0) -> None:
+    t_end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < t_end, "the inline server did not get there"
+        srv.poll_once()
+        time.sleep(1e-4)
+
+
+def _recv_adu(c: socket.socket, srv, timeout_s: float = 2.0) -> bytes:
+    """Poll the server (as the clock's spin does) until a reply reaches the client."""
+    c.setblocking(False)
+    t_end = time.monotonic() + timeout_s
+    while True:
+        try:
+            data = c.recv(4096)
+            if data:
+                return data
+        except BlockingIOError:
+            pass
+        assert time.monotonic() < t_end, "no reply"
+        srv.poll_once()
+        time.sleep(1e-4)
+
+
+def test_tcp_inline_sync_reply_is_sent_by_the_tick_with_its_sample() -> None:
+    """Inline serving: the clock parses a SYNC write while it spins, stores the
+    setpoint, sends nothing; the next tick applies it and sends the reply with
+    that tick's registers. A plain write is answered at once."""
+    from hil_sim.modbus_device import ModbusTcpInline
+    from mrctl.io.modbus import decode_tcp_response
+
+    dev, state = _device()
+    dev.tick(0, 1_000_000)
+    srv = ModbusTcpInline(state, "127.0.0.1", 0)
+    c = socket.create_connection(("127.0.0.1", srv.port))
+    try:
+        rmap, req = _fc23_request(3, 0.45, 1 | 4)
+        rb = rmap.read_blocks[0]
+        c.sendall(req)
+        _poll_until(srv, lambda: state.setpoint()[0] == pytest.approx(0.45))
+        for _ in range(50):
+            srv.poll_once()
+        c.setblocking(False)
+        with pytest.raises(BlockingIOError):  # owed to the tick, not sent on arrival
+            c.recv(4096)
+        dev.tick(1, state.setpoint()[2])
+        vals = rmap.decode_read(decode_tcp_response(_recv_adu(c, srv), 3, rmap.unit_id, 23, rb.count))
+        assert vals.seq == 1 and vals.current_applied_A == pytest.approx(dev.bench.I_applied, rel=1e-6)
+        assert dev.bench.I_cmd == pytest.approx(0.45)
+        _, req = _fc23_request(4, 0.2, 1)
+        c.sendall(req)
+        vals = rmap.decode_read(decode_tcp_response(_recv_adu(c, srv), 4, rmap.unit_id, 23, rb.count))
+        assert vals.seq == 1 and state.setpoint()[0] == pytest.approx(0.2)  # at once, latest sample
+    finally:
+        c.close()
+        srv.close()
+
+
+def test_tcp_inline_reply_faults_delay_drop_and_bad_stream() -> None:
+    """The inline server applies the reply faults itself: a delayed reply goes
+    out no earlier than delay_s, a dropped one never; an impossible MBAP header
+    from a client closes that connection only."""
+    from hil_sim.faults import FaultBit, FaultSchedule, parse_fault_arg
+    from hil_sim.modbus_device import ModbusTcpInline
+
+    state = DeviceState()
+    state.faults = FaultSchedule([parse_fault_arg("delay_replies@0+10,delay_s=0.05")[0]], 1000.0)
+    srv = ModbusTcpInline(state, "127.0.0.1", 0)
+    c = socket.create_connection(("127.0.0.1", srv.port))
+    other = socket.create_connection(("127.0.0.1", srv.port))
+    try:
+        state.fault_bits = state.faults.active(5)  # what the clock does each tick
+        assert state.fault_bits == int(FaultBit.DELAY_REPLIES)
+        t0 = time.monotonic()
+        c.sendall(_fc23_request(1, 0.1, 1)[1])
+        assert _recv_adu(c, srv)[:2] == b"\x00\x01"
+        assert time.monotonic() - t0 >= 0.05 and srv.dev.fault_counts["replies_delayed"] == 1
+        state.fault_bits = int(FaultBit.DROP_REPLIES)
+        c.sendall(_fc23_request(2, 0.1, 1)[1])
+        _poll_until(srv, lambda: srv.dev.fault_counts["replies_dropped"] == 1)
+        state.fault_bits = 0
+        c.sendall(b"\x00\x03\x00\x07\x00\x06\x01\x03\x00\x00\x00\x01")  # protocol id 7
+        _poll_until(srv, lambda: srv.dev.frames_dropped == 1)
+        assert c.recv(4096) == b""  # closed by the device
+        other.sendall(_fc23_request(5, 0.3, 1)[1])
+        assert _recv_adu(other, srv)[:2] == b"\x00\x05"  # the other client is served on
+    finally:
+        c.close()
+        other.close()
+        srv.close()
+
+
+def test_sync_owed_reply_never_leaks_to_the_next_request() -> None:
+    """A SYNC write that gets no reply (an RTU broadcast) must not leave its
+    owed reply behind: the next plain request from the same thread is
+    answered at once, not deferred to the clock."""
+    from hil_sim.modbus_device import ModbusDevice
+    from mrctl.io.modbus import crc16_modbus, read_write_request_pdu
+    from mrctl.io.registers import default_register_map
+
+    state = DeviceState()
+    rmap = default_register_map()
+    mdev = ModbusDevice(state, rmap)
+    rb, wb = rmap.read_blocks[0], rmap.write_block
+
+    def rtu(unit: int, flags: int) -> bytes:
+        data = bytearray(2 * wb.count)
+        rmap.encode_write_into(data, 0, 0.3, flags, 50)
+        body = bytes((unit,)) + read_write_request_pdu(rb.address, rb.count, wb.address, data)
+        return body + crc16_modbus(body).to_bytes(2, "little")
+
+    assert mdev.handle_rtu_frame(rtu(0, 1 | 4)) is None  # broadcast: applied, never answered
+    assert state.setpoint()[0] == pytest.approx(0.3)
+    resp = mdev.handle_rtu_frame(rtu(rmap.unit_id, 1))
+    assert isinstance(resp, bytes) and resp[:2] == bytes((rmap.unit_id, 23))
