@@ -24,6 +24,9 @@ import yaml
 from mrctl.model.params import LuGreParams, params_from_mapping
 
 CONFIG_VERSION = 1
+SPIN_WAIT_DOC = ("wait for each reply by polling, busy for one round trip (device pacing: for the last "
+                 "loop.spin_margin_s of it), instead of sleeping in select(): a sleeping thread can wake "
+                 "up to ~1.5 ms late on a VM")
 _REQUIRED = object()
 
 
@@ -412,6 +415,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
         "open_timeout_s": Num(default=1.0, min=0.0, min_exclusive=True, max=60.0, doc="connect and FC23 probe (s)"),
         "watchdog_ms": Num(default=50, integer=True, min=0, max=65535,
                            doc="device applies 0 A if setpoints stop this long (0 = device default)"),
+        "spin_wait": Bool(default=True, doc=SPIN_WAIT_DOC),
     }
     return {
         "version": Num(integer=True, min=CONFIG_VERSION, max=CONFIG_VERSION, doc="config format version (1)"),
@@ -522,6 +526,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                                  doc="reply timeout (s); null = wire time + 250 us"),
                 "watchdog_ms": Num(default=50, integer=True, min=1, max=255,
                                    doc="device applies 0 A if setpoints stop this long"),
+                "spin_wait": Bool(default=True, doc=SPIN_WAIT_DOC),
             },
             "modbus-tcp": {
                 "host": Str(default="127.0.0.1", doc="device address"),

@@ -211,20 +211,21 @@ def make_backend(exp: Experiment) -> Any:
     if kind == "serial":
         from mrctl.io.serial import SerialLink
 
-        return SerialLink(cfg.url, cfg.baudrate, timeout_s=cfg.timeout_s, watchdog_ms=cfg.watchdog_ms)
+        return SerialLink(cfg.url, cfg.baudrate, timeout_s=cfg.timeout_s, watchdog_ms=cfg.watchdog_ms,
+                          spin_wait=cfg.spin_wait)
     if kind == "modbus-tcp":
         from mrctl.io.modbus import ModbusLink
 
         return ModbusLink("tcp", host=cfg.host, port=cfg.port, unit_id=cfg.unit_id, register_map=cfg.register_map,
                           timeout_s=cfg.timeout_s, use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms,
-                          open_timeout_s=cfg.open_timeout_s)
+                          open_timeout_s=cfg.open_timeout_s, spin_wait=cfg.spin_wait)
     if kind == "modbus-rtu":
         from mrctl.io.modbus import ModbusLink
 
         return ModbusLink("rtu", url=cfg.url, baudrate=cfg.baudrate, parity=cfg.parity, stopbits=cfg.stopbits,
                           unit_id=cfg.unit_id, register_map=cfg.register_map, timeout_s=cfg.timeout_s,
                           use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms, open_timeout_s=cfg.open_timeout_s,
-                          rtu_local_echo=cfg.rtu_local_echo)
+                          rtu_local_echo=cfg.rtu_local_echo, spin_wait=cfg.spin_wait)
     raise ConfigError([f"backend.type: {kind!r} not supported"])  # pragma: no cover - schema prevents it
 
 

@@ -44,6 +44,7 @@ from hil_sim.modbus_device import (  # noqa: E402
     ILLEGAL_DATA_ADDRESS,
     ILLEGAL_DATA_VALUE,
     ILLEGAL_FUNCTION,
+    Deferred,
     ModbusDevice,
     default_register_map as device_default_map,
     mbap_frame_length,
@@ -51,6 +52,7 @@ from hil_sim.modbus_device import (  # noqa: E402
     rtu_request_length,
     serve_modbus_rtu,
     serve_modbus_tcp,
+    serve_modbus_tcp_inline,
 )
 from hil_sim.state import DeviceState  # noqa: E402
 from mrctl.io.base import (  # noqa: E402
@@ -483,12 +485,14 @@ class FakeIO:
         self.respond = respond
         self.pending = b""
         self.requests: list[bytes] = []
+        self.wakes: list[int] = []  # the link's sleep-until hint per read (0 = none)
 
     def write(self, data: bytes | bytearray, deadline: float) -> None:
         self.requests.append(bytes(data))
         self.pending += self.respond(bytes(data))
 
-    def read(self, n: int, deadline: float, max_n: int = 0) -> bytes:
+    def read(self, n: int, deadline: float, max_n: int = 0, wake_ns: int = 0) -> bytes:
+        self.wakes.append(wake_ns)
         n = max(n, max_n)
         out, self.pending = self.pending[:n], self.pending[n:]
         return out
@@ -562,10 +566,15 @@ def test_fuzz_whole_exchange(transport: str, fc23: bool, reply: bytes, keep_head
 
 
 def _device_respond(transport: str, state: DeviceState, **kw: Any) -> Callable[[bytes], bytes]:
+    """The device's answer at once; a SYNC reply as if its tick came at once."""
     dev = ModbusDevice(state, **kw)
-    if transport == "tcp":
-        return lambda req: dev.handle_tcp_frame(req) or b""
-    return lambda req: dev.handle_rtu_frame(req) or b""
+    handle = dev.handle_tcp_frame if transport == "tcp" else dev.handle_rtu_frame
+
+    def respond(req: bytes) -> bytes:
+        r = handle(req)
+        return r.build() if isinstance(r, Deferred) else r or b""
+
+    return respond
 
 
 @pytest.mark.parametrize("transport", ["tcp", "rtu"])
@@ -682,16 +691,19 @@ def test_rtu_late_reply_is_flushed_not_taken() -> None:
 
 # =============================================================================
 # loopback: real device loops in threads
-@pytest.fixture
-def tcp_device() -> Iterator[Callable[..., tuple[DeviceState, int]]]:
+@pytest.fixture(params=["thread", "inline"])
+def tcp_device(request) -> Iterator[Callable[..., tuple[DeviceState, int]]]:
+    """A Modbus TCP device on loopback, served both ways hil_sim can:
+    a thread per connection, or polled from the clock thread (inline)."""
     stops: list[tuple[threading.Event, threading.Thread]] = []
+    serve = serve_modbus_tcp if request.param == "thread" else serve_modbus_tcp_inline
 
     def start(**kw: Any) -> tuple[DeviceState, int]:
         state = DeviceState()
         state.publish(SAMPLE)
         stop = threading.Event()
         got: list[str] = []
-        th = threading.Thread(target=serve_modbus_tcp, args=(state, "127.0.0.1", 0, kw.pop("register_map", None), stop, got.append),
+        th = threading.Thread(target=serve, args=(state, "127.0.0.1", 0, kw.pop("register_map", None), stop, got.append),
                               kwargs=kw, daemon=True)
         th.start()
         t_end = time.monotonic() + 5
@@ -809,13 +821,14 @@ def test_tcp_late_reply_is_discarded() -> None:
     ls.close()
 
 
-def test_tcp_disconnect() -> None:
+@pytest.mark.parametrize("serve", [serve_modbus_tcp, serve_modbus_tcp_inline], ids=["thread", "inline"])
+def test_tcp_disconnect(serve: Callable[..., None]) -> None:
     """Server stopped → Disconnected (the device closes its connections); reopen → Disconnected (refused)."""
     state = DeviceState()
     state.publish(SAMPLE)
     stop = threading.Event()
     got: list[str] = []
-    th = threading.Thread(target=serve_modbus_tcp, args=(state, "127.0.0.1", 0, None, stop, got.append), daemon=True)
+    th = threading.Thread(target=serve, args=(state, "127.0.0.1", 0, None, stop, got.append), daemon=True)
     th.start()
     while not got:
         time.sleep(0.005)
@@ -1024,3 +1037,25 @@ def test_mbpoll_rtu_on_pty() -> None:
         th.join(5)
         os.close(master)
         os.close(slave)
+
+
+def test_device_paced_exchange_sleeps_until_shortly_before_the_next_tick() -> None:
+    """Device pacing: after the first reply, each exchange's wait starts with a
+    sleep until one period after the last reply, less the spin margin (a
+    sleeping thread wakes late on a VM, so it polls only for that margin);
+    host pacing never sleeps in the link."""
+    state = DeviceState()
+    state.publish(SAMPLE)
+    link = attach("rtu", _device_respond("rtu", state))
+    io = link._io  # noqa: SLF001
+    link.exchange(0.1)
+    link.set_device_paced(True, 1e-3, 3e-4)
+    link.exchange(0.1)  # no reply time yet: nothing to sleep for
+    t_reply = link._t_reply_ns  # noqa: SLF001
+    assert t_reply > 0
+    link.exchange(0.1)
+    assert io.wakes == [0, 0, t_reply + 1_000_000 - 300_000]
+    assert state.setpoint()[0] == pytest.approx(0.1)
+    link.set_device_paced(False, 1e-3)
+    link.exchange(0.2)
+    assert io.wakes[-1] == 0 and link._t_reply_ns == 0  # noqa: SLF001

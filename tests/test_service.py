@@ -313,3 +313,43 @@ def test_daemon_path_tracks_exactly_like_the_offline_simulation(tmp_path):
     assert np.allclose(cols["F_true"], sim.columns["F"][:n], rtol=1e-8, atol=1e-12)
     track = read_sidecar(out)["summary"]["tracking"]
     assert track["force_nrmse"] <= 1.5 * sim.summary["force_nrmse"]
+
+
+def test_device_pacing_without_an_enable_register_exits_2_at_0A(tmp_path, capsys):
+    """loop.pacing: device over a Modbus map with no enable register (nowhere
+    to put SYNC): a clear message, exit 2, and the device's last setpoint 0 A,
+    output off; never a traceback."""
+    pytest.importorskip("pymodbus")
+    from hil_sim.modbus_device import serve_modbus_tcp_inline
+    from hil_sim.state import DeviceState
+    from mrctl.io.registers import DEFAULT_REGISTER_MAP
+
+    regs = {k: v for k, v in DEFAULT_REGISTER_MAP["registers"].items() if k not in ("enable", "watchdog_ms")}
+    state = DeviceState()
+    state.publish(Sample(1, 0.001, 0.0, 0.0, math.nan, 0, 0.0))
+    stop = threading.Event()
+    got: list[str] = []
+    th = threading.Thread(target=serve_modbus_tcp_inline, args=(state, "127.0.0.1", 0, None, stop, got.append),
+                          daemon=True)
+    th.start()
+    t_end = time.monotonic() + 5
+    while not got and time.monotonic() < t_end:
+        time.sleep(0.005)
+    port = got[0].rsplit(":", 1)[1]
+    text = (ROOT / "config" / "experiments" / "hil_modbus_tcp.yaml").read_text()
+    text = text.replace("port: 5020", f"port: {port}").replace("loop: {pacing: host}", "loop: {pacing: device}")
+    text = text.replace("use_fc23: true}", "use_fc23: true, register_map: " + json.dumps({"registers": regs}) + "}")
+    text = text.replace("probe_exchanges: 100", "probe_exchanges: 0")
+    cfg = tmp_path / "exp.yaml"
+    cfg.write_text(text)
+    try:
+        svc, code, _ = _run(cfg, tmp_path)
+    finally:
+        stop.set()
+        th.join(5)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "loop.pacing:" in err and "'enable' register" in err and "Traceback" not in err
+    I, _enable, t_ns = state.setpoint()
+    assert t_ns > 0 and I == 0.0
+    assert state.setpoints_received >= 2  # the start-up 0 A and the stop's 0 A

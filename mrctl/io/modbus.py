@@ -381,6 +381,13 @@ def _plan(rmap: RegisterMap, use_fc23: bool) -> list[_Tx]:
 
 # --------------------------------------------------------------------------
 # Byte transports
+def _sleep_until_ns(t_ns: int) -> None:
+    """Sleep until ``time.monotonic_ns()`` reaches ``t_ns`` (no-op if past)."""
+    dt = t_ns - time.monotonic_ns()
+    if dt > 0:
+        time.sleep(dt * 1e-9)
+
+
 class _FdIO:
     """Serial line over a raw fd: select + os.read with an absolute deadline.
 
@@ -389,9 +396,12 @@ class _FdIO:
     plus one read, and overshoot is bounded by the scheduler, not a slice.
     """
 
-    def __init__(self, fd: int, owner: Any = None) -> None:
+    def __init__(self, fd: int, owner: Any = None, spin: bool = False) -> None:
         self.fd = fd
         self.owner = owner  # pyserial object that owns fd (closed with us), or None
+        #: wait for input by polling (select with timeout 0), never sleeping in
+        #: select: see ModbusLink's ``spin_wait``
+        self.spin = spin
         os.set_blocking(fd, False)
 
     def write(self, data: bytes | bytearray, deadline: float) -> None:
@@ -410,18 +420,25 @@ class _FdIO:
                 if remaining <= 0 or not select.select([], [fd], [], remaining)[1]:
                     raise LinkTimeout("write blocked past the deadline")
 
-    def read(self, n: int, deadline: float, max_n: int = 0) -> bytes:
-        """At least ``n`` bytes (fewer only if the deadline passed), at most ``max(n, max_n)``."""
+    def read(self, n: int, deadline: float, max_n: int = 0, wake_ns: int = 0) -> bytes:
+        """At least ``n`` bytes (fewer only if the deadline passed), at most
+        ``max(n, max_n)``. ``wake_ns``: sleep until this ``monotonic_ns`` time
+        before waiting (nothing can be there earlier)."""
         fd = self.fd
         out = b""
         clock = time.monotonic
         want = max(n, max_n)
+        spin = self.spin
+        if wake_ns:
+            _sleep_until_ns(wake_ns)
         try:
             while len(out) < n:
                 remaining = deadline - clock()
                 if remaining < 0:
                     remaining = 0
-                if not select.select([fd], [], [], remaining)[0]:
+                if not select.select([fd], [], [], 0.0 if spin else remaining)[0]:
+                    if remaining > 0 and spin:
+                        continue
                     break
                 try:
                     chunk = os.read(fd, want - len(out))
@@ -471,9 +488,11 @@ class _PySerialIO:
         except (serial.SerialException, OSError) as e:
             raise Disconnected(f"write failed: {e}") from e
 
-    def read(self, n: int, deadline: float, max_n: int = 0) -> bytes:
+    def read(self, n: int, deadline: float, max_n: int = 0, wake_ns: int = 0) -> bytes:
         import serial
 
+        if wake_ns:
+            _sleep_until_ns(wake_ns)
         out = b""
         try:
             while len(out) < n:
@@ -513,7 +532,10 @@ class ModbusLink:
     250 µs (≥ 0.5 ms). ``use_fc23``: True/False, or None to probe at open.
     ``watchdog_ms`` is written every tick if the map has a watchdog register.
     ``rtu_local_echo``: the RS-485 adapter echoes what we send; read it back
-    and drop it before the response.
+    and drop it before the response. ``spin_wait``: wait for a reply by
+    polling (select with timeout 0) instead of sleeping in select(): busy for
+    one round trip (~0.1-0.3 ms), but a thread sleeping in select() wakes up
+    to ~1.5 ms late on a VM (docs/performance.md), as with the serial link.
     """
 
     def __init__(
@@ -535,6 +557,7 @@ class ModbusLink:
         safe_on_close: bool = True,
         rtu_local_echo: bool = False,
         serial_kwargs: Mapping[str, Any] | None = None,
+        spin_wait: bool = True,
     ) -> None:
         if transport not in ("tcp", "rtu"):
             raise ValueError(f"transport must be 'tcp' or 'rtu', got {transport!r}")
@@ -589,6 +612,11 @@ class ModbusLink:
         # device pacing (set_device_paced): SYNC bit set, deadline + one period
         self._sync_bits = 0
         self._extra_timeout_s = 0.0
+        self._period_ns = 0
+        self._sleep_margin_ns = 0
+        self._t_reply_ns = 0  # monotonic ns of the last device-paced reply (0 = none yet)
+        self._wake_ns = 0  # this exchange's first wait sleeps until then (0 = don't)
+        self.spin_wait = bool(spin_wait)
         self._clear_pending = False
         self.timeout_s = self._default_timeout(self.use_fc23 if self.use_fc23 is not None else rmap.fc23_capable)
 
@@ -699,7 +727,7 @@ class ModbusLink:
                 os.fstat(self.url)
             except OSError as e:
                 raise Disconnected(f"fd {self.url}: {e}") from e
-            self._io = _FdIO(self.url)
+            self._io = _FdIO(self.url, spin=self.spin_wait)
             return
         import serial
 
@@ -720,7 +748,7 @@ class ModbusLink:
             fd = port.fileno()
         except Exception:  # noqa: BLE001 - URL handlers have no fd
             fd = None
-        self._io = _FdIO(fd, owner=port) if isinstance(fd, int) else _PySerialIO(port, port.timeout)
+        self._io = _FdIO(fd, owner=port, spin=self.spin_wait) if isinstance(fd, int) else _PySerialIO(port, port.timeout)
 
     def _attach_transport(self, *, use_fc23: bool, sock: Any = None, io: Any = None) -> None:
         """Use an already-open transport instead of open() (tests, benchmarks).
@@ -815,14 +843,18 @@ class ModbusLink:
         the enable register), so the device applies it at its next tick and
         answers after it; an exchange then returns at the device's next tick.
         The deadline grows by one period. Needs an ``enable`` register.
-        ``spin_margin_s`` is accepted for symmetry with the serial link; the
-        wait here is select(), woken by the reply itself."""
+        While waiting, the link sleeps until ``spin_margin_s`` before the
+        reply is due (one period after the previous one), then polls (with
+        ``spin_wait``; else it waits in select()), as the serial link does."""
         if on and not self.register_map.has("enable"):
             raise ValueError("device pacing needs an 'enable' register in the map (its bit 2 is SYNC)")
         if on and not period_s > 0:
             raise ValueError(f"period_s must be > 0, got {period_s!r}")
         self._sync_bits = 4 if on else 0
         self._extra_timeout_s = period_s if on else 0.0
+        self._period_ns = round(period_s * 1e9) if on else 0
+        self._sleep_margin_ns = round(spin_margin_s * 1e9)
+        self._t_reply_ns = 0
 
     def exchange(self, current_A: float) -> Sample:
         """Write ``current_A`` (A) (+ enable, watchdog), read and return the sample."""
@@ -832,12 +864,23 @@ class ModbusLink:
             raise ValueError(f"current_A must be finite, got {current_A!r}")
         flags = (1 if self.enabled else 0) | self._sync_bits
         deadline = time.monotonic() + self.timeout_s + self._extra_timeout_s
+        period = self._period_ns
+        # device pacing: the reply comes one device period after the last
+        self._wake_ns = self._t_reply_ns + period - self._sleep_margin_ns if period and self._t_reply_ns else 0
         if self._clear_pending:
             self._transact_all(current_A, flags | 2, deadline)
             self._clear_pending = False
         else:
             self._transact_all(current_A, flags, deadline)
+        if period:
+            self._t_reply_ns = time.monotonic_ns()
         return self._to_sample()
+
+    def _take_wake_ns(self) -> int:
+        """The sleep-until time for this exchange's first wait (then 0)."""
+        w = self._wake_ns
+        self._wake_ns = 0
+        return w
 
     def request_clear_faults(self) -> bool:
         """Set CLEAR_FAULTS (bit 1 of the enable register) in the next exchange's write.
@@ -896,6 +939,8 @@ class ModbusLink:
         clock = time.monotonic
         rx = self._rx
         fds = self._fds
+        spin = self.spin_wait
+        wake_ns = self._take_wake_ns()
         try:
             try:
                 sent = sock.send(adu)
@@ -925,8 +970,13 @@ class ModbusLink:
                             self.stale_replies += 1
                             continue
                         return decode_tcp_response(frame, tid, self.unit_id, tx.fc, tx.n_regs)
+                if wake_ns:
+                    _sleep_until_ns(wake_ns)
+                    wake_ns = 0
                 remaining = deadline - clock()
-                if not select.select(fds, (), (), remaining if remaining > 0 else 0)[0]:
+                if not select.select(fds, (), (), 0.0 if spin else (remaining if remaining > 0 else 0))[0]:
+                    if spin and remaining > 0:
+                        continue
                     raise LinkTimeout(
                         f"{self.host}:{self.port}: no reply to tid {tid} within {self.timeout_s * 1e3:.3g} ms"
                     )
@@ -983,7 +1033,7 @@ class ModbusLink:
         fc = tx.fc
         # ≥ 5 bytes tell an exception (5 bytes long) from data; ask for the
         # whole expected reply at once (RTU: nothing can follow it).
-        buf = io.read(5, deadline, tx.resp_len)
+        buf = io.read(5, deadline, tx.resp_len, self._take_wake_ns())
         skipped = 0
         # Hunt for "unit, fc" (or the exception form) if junk precedes the reply.
         while len(buf) >= 2 and not (buf[0] == unit and (buf[1] == fc or buf[1] == fc | 0x80)):
