@@ -5,7 +5,8 @@ Issue target: force NRMSE (from hil_sim's ground truth) within 2x of
 ``mrctl simulate`` on the same scenario. Over a real-time link on a shared VM
 this depends on late replies and skipped deadlines, so each case is run
 ``--repeat`` times and the median is reported with its timing context.
-Cases: serial-on-pty, Modbus TCP, Modbus RTU; each with the loop paced by
+Cases: serial-on-pty, Modbus TCP, Modbus RTU (``--serve``: how hil_sim
+serves serial and TCP, inline in its clock thread or from threads); each with the loop paced by
 the host's clock (``loop.pacing: host``: one request/reply per host tick)
 and by the device's (``device``: the SYNC flag, the reply comes after the
 device's next tick).
@@ -36,16 +37,17 @@ BENCH = str(ROOT / "config" / "hil_fig5_bench.yaml")
 EXP = ROOT / "config" / "experiments"
 
 
-def one(transport: str, pacing: str, seconds: float, tmp: Path) -> dict:
+def one(transport: str, pacing: str, seconds: float, tmp: Path, serve: str = "inline",
+        client_wait: str | None = None) -> dict:
     truth = tmp / "truth.csv"
     if transport == "serial":
         link = tmp / "tty"
         hil = HilSim("--config", BENCH, "--transport", "serial", "--link", str(link), "--truth", str(truth),
-                     "--duration", "60")
+                     "--duration", "60", "--serve", serve)
         text = (EXP / "hil_serial.yaml").read_text().replace("/tmp/mrctl-sim-tty", str(link))
     elif transport == "modbus-tcp":
         hil = HilSim("--config", BENCH, "--transport", "modbus-tcp", "--bind", "127.0.0.1:0", "--truth", str(truth),
-                     "--duration", "60")
+                     "--duration", "60", "--serve", serve)
         port = hil.field("bind").rsplit(":", 1)[1]
         text = (EXP / "hil_modbus_tcp.yaml").read_text().replace("port: 5020", f"port: {port}")
     else:
@@ -56,6 +58,12 @@ def one(transport: str, pacing: str, seconds: float, tmp: Path) -> dict:
     cfg = tmp / "exp.yaml"
     text, n = re.subn(r"^loop: \{pacing: \w+\}$", f"loop: {{pacing: {pacing}}}", text, flags=re.M)
     assert n == 1, "the HIL experiment files carry one 'loop: {pacing: ...}' line"
+    if client_wait is not None:
+        flag = str(client_wait == "spin").lower()
+        text, n = re.subn(r"spin_wait: \w+", f"spin_wait: {flag}", text)
+        if not n:
+            text, n = re.subn(r"^backend: \{", f"backend: {{spin_wait: {flag}, ", text, flags=re.M)
+            assert n == 1, "the HIL experiment files carry one 'backend: {...}' line"
     cfg.write_text(text)
     out = tmp / "run.csv"
     try:
@@ -76,6 +84,10 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=3.5)
     ap.add_argument("--transport", action="append", choices=("serial", "modbus-tcp", "modbus-rtu"))
     ap.add_argument("--pacing", action="append", choices=("host", "device"))
+    ap.add_argument("--serve", choices=("inline", "thread"), default="inline",
+                    help="hil_sim --serve for serial and modbus-tcp (default inline, hil_sim's default)")
+    ap.add_argument("--client-wait", choices=("spin", "sleep"), default=None,
+                    help="the daemon's backend.spin_wait (default: as the experiment file says)")
     ap.add_argument("--json")
     a = ap.parse_args()
     sim = simulate(build(load_experiment(EXP / "hil_serial.yaml")), 4.0).summary["force_nrmse"]
@@ -88,7 +100,7 @@ def main() -> int:
             runs = []
             for _ in range(a.repeat):
                 with tempfile.TemporaryDirectory() as d:
-                    runs.append(one(transport, pacing, a.seconds, Path(d)))
+                    runs.append(one(transport, pacing, a.seconds, Path(d), a.serve, a.client_wait))
             good = [r for r in runs if "nrmse" in r]
             results[f"{transport}/{pacing}"] = runs
             if not good:

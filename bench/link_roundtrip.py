@@ -204,6 +204,8 @@ def start_hil_sim(transport: str, a: argparse.Namespace) -> Device:
     import tempfile
 
     args = ["-m", "hil_sim", "--transport", transport, "--duration", "3600"]
+    if transport in ("serial", "modbus-tcp"):
+        args += ["--serve", a.hil_serve]
     tmpdir = None
     if transport == "modbus-tcp":
         args += ["--bind", "127.0.0.1:0"]
@@ -327,7 +329,8 @@ def _modbus_tcp_start(a: argparse.Namespace) -> tuple[Device, Any]:
         from pymodbus.client import ModbusTcpClient
 
         return dev, PymodbusLink(ModbusTcpClient("127.0.0.1", port=port, timeout=max(a.timeout_ms * 1e-3, 0.1)))
-    link = ModbusLink("tcp", host="127.0.0.1", port=port, timeout_s=a.timeout_ms * 1e-3, use_fc23=_fc23_arg(a))
+    link = ModbusLink("tcp", host="127.0.0.1", port=port, timeout_s=a.timeout_ms * 1e-3, use_fc23=_fc23_arg(a),
+                      spin_wait=a.client_wait == "spin")
     return dev, link
 
 
@@ -343,6 +346,7 @@ def _modbus_rtu_start(a: argparse.Namespace) -> tuple[Device, Any]:
             return dev, PymodbusLink(ModbusSerialClient(url, baudrate=a.baud, parity="N",
                                                         timeout=max(a.timeout_ms * 1e-3, 0.1)))
         return dev, ModbusLink("rtu", url=url, baudrate=a.baud, timeout_s=a.timeout_ms * 1e-3,
+                               spin_wait=a.client_wait == "spin",
                                use_fc23=_fc23_arg(a))
     master, slave, path = _pty_pair()
     if a.client == "pymodbus":  # it needs a path: device on the master fd, client on the slave path
@@ -360,7 +364,8 @@ def _modbus_rtu_start(a: argparse.Namespace) -> tuple[Device, Any]:
         dev = start_process(["--serve", "modbus-rtu", "--path", path, "--baud", str(a.baud)]
                             + (["--no-fc23"] if a.device_no_fc23 else []))
     dev.keep += [master, slave]
-    link = ModbusLink("rtu", url=master, baudrate=a.baud, timeout_s=a.timeout_ms * 1e-3, use_fc23=_fc23_arg(a))
+    link = ModbusLink("rtu", url=master, baudrate=a.baud, timeout_s=a.timeout_ms * 1e-3, use_fc23=_fc23_arg(a),
+                      spin_wait=a.client_wait == "spin")
     return dev, link
 
 
@@ -374,7 +379,7 @@ class _InstantIO:
     def write(self, data: bytes | bytearray, deadline: float) -> None:
         self.pending = self.responses[data[1]]
 
-    def read(self, n: int, deadline: float, max_n: int = 0) -> bytes:
+    def read(self, n: int, deadline: float, max_n: int = 0, wake_ns: int = 0) -> bytes:
         n = max(n, max_n)
         out, self.pending = self.pending[:n], self.pending[n:]
         return out
@@ -561,7 +566,8 @@ def _serial_start(a: argparse.Namespace) -> tuple[Device, Any]:
     if a.device != "hil_sim":
         raise SystemExit("--transport serial is served by hil_sim only: use --device hil_sim")
     dev = start_hil_sim("serial", a)
-    return dev, SerialLink(dev.field("link"), a.baud, timeout_s=a.timeout_ms * 1e-3)  # type: ignore[attr-defined]
+    return dev, SerialLink(dev.field("link"), a.baud, timeout_s=a.timeout_ms * 1e-3,  # type: ignore[attr-defined]
+                           spin_wait=a.client_wait == "spin")
 
 
 def _serial_client_cost(a: argparse.Namespace) -> dict[str, float]:
@@ -711,6 +717,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="process: serve_modbus_* in a subprocess with a light 1 kHz sample publisher "
                          "(default); hil_sim: python -m hil_sim (plant clock spinning, as in HIL tests); "
                          "thread: in this process (shares the GIL: worse)")
+    ap.add_argument("--hil-serve", choices=["inline", "thread"], default="inline",
+                    help="with --device hil_sim: how it serves serial and modbus-tcp (its --serve; "
+                         "inline = from the spinning clock thread, the default)")
+    ap.add_argument("--client-wait", choices=["spin", "sleep"], default="spin",
+                    help="mrctl client: poll for the reply (spin_wait, the default) or sleep in select()")
     ap.add_argument("--client", choices=["mrctl", "pymodbus"], default="mrctl",
                     help="pymodbus = its synchronous client, for comparison")
     ap.add_argument("--no-floor", action="store_true", help="skip the raw ping-pong baseline")
