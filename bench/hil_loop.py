@@ -6,7 +6,7 @@ Issue target: force NRMSE (from hil_sim's ground truth) within 2x of
 this depends on late replies and skipped deadlines, so each case is run
 ``--repeat`` times and the median is reported with its timing context.
 Cases: serial-on-pty, Modbus TCP, Modbus RTU (``--serve``: how hil_sim
-serves serial and TCP, inline in its clock thread or from threads); each with the loop paced by
+serves them, inline in its clock thread or from threads); each with the loop paced by
 the host's clock (``loop.pacing: host``: one request/reply per host tick)
 and by the device's (``device``: the SYNC flag, the reply comes after the
 device's next tick).
@@ -53,7 +53,7 @@ def one(transport: str, pacing: str, seconds: float, tmp: Path, serve: str = "in
     else:
         link = tmp / "rtu"
         hil = HilSim("--config", BENCH, "--transport", "modbus-rtu", "--link", str(link), "--baud", "921600",
-                     "--truth", str(truth), "--duration", "60")
+                     "--truth", str(truth), "--duration", "60", "--serve", serve)
         text = (EXP / "hil_modbus_rtu.yaml").read_text().replace("/tmp/mrctl-sim-rtu", str(link))
     cfg = tmp / "exp.yaml"
     text, n = re.subn(r"^loop: \{pacing: \w+\}$", f"loop: {{pacing: {pacing}}}", text, flags=re.M)
@@ -85,7 +85,7 @@ def main() -> int:
     ap.add_argument("--transport", action="append", choices=("serial", "modbus-tcp", "modbus-rtu"))
     ap.add_argument("--pacing", action="append", choices=("host", "device"))
     ap.add_argument("--serve", choices=("inline", "thread"), default="inline",
-                    help="hil_sim --serve for serial and modbus-tcp (default inline, hil_sim's default)")
+                    help="hil_sim --serve (default inline, hil_sim's default)")
     ap.add_argument("--client-wait", choices=("spin", "sleep"), default=None,
                     help="the daemon's backend.spin_wait (default: as the experiment file says)")
     ap.add_argument("--json")

@@ -94,7 +94,8 @@ def serve_main(argv: list[str]) -> None:
     if a.serve.startswith("echo"):
         _echo_server(a.serve, a.path, a.reply_bytes, stop, ready)
         return
-    from hil_sim.modbus_device import serve_modbus_rtu, serve_modbus_tcp
+    from hil_sim.modbus_tcp import serve_modbus_tcp
+    from hil_sim.modbus_rtu import serve_modbus_rtu
     from hil_sim.state import DeviceState
 
     state = DeviceState()
@@ -204,8 +205,7 @@ def start_hil_sim(transport: str, a: argparse.Namespace) -> Device:
     import tempfile
 
     args = ["-m", "hil_sim", "--transport", transport, "--duration", "3600"]
-    if transport in ("serial", "modbus-tcp"):
-        args += ["--serve", a.hil_serve]
+    args += ["--serve", a.hil_serve]
     tmpdir = None
     if transport == "modbus-tcp":
         args += ["--bind", "127.0.0.1:0"]
@@ -318,7 +318,7 @@ def _modbus_tcp_start(a: argparse.Namespace) -> tuple[Device, Any]:
         dev = start_hil_sim("modbus-tcp", a)
         port = int(dev.field("bind").rsplit(":", 1)[1])  # type: ignore[attr-defined]
     elif a.device == "thread":
-        from hil_sim.modbus_device import serve_modbus_tcp
+        from hil_sim.modbus_tcp import serve_modbus_tcp
 
         dev = start_thread(serve_modbus_tcp, "127.0.0.1", 0, None, fc23=not a.device_no_fc23)
         port = int(dev.ready.rsplit(":", 1)[1])
@@ -357,7 +357,7 @@ def _modbus_rtu_start(a: argparse.Namespace) -> tuple[Device, Any]:
         client = ModbusSerialClient(path, baudrate=a.baud, parity="N", timeout=max(a.timeout_ms * 1e-3, 0.1))
         return dev, PymodbusLink(client)
     if a.device == "thread":
-        from hil_sim.modbus_device import serve_modbus_rtu
+        from hil_sim.modbus_rtu import serve_modbus_rtu
 
         dev = start_thread(serve_modbus_rtu, path, a.baud, None, fc23=not a.device_no_fc23)
     else:
@@ -718,7 +718,7 @@ def main(argv: list[str] | None = None) -> int:
                          "(default); hil_sim: python -m hil_sim (plant clock spinning, as in HIL tests); "
                          "thread: in this process (shares the GIL: worse)")
     ap.add_argument("--hil-serve", choices=["inline", "thread"], default="inline",
-                    help="with --device hil_sim: how it serves serial and modbus-tcp (its --serve; "
+                    help="with --device hil_sim: how it serves the link (its --serve; "
                          "inline = from the spinning clock thread, the default)")
     ap.add_argument("--client-wait", choices=["spin", "sleep"], default="spin",
                     help="mrctl client: poll for the reply (spin_wait, the default) or sleep in select()")

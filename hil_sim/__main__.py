@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 TRANSPORTS = ("serial", "modbus-tcp", "modbus-rtu")
-#: transports --serve inline applies to (RTU is always served from a thread)
-INLINE_TRANSPORTS = ("serial", "modbus-tcp")
+#: transports --serve inline applies to (all of them)
+INLINE_TRANSPORTS = TRANSPORTS
 DEFAULT_LINK = "/tmp/mrctl-sim-tty"
 DEFAULT_BIND = "127.0.0.1:5020"
 DEFAULT_BAUD = 921600
@@ -111,8 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--truth", type=Path, default=None, metavar="FILE.csv",
                     help="write the per-tick ground-truth log here (+ FILE.json summary at exit)")
     ap.add_argument("--serve", choices=("inline", "thread"), default="inline",
-                    help="serial and modbus-tcp: serve the link from the clock thread while it spins "
-                         "(inline, lowest latency, one busy core) or from blocking server threads")
+                    help="serve the link from the clock thread while it spins (inline, lowest latency, "
+                         "one busy core; the clock then spins, whatever --wait says) or from blocking "
+                         "server threads")
     ap.add_argument("--wait", choices=("hybrid", "sleep", "spin"), default="hybrid",
                     help="clock wait strategy (default hybrid: sleep, then spin the last 0.2 ms)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND@AT_S+FOR_S[,param=value]",
@@ -170,12 +171,15 @@ def _check_tcp_free(host: str, port: int) -> None:
 
 
 def _import_modbus(transport: str):
+    """The transport's server module (hil_sim.modbus_tcp or hil_sim.modbus_rtu)."""
+    import importlib
+
+    name = "hil_sim." + transport.replace("-", "_")
     try:
-        from hil_sim import modbus_device
+        return importlib.import_module(name)
     except ImportError as e:
-        what = "hil_sim.modbus_device is not installed" if e.name == "hil_sim.modbus_device" else str(e)
+        what = f"{name} is not installed" if e.name == name else str(e)
         raise StartupError(f"--transport {transport}: not available ({what})") from None
-    return modbus_device
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -193,6 +197,7 @@ def _run(args: argparse.Namespace) -> int:
     from hil_sim.serial_device import LinkPathError, PtyEndpoint, SerialDevice, run_server
     from hil_sim.state import DeviceState
     from hil_sim.truth import TruthLog
+    from mrctl.io.registers import default_register_map
 
     # Short GIL switch interval: the clock spins while it waits, and a server
     # thread answering a request must not wait 5 ms (the default) for the GIL.
@@ -264,17 +269,26 @@ def _run(args: argparse.Namespace) -> int:
             server_ready.set()
         elif args.transport == "modbus-rtu":
             # The RTU server takes the pty master fd directly (the device side).
-            regs = modbus.default_register_map()
+            from hil_sim.modbus_device import ModbusDevice
+
+            regs = default_register_map()
             ready_info["baud"] = str(args.baud)
-            threads.append(run_server(
-                lambda: modbus.serve_modbus_rtu(state, endpoint.master_fd, args.baud, regs, stop,
-                                                ready=lambda _msg: server_ready.set(), endpoint=endpoint,
-                                                on_device=modbus_dev.append),
-                "modbus-rtu", failed, stop))
+            if inline:
+                rtu = modbus.ModbusRtuInline(ModbusDevice(state, regs), endpoint.master_fd,
+                                             modbus.rtu_silence_s(args.baud), endpoint)
+                modbus_dev.append(rtu.dev)
+                device = inline_device(rtu.poll_once)
+                server_ready.set()
+            else:
+                threads.append(run_server(
+                    lambda: modbus.serve_modbus_rtu(state, endpoint.master_fd, args.baud, regs, stop,
+                                                    ready=lambda _msg: server_ready.set(), endpoint=endpoint,
+                                                    on_device=modbus_dev.append),
+                    "modbus-rtu", failed, stop))
         elif inline:  # modbus-tcp served from the clock thread
             host, port = args.bind
             try:
-                tcp = modbus.ModbusTcpInline(state, host, port, modbus.default_register_map())
+                tcp = modbus.ModbusTcpInline(state, host, port, default_register_map())
             except OSError as e:
                 raise StartupError(f"--bind {host}:{port}: cannot listen: {e.strerror}") from None
             cleanups.append(tcp.close)
@@ -284,7 +298,7 @@ def _run(args: argparse.Namespace) -> int:
             server_ready.set()
         else:  # modbus-tcp, threaded
             host, port = args.bind
-            regs = modbus.default_register_map()
+            regs = default_register_map()
             ready_info["bind"] = f"{host}:{port}"
 
             def tcp_ready(msg: str) -> None:

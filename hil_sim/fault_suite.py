@@ -144,7 +144,7 @@ class Scenario:
     process: str | None = None  #: SIGTERM | SIGINT | SIGKILL | reload
     process_at_ticks: int = 1500  #: daemon ticks before the process fault
     bench_duration_s: float = 60.0
-    #: hil_sim --serve for serial and modbus-tcp: "thread" (default here, see ROBUST_SERVE) or "inline"
+    #: hil_sim --serve: "thread" (default here, see ROBUST_SERVE) or "inline"
     serve: str = ROBUST_SERVE
     #: loop.pacing of the daemon: "host" (default here: the suite's reply
     #: deadlines and tick counts are for host pacing) or "device"
@@ -192,8 +192,7 @@ def _start_bench(sc: Scenario, workdir: Path) -> tuple[HilSim, Path]:
         args += ["--bind", "127.0.0.1:0"]
     else:
         args += ["--link", str(workdir / "tty")]
-    if sc.transport in ("serial", "modbus-tcp"):
-        args += ["--serve", "inline" if sc.shipped else sc.serve]
+    args += ["--serve", "inline" if sc.shipped else sc.serve]
     for f in sc.faults:
         args += ["--fault", f]
     return HilSim(*args, workdir=workdir), truth

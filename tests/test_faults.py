@@ -337,7 +337,7 @@ def test_modbus_exception_ignore_and_corrupt_mbap() -> None:
 
 @pytest.mark.parametrize("serving", ["thread", "inline"])
 def test_modbus_tcp_disconnect_closes_and_refuses_then_listens_again(serving: str) -> None:
-    from hil_sim.modbus_device import serve_modbus_tcp, serve_modbus_tcp_inline
+    from hil_sim.modbus_tcp import serve_modbus_tcp, serve_modbus_tcp_inline
     from mrctl.io.modbus import ModbusLink
 
     serve = serve_modbus_tcp if serving == "thread" else serve_modbus_tcp_inline

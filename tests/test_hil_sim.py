@@ -732,7 +732,7 @@ def test_tcp_inline_sync_reply_is_sent_by_the_tick_with_its_sample() -> None:
     """Inline serving: the clock parses a SYNC write while it spins, stores the
     setpoint, sends nothing; the next tick applies it and sends the reply with
     that tick's registers. A plain write is answered at once."""
-    from hil_sim.modbus_device import ModbusTcpInline
+    from hil_sim.modbus_tcp import ModbusTcpInline
     from mrctl.io.modbus import decode_tcp_response
 
     dev, state = _device()
@@ -767,7 +767,7 @@ def test_tcp_inline_reply_faults_delay_drop_and_bad_stream() -> None:
     out no earlier than delay_s, a dropped one never; an impossible MBAP header
     from a client closes that connection only."""
     from hil_sim.faults import FaultBit, FaultSchedule, parse_fault_arg
-    from hil_sim.modbus_device import ModbusTcpInline
+    from hil_sim.modbus_tcp import ModbusTcpInline
 
     state = DeviceState()
     state.faults = FaultSchedule([parse_fault_arg("delay_replies@0+10,delay_s=0.05")[0]], 1000.0)
@@ -819,3 +819,49 @@ def test_sync_owed_reply_never_leaks_to_the_next_request() -> None:
     assert state.setpoint()[0] == pytest.approx(0.3)
     resp = mdev.handle_rtu_frame(rtu(rmap.unit_id, 1))
     assert isinstance(resp, bytes) and resp[:2] == bytes((rmap.unit_id, 23))
+
+
+def test_rtu_inline_sync_reply_is_sent_by_the_tick_and_junk_is_skipped() -> None:
+    """Inline RTU on a pty: junk before a SYNC write is hunted through, the
+    write is applied and its reply waits for the tick, which sends it with
+    that tick's registers."""
+    import tty
+
+    from hil_sim.modbus_device import ModbusDevice
+    from hil_sim.modbus_rtu import ModbusRtuInline, rtu_silence_s
+    from mrctl.io.modbus import crc16_modbus, decode_rtu_response, read_write_request_pdu
+    from mrctl.io.registers import default_register_map
+
+    dev, state = _device()
+    dev.tick(0, 1_000_000)
+    rmap = default_register_map()
+    rb, wb = rmap.read_blocks[0], rmap.write_block
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    try:
+        srv = ModbusRtuInline(ModbusDevice(state, rmap), master, rtu_silence_s(921600))
+        data = bytearray(2 * wb.count)
+        rmap.encode_write_into(data, 0, 0.45, 1 | 4, 50)
+        body = bytes((rmap.unit_id,)) + read_write_request_pdu(rb.address, rb.count, wb.address, data)
+        os.write(slave, b"\x00\xff\x13" + body + crc16_modbus(body).to_bytes(2, "little"))
+        _poll_until(srv, lambda: state.setpoint()[0] == pytest.approx(0.45))
+        assert srv.dev.bytes_discarded == 3
+        os.set_blocking(slave, False)
+        for _ in range(50):
+            srv.poll_once()
+        with pytest.raises(BlockingIOError):  # owed to the tick
+            os.read(slave, 4096)
+        dev.tick(1, state.setpoint()[2])
+        t_end = time.monotonic() + 2
+        reply = b""
+        while len(reply) < 5 + 2 * rb.count and time.monotonic() < t_end:
+            try:
+                reply += os.read(slave, 4096)
+            except BlockingIOError:
+                time.sleep(1e-4)
+        vals = rmap.decode_read(decode_rtu_response(reply, rmap.unit_id, 23, rb.count))
+        assert vals.seq == 1 and dev.bench.I_cmd == pytest.approx(0.45)
+    finally:
+        os.close(master)
+        os.close(slave)

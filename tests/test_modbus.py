@@ -48,12 +48,10 @@ from hil_sim.modbus_device import (  # noqa: E402
     ModbusDevice,
     default_register_map as device_default_map,
     mbap_frame_length,
-    rtu_feed,
     rtu_request_length,
-    serve_modbus_rtu,
-    serve_modbus_tcp,
-    serve_modbus_tcp_inline,
 )
+from hil_sim.modbus_rtu import ModbusRtuInline, rtu_feed, rtu_silence_s, serve_modbus_rtu  # noqa: E402
+from hil_sim.modbus_tcp import serve_modbus_tcp, serve_modbus_tcp_inline  # noqa: E402
 from hil_sim.state import DeviceState  # noqa: E402
 from mrctl.io.base import (  # noqa: E402
     DeviceError,
@@ -77,6 +75,7 @@ from mrctl.io.modbus import (  # noqa: E402
     decode_tcp_response,
     exception_name,
     mbap_frame,
+    open_serial_port,
     read_request_pdu,
     read_write_request_pdu,
     rtu_frame,
@@ -846,9 +845,25 @@ def test_tcp_disconnect(serve: Callable[..., None]) -> None:
     link.close()
 
 
-@pytest.fixture
-def rtu_device() -> Iterator[Callable[..., tuple[DeviceState, int, int]]]:
+def _serve_rtu_inline(state: DeviceState, path: str, baud: int, register_map: RegisterMap | None,
+                      stop: threading.Event, ready: Callable[[str], None], fc23: bool = True) -> None:
+    """hil_sim's ``--serve inline`` RTU server, polled as its clock's spin does."""
+    port = open_serial_port(path, baudrate=baud, timeout=0)
+    try:
+        srv = ModbusRtuInline(ModbusDevice(state, register_map, fc23=fc23), port.fileno(), rtu_silence_s(baud))
+        ready(f"modbus-rtu {path}")
+        while not stop.is_set():
+            srv.poll_once()
+            time.sleep(1e-4)
+    finally:
+        port.close()
+
+
+@pytest.fixture(params=["thread", "inline"])
+def rtu_device(request) -> Iterator[Callable[..., tuple[DeviceState, int, int]]]:
+    """A Modbus RTU device on a pty, served both ways hil_sim can."""
     cleanup: list[Callable[[], None]] = []
+    serve = serve_modbus_rtu if request.param == "thread" else _serve_rtu_inline
 
     def start(**kw: Any) -> tuple[DeviceState, int, int]:
         master, slave = os.openpty()
@@ -858,10 +873,12 @@ def rtu_device() -> Iterator[Callable[..., tuple[DeviceState, int, int]]]:
         state.publish(SAMPLE)
         stop = threading.Event()
         got: list[str] = []
-        th = threading.Thread(target=serve_modbus_rtu, args=(state, os.ttyname(slave), 921600, None, stop, got.append),
+        th = threading.Thread(target=serve, args=(state, os.ttyname(slave), 921600, None, stop, got.append),
                               kwargs=kw, daemon=True)
         th.start()
+        t_end = time.monotonic() + 5
         while not got:
+            assert th.is_alive() and time.monotonic() < t_end, "the RTU device did not start"
             time.sleep(0.005)
 
         def clean() -> None:

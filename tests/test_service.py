@@ -320,7 +320,7 @@ def test_device_pacing_without_an_enable_register_exits_2_at_0A(tmp_path, capsys
     to put SYNC): a clear message, exit 2, and the device's last setpoint 0 A,
     output off; never a traceback."""
     pytest.importorskip("pymodbus")
-    from hil_sim.modbus_device import serve_modbus_tcp_inline
+    from hil_sim.modbus_tcp import serve_modbus_tcp_inline
     from hil_sim.state import DeviceState
     from mrctl.io.registers import DEFAULT_REGISTER_MAP
 
