@@ -92,40 +92,21 @@ def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[fl
 
     Time must start anywhere but strictly increase. Errors are ``ValueError``
     naming the file, line and column, for the config layer to report."""
-    import csv
+    from mrctl.csvtable import read_table
 
     p = Path(path)
-    try:
-        fh = p.open(newline="")
-    except OSError as exc:
-        raise ValueError(f"{p}: cannot open ({exc.strerror})") from None
-    with fh:
-        rows = [r for r in csv.reader(line for line in fh if not line.startswith("#")) if r]
-    if not rows:
-        raise ValueError(f"{p}: empty file")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in columns if c not in header]
-    if missing:
-        raise ValueError(f"{p}: missing column(s) {', '.join(missing)} (found {', '.join(header)})")
-    idx = {c: header.index(c) for c in header}
-    out: dict[str, list[float]] = {c: [] for c in header}
-    for lineno, row in enumerate(rows[1:], start=2):
-        if len(row) != len(header):
-            raise ValueError(f"{p}:{lineno}: expected {len(header)} fields, got {len(row)}")
-        for c in header:
-            try:
-                val = float(row[idx[c]])
-            except ValueError:
-                raise ValueError(f"{p}:{lineno}: column {c}: not a number: {row[idx[c]]!r}") from None
-            if not math.isfinite(val):
-                raise ValueError(f"{p}:{lineno}: column {c}: not finite: {row[idx[c]]!r}")
-            out[c].append(val)
+    table = read_table(p, require=columns)  # CsvError is a ValueError
+    for c, col in table.columns.items():
+        bad = [i for i, v in enumerate(col.tolist()) if not math.isfinite(v)]
+        if bad:
+            raise ValueError(f"{p}: line {table.lines[bad[0]]}: column {c} is not finite: {float(col[bad[0]])!r}")
+    out = {c: col.tolist() for c, col in table.columns.items()}
     t = out[columns[0]]
     if len(t) < 2:
         raise ValueError(f"{p}: needs at least 2 data rows")
     for i in range(1, len(t)):
         if not t[i] > t[i - 1]:
-            raise ValueError(f"{p}:{i + 2}: {columns[0]} must strictly increase")
+            raise ValueError(f"{p}: line {table.lines[i]}: {columns[0]} must strictly increase")
     return out
 
 

@@ -32,8 +32,6 @@ that the daemon never needs it.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import sys
 import time
@@ -43,6 +41,7 @@ from typing import Any, Callable, Mapping, Sequence, TextIO
 
 import numpy as np
 
+from mrctl.csvtable import CsvError, read_table
 from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
 
 __all__ = [
@@ -187,6 +186,8 @@ def lugre_force(theta: Sequence[float] | Mapping[str, float], v: np.ndarray, dt:
 # Loading and checking runs
 _F_COLUMNS = ("F_meas", "F")
 _V_COLUMNS = ("v_meas", "v")
+#: the columns identification reads from a run CSV (whichever are there)
+_RUN_COLUMNS = ("t", "I", "I_applied", "F_meas", "F", "v_meas", "v", "x_meas", "x")
 
 
 def load_identification_run(path: str | Path) -> dict[str, np.ndarray]:
@@ -198,48 +199,14 @@ def load_identification_run(path: str | Path) -> dict[str, np.ndarray]:
     the file, column and line."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise IdentificationError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise IdentificationError(f"{p}: is a directory, not a run CSV") from None
-    except UnicodeDecodeError:
-        raise IdentificationError(f"{p}: not a text (UTF-8) CSV file") from None
-    except OSError as exc:
-        raise IdentificationError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    lines = [(n, ln) for n, ln in enumerate(text.splitlines(), start=1)
-             if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise IdentificationError(f"{p}: empty file (no header line)")
-    header = [h.strip() for h in next(csv.reader([lines[0][1]]))]
-    wanted = [c for c in ("t", "I", "I_applied", "F_meas", "F", "v_meas", "v", "x_meas", "x") if c in header]
-    dupes = [c for c in wanted if header.count(c) > 1]
-    if dupes:
-        raise IdentificationError(f"{p}: column(s) {', '.join(dupes)} appear more than once in the header")
-    idx = [header.index(c) for c in wanted]
-    body = lines[1:]
-    if not wanted:
-        found = ", ".join(h for h in header if h) or "(none)"
+        table = read_table(p, _RUN_COLUMNS)
+    except CsvError as exc:
+        raise IdentificationError(str(exc)) from None
+    if not table.columns:
+        found = ", ".join(h for h in table.header if h) or "(none)"
         raise IdentificationError(f"{p}: none of the columns t, I, F_meas/F, v_meas/v found "
                                   f"(is this a run CSV?); header: {found[:80]}{'…' if len(found) > 80 else ''}")
-    try:
-        data = np.loadtxt(io.StringIO("\n".join(ln for _, ln in body)), delimiter=",",
-                          usecols=idx, ndmin=2, dtype=float)
-    except ValueError:
-        data = None
-    if data is None or (body and data.shape[0] != len(body)):
-        # find the offending line for the message
-        for n, ln in body:
-            fields_ = next(csv.reader([ln]))
-            if len(fields_) != len(header):
-                raise IdentificationError(f"{p}: line {n} has {len(fields_)} fields, the header has {len(header)}")
-            for c, k in zip(wanted, idx):
-                try:
-                    float(fields_[k])
-                except ValueError:
-                    raise IdentificationError(f"{p}: line {n}: column {c} is not a number: {fields_[k].strip()!r}") from None
-        raise IdentificationError(f"{p}: cannot parse the data rows")  # pragma: no cover
-    return {c: data[:, j].copy() for j, c in enumerate(wanted)}
+    return table.columns
 
 
 def _pick(run: Mapping[str, Any], names: Sequence[str]) -> tuple[str | None, np.ndarray | None]:

@@ -690,49 +690,12 @@ def read_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     Tolerates what a killed recorder leaves: a last line without its
     newline is dropped. ``#`` comment lines and blank lines are skipped (so
     ``mrctl simulate`` output reads too). Any other malformed line raises
-    ``ValueError`` naming the file and 1-based line number.
+    :class:`mrctl.csvtable.CsvError` (a ``ValueError``) naming the file and
+    1-based line number.
     """
-    p = Path(path)
-    text = p.read_bytes().decode("utf-8")
-    lines = text.split("\n")
-    if lines and lines[-1] != "":
-        lines.pop()  # torn (unterminated) last line
-    else:
-        lines.pop()  # the empty string after the final newline
-    header: list[str] | None = None
-    rows: list[str] = []
-    linenos: list[int] = []
-    for n, line in enumerate(lines, start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        if header is None:
-            header = [h.strip() for h in s.split(",")]
-            continue
-        rows.append(s)
-        linenos.append(n)
-    if header is None:
-        raise ValueError(f"{p}: no header line")
-    ncol = len(header)
-    if rows:
-        try:
-            data = np.loadtxt(rows, delimiter=",", dtype=float, ndmin=2)
-        except ValueError:
-            for n, s in zip(linenos, rows):  # find the culprit for the message
-                fields = s.split(",")
-                if len(fields) != ncol:
-                    raise ValueError(f"{p}: line {n} has {len(fields)} fields, "
-                                     f"the header has {ncol}") from None
-                try:
-                    [float(f) for f in fields]
-                except ValueError:
-                    raise ValueError(f"{p}: line {n}: not a number in {s!r}") from None
-            raise
-        if data.shape[1] != ncol:
-            raise ValueError(f"{p}: rows have {data.shape[1]} fields, the header has {ncol}")
-    else:
-        data = np.zeros((0, ncol))
-    return {c: data[:, k].copy() for k, c in enumerate(header)}
+    from mrctl.csvtable import read_table
+
+    return read_table(path, torn_last_line_ok=True).columns  # CsvError is a ValueError
 
 
 def read_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -12,13 +12,13 @@ so the daemon itself never needs it.
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from pathlib import Path
 
 import numpy as np
 
+from mrctl.csvtable import CsvError, read_table
 from mrctl.metrics import tracking_summary
 
 __all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
@@ -48,73 +48,23 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """
     p = Path(path)
     try:
-        fh = p.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise ReportError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise ReportError(f"{p}: is a directory, not a run CSV") from None
-    except OSError as exc:
-        raise ReportError(f"{p}: cannot read: {exc.strerror or exc}") from None
-
-    with fh:
-        # Keep the physical line numbers: they are what the user's editor shows.
-        lines = ((n, line) for n, line in enumerate(fh, start=1)
-                 if line.strip() and not line.lstrip().startswith("#"))
-        try:
-            header_lineno, header_line = next(lines)
-        except StopIteration:
-            raise ReportError(f"{p}: empty file (no header line)") from None
-        except UnicodeDecodeError:
-            raise ReportError(f"{p}: not a text (UTF-8) CSV file") from None
-
-        header = [h.strip() for h in next(csv.reader([header_line]))]
-        missing = [c for c in REQUIRED_COLUMNS if c not in header]
-        if missing:
-            raise ReportError(
-                f"{p}: missing required column(s) {', '.join(missing)}; "
-                f"found: {', '.join(h for h in header if h) or '(none)'}"
-            )
-        dupes = [c for c in REQUIRED_COLUMNS if header.count(c) > 1]
-        if dupes:
-            raise ReportError(f"{p}: column(s) {', '.join(dupes)} appear more than once "
-                              f"in the header (line {header_lineno})")
-        index = {c: header.index(c) for c in REQUIRED_COLUMNS}
-
-        rows: list[list[float]] = []
-        try:
-            for lineno, line in lines:
-                fields = next(csv.reader([line]))
-                if len(fields) != len(header):
-                    raise ReportError(
-                        f"{p}: line {lineno} has {len(fields)} fields, "
-                        f"the header has {len(header)}"
-                    )
-                row = []
-                for c in REQUIRED_COLUMNS:
-                    text = fields[index[c]].strip()
-                    try:
-                        value = float(text)
-                    except ValueError:
-                        raise ReportError(
-                            f"{p}: line {lineno}: column {c} is not a number: {text!r}"
-                        ) from None
-                    # NaN is "no value": a daemon log has it in x, v, F_des
-                    # while the safety supervisor holds the damper at 0 A, and
-                    # in F without a load cell. It plots as a gap and is left
-                    # out of the metrics. Time and current are always logged.
-                    if math.isinf(value) or (math.isnan(value) and c in ("t", "I")):
-                        raise ReportError(
-                            f"{p}: line {lineno}: column {c} is not finite: {text!r}"
-                        )
-                    row.append(value)
-                rows.append(row)
-        except UnicodeDecodeError:
-            raise ReportError(f"{p}: not a text (UTF-8) CSV file") from None
-
-    if len(rows) < 2:
-        raise ReportError(f"{p}: {len(rows)} data row(s); a report needs at least 2")
-    data = np.asarray(rows, dtype=float)
-    return {c: data[:, k].copy() for k, c in enumerate(REQUIRED_COLUMNS)}
+        table = read_table(p, REQUIRED_COLUMNS, require=REQUIRED_COLUMNS)
+    except CsvError as exc:
+        raise ReportError(str(exc)) from None
+    cols = table.columns
+    for c in REQUIRED_COLUMNS:
+        # NaN is "no value": a daemon log has it in x, v, F_des while the
+        # safety supervisor holds the damper at 0 A, and in F without a load
+        # cell. It plots as a gap and is left out of the metrics. Time and
+        # current are always logged.
+        bad = np.isinf(cols[c]) | (np.isnan(cols[c]) if c in ("t", "I") else False)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ReportError(f"{p}: line {table.lines[k]}: column {c} is not finite: {float(cols[c][k])!r}")
+    n = len(table.lines)
+    if n < 2:
+        raise ReportError(f"{p}: {n} data row(s); a report needs at least 2")
+    return {c: cols[c] for c in REQUIRED_COLUMNS}
 
 
 # -- metrics ----------------------------------------------------------------

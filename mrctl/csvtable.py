@@ -1,0 +1,119 @@
+"""Reading the CSV tables mrctl writes and reads: run logs, ground truth,
+excitation and demand series.
+
+One reader, so every table fails the same way: a :class:`CsvError` naming
+the file and, where it helps, the 1-based physical line (what an editor
+shows) and the column. Callers add their own rules on the numbers (finite
+or not, how many rows, increasing time) and their own error type.
+
+Format: UTF-8; ``#`` lines and blank lines are skipped anywhere; the first
+other line is the header; fields are separated by commas and never quoted
+(mrctl writes none, so a field count is one more than the comma count).
+Columns are found by header name. Only the columns asked for are parsed as
+floats (``nan``/``inf`` included): the others may hold anything, e.g. the
+fault names a daemon log carries.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+__all__ = ["CsvError", "Table", "read_table"]
+
+
+class CsvError(ValueError):
+    """A table cannot be read; the message names the file, line and column."""
+
+
+class Table(NamedTuple):
+    """What :func:`read_table` returns."""
+
+    #: the columns asked for that the header has, in header order: float arrays
+    columns: dict[str, np.ndarray]
+    #: the physical (1-based) line number of each data row
+    lines: np.ndarray
+    #: every header name, as written
+    header: list[str]
+
+
+def read_table(
+    path: str | os.PathLike[str],
+    columns: Sequence[str] | None = None,
+    *,
+    require: Sequence[str] = (),
+    torn_last_line_ok: bool = False,
+) -> Table:
+    """Read ``columns`` (None = all) of the CSV at ``path``.
+
+    ``require``: columns that must be in the header. ``torn_last_line_ok``:
+    drop a last line without its newline (what a killed writer leaves)
+    instead of parsing it. Raises :class:`CsvError` only.
+    """
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise CsvError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise CsvError(f"{p}: is a directory, not a CSV file") from None
+    except UnicodeDecodeError:
+        raise CsvError(f"{p}: not a text (UTF-8) CSV file") from None
+    except OSError as exc:
+        raise CsvError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    physical = text.split("\n")
+    if physical[-1] == "" or torn_last_line_ok:
+        physical.pop()  # the empty string after the final newline, or a torn last line
+    rows: list[str] = []
+    linenos: list[int] = []
+    header_line = None
+    for n, line in enumerate(physical, start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if header_line is None:
+            header_line = n
+            header = [h.strip() for h in s.split(",")]
+            continue
+        rows.append(s)
+        linenos.append(n)
+    if header_line is None:
+        raise CsvError(f"{p}: empty file (no header line)")
+    missing = [c for c in require if c not in header]
+    if missing:
+        found = ", ".join(h for h in header if h) or "(none)"
+        raise CsvError(f"{p}: missing required column(s) {', '.join(missing)}; found: {found}")
+    wanted = [c for c in header if c] if columns is None else [c for c in columns if c in header]
+    wanted = sorted(set(wanted), key=header.index)
+    dupes = [c for c in wanted if header.count(c) > 1]
+    if dupes:
+        raise CsvError(f"{p}: column(s) {', '.join(dupes)} appear more than once in the header "
+                       f"(line {header_line})")
+    ncol = len(header)
+    for n, s in zip(linenos, rows):
+        if s.count(",") + 1 != ncol:
+            raise CsvError(f"{p}: line {n} has {s.count(',') + 1} fields, the header has {ncol}")
+    idx = [header.index(c) for c in wanted]
+    if rows and idx:
+        try:
+            data = np.loadtxt(rows, delimiter=",", dtype=float, ndmin=2, usecols=idx, comments=None)
+        except ValueError:
+            _raise_first_bad_value(p, rows, linenos, wanted, idx)
+            raise CsvError(f"{p}: cannot parse the data rows") from None  # pragma: no cover
+    else:
+        data = np.zeros((len(rows), len(idx)))
+    return Table({c: data[:, j].copy() for j, c in enumerate(wanted)}, np.asarray(linenos, dtype=np.int64), header)
+
+
+def _raise_first_bad_value(p: Path, rows: list[str], linenos: list[int], wanted: list[str], idx: list[int]) -> None:
+    """Name the first field that is not a number (only on the slow, error path)."""
+    for n, s in zip(linenos, rows):
+        fields = s.split(",")
+        for c, k in zip(wanted, idx):
+            try:
+                float(fields[k])
+            except ValueError:
+                raise CsvError(f"{p}: line {n}: column {c} is not a number: {fields[k].strip()!r}") from None
