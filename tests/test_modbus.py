@@ -10,6 +10,7 @@ come; no latency is asserted.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -929,8 +930,9 @@ def test_rtu_fallback_timeout_and_gone(rtu_device) -> None:
     assert state.setpoint()[:2] == (0.0, False)
 
 
-def test_rtu_client_on_pty_path() -> None:
-    """The client can open a tty path too (pyserial), the device an fd."""
+@contextlib.contextmanager
+def rtu_device_on_master_fd() -> Iterator[tuple[DeviceState, str]]:
+    """An RTU device serving a pty master fd; yields (state, the tty path a client opens)."""
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
@@ -940,14 +942,20 @@ def test_rtu_client_on_pty_path() -> None:
     th = threading.Thread(target=serve_modbus_rtu, args=(state, master, 921600, None, stop), daemon=True)
     th.start()
     try:
-        with ModbusLink("rtu", url=os.ttyname(slave), timeout_s=REPLY_S) as link:
-            check_sample(link.exchange(0.4))
-            assert state.setpoint()[:2] == (f32(0.4), True)
+        yield state, os.ttyname(slave)
     finally:
         stop.set()
         th.join(5)
         os.close(master)
         os.close(slave)
+
+
+def test_rtu_client_on_pty_path() -> None:
+    """The client can open a tty path too (pyserial), the device an fd."""
+    with rtu_device_on_master_fd() as (state, path):
+        with ModbusLink("rtu", url=path, timeout_s=REPLY_S) as link:
+            check_sample(link.exchange(0.4))
+            assert state.setpoint()[:2] == (f32(0.4), True)
 
 
 def test_rtu_gone_is_disconnected() -> None:
@@ -1034,26 +1042,13 @@ def test_mbpoll_reads_documented_registers(tcp_device) -> None:
 
 @pytest.mark.skipif(MBPOLL is None, reason="mbpoll not installed (apt-get install -y mbpoll)")
 def test_mbpoll_rtu_on_pty() -> None:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    state = DeviceState()
-    state.publish(SAMPLE)
-    stop = threading.Event()
-    th = threading.Thread(target=serve_modbus_rtu, args=(state, master, 921600, None, stop), daemon=True)
-    th.start()
-    try:
+    with rtu_device_on_master_fd() as (_state, path):
         r = subprocess.run(["mbpoll", "-m", "rtu", "-a", "1", "-0", "-1", "-o", "2", "-b", "921600", "-P", "even",
-                            "-t", "4:float", "-B", "-r", "4", "-c", "2", os.ttyname(slave)],
+                            "-t", "4:float", "-B", "-r", "4", "-c", "2", path],
                            capture_output=True, text=True, timeout=20)
         assert r.returncode == 0, r.stdout + r.stderr
         got = {int(a): float(v) for a, v in re.findall(r"^\[(\d+)\]:\s+(\S+)", r.stdout, re.M)}
         assert got == pytest.approx({4: SAMPLE.x_m, 6: SAMPLE.v_mps}, rel=1e-6)
-    finally:
-        stop.set()
-        th.join(5)
-        os.close(master)
-        os.close(slave)
 
 
 def test_device_paced_exchange_sleeps_until_shortly_before_the_next_tick() -> None:
