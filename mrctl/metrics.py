@@ -18,6 +18,20 @@ import numpy as np
 _AT_LIMIT_A = 1e-9
 
 
+def tracked_force(cols: Mapping[str, np.ndarray]) -> tuple[np.ndarray, str]:
+    """The force a run's tracking is judged on, and its column name.
+
+    ``F_true`` (the plant's force at that tick) when the log has it (a
+    simulated bench: the in-process sim or hil_sim's ground truth joined in),
+    else ``F``, the load cell. The load cell reads the previous tick's force
+    plus noise, so on a simulated bench it would add a tick of lag the damper
+    does not have. The daemon's summary and the report use this one rule."""
+    F_true = cols.get("F_true")
+    if F_true is not None and len(F_true) and math.isfinite(float(F_true[-1])):
+        return F_true, "F_true"
+    return cols["F"], "F"
+
+
 def tracking_summary(
     t: np.ndarray, F_des: np.ndarray, F: np.ndarray, I: np.ndarray, I_max: float | None, settle_s: float
 ) -> dict[str, float]:

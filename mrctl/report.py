@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mrctl.csvtable import CsvError, read_table
-from mrctl.metrics import tracking_summary
+from mrctl.metrics import tracked_force, tracking_summary
 
 __all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
 
@@ -39,6 +39,11 @@ class ReportError(Exception):
 def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """Read a run CSV into ``{column: float array}`` for the required columns.
 
+    A log with a finite ``F_true`` column (a simulated bench) has it as
+    ``F``, the force tracking is judged on (the load cell's reading moves to
+    ``F_measured``): the same rule as the daemon's summary
+    (:func:`mrctl.metrics.tracked_force`).
+
     Columns are found by header name because the loggers add columns (``seq``,
     ``z``, ``fault`` …) in whatever order suits them; those extra columns are
     not parsed at all, so they may hold anything. Lines starting with ``#``
@@ -48,7 +53,7 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """
     p = Path(path)
     try:
-        table = read_table(p, REQUIRED_COLUMNS, require=REQUIRED_COLUMNS)
+        table = read_table(p, (*REQUIRED_COLUMNS, "F_true"), require=REQUIRED_COLUMNS)
     except CsvError as exc:
         raise ReportError(str(exc)) from None
     cols = table.columns
@@ -64,7 +69,16 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     n = len(table.lines)
     if n < 2:
         raise ReportError(f"{p}: {n} data row(s); a report needs at least 2")
-    return {c: cols[c] for c in REQUIRED_COLUMNS}
+    out = {c: cols[c] for c in REQUIRED_COLUMNS}
+    F, name = tracked_force(cols)
+    if name == "F_true":  # a simulated bench: judge and plot the plant's own force
+        bad = np.isinf(F)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ReportError(f"{p}: line {table.lines[k]}: column F_true is not finite: {float(F[k])!r}")
+        out["F_measured"] = out["F"]
+        out["F"] = F
+    return out
 
 
 # -- metrics ----------------------------------------------------------------
@@ -131,7 +145,8 @@ def make_report(csv_path: str | os.PathLike[str], out_path: str | os.PathLike[st
 
     # Actual first and lighter, desired on top and dark-dashed: when tracking
     # is good the two coincide, and the reference must stay visible.
-    act = dict(color="tab:red", lw=0.9, alpha=0.7, zorder=2, label="actual $F$")
+    act = dict(color="tab:red", lw=0.9, alpha=0.7, zorder=2,
+               label="true $F$ (simulated plant)" if "F_measured" in cols else "actual $F$")
     des = dict(color="black", lw=1.3, ls=(0, (4, 2)), zorder=3, label="desired $F_{des}$")
 
     fig = Figure(figsize=(12, 8.5), dpi=200, layout="constrained")

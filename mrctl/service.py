@@ -42,7 +42,7 @@ from mrctl.experiment import Experiment, build
 from mrctl.io.base import LinkError, Status
 from mrctl.jsonutil import jsonable
 from mrctl.loop import FixedRateLoop
-from mrctl.metrics import format_summary, tracking_summary
+from mrctl.metrics import format_summary, tracked_force, tracking_summary
 from mrctl.rt import RtSettings, apply_rt, restore
 from mrctl.safety import SafetyConfig, SafetySupervisor
 from mrctl.timing import format_summary as format_timing
@@ -599,7 +599,7 @@ class Service:
             return None
         if len(cols.get("t", ())) < 2:
             return None
-        F = cols["F_true"] if "F_true" in cols and math.isfinite(float(cols["F_true"][-1])) else cols["F"]
+        F, _ = tracked_force(cols)
         try:
             return tracking_summary(cols["t"], cols["F_des"], F, cols["I"], self.exp.I_max,  # type: ignore[union-attr]
                                     self.exp.excitation.settle_s)  # type: ignore[union-attr]

@@ -313,6 +313,14 @@ def test_daemon_path_tracks_exactly_like_the_offline_simulation(tmp_path):
     assert np.allclose(cols["F_true"], sim.columns["F"][:n], rtol=1e-8, atol=1e-12)
     track = read_sidecar(out)["summary"]["tracking"]
     assert track["force_nrmse"] <= 1.5 * sim.summary["force_nrmse"]
+    # mrctl report judges the same force as the daemon (F_true, not the
+    # load cell's one-tick-late reading), so its headline is the daemon's
+    from mrctl.report import load_run, summarize
+
+    rep = load_run(out)
+    assert np.array_equal(rep["F"], cols["F_true"]) and np.array_equal(rep["F_measured"], cols["F"])
+    assert summarize(rep, track["window_start_s"] - cols["t"][0])["nrmse"] == pytest.approx(track["force_nrmse"],
+                                                                                           rel=1e-9)
 
 
 def test_device_pacing_without_an_enable_register_exits_2_at_0A(tmp_path, capsys):
