@@ -9,7 +9,7 @@ for the end, and measures from the daemon's run log + sidecar and hil_sim's
 truth log + summary (hil_sim/fault_suite.py says exactly how). It then
 rewrites the generated part of ``docs/reliability.md``.
 
-    python bench/faults.py                       # everything (~3 min), rewrites docs/reliability.md
+    python bench/faults.py                       # everything (~5 min), rewrites docs/reliability.md
     python bench/faults.py --only nan --only SIGKILL --no-docs
     python bench/faults.py --json runs/faults.json --keep /tmp/faults
 
@@ -90,8 +90,9 @@ SCENARIOS: list[Scenario] = [
     Scenario("disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume (link_loss_s 0.5)",
              ["disconnect@3.0+0.2"], safety=PATIENT),
     Scenario("disconnect 1 s", f"{HOLD}; device watchdog 0 A; exit 3", ["disconnect@3.0+1.0"], expect_exit=3),
-    # -- the shipped serial experiment as is (0.84 ms reply timeout, link_loss_s and
-    # link probe as shipped, inline serving): what the suite's allowances change
+    # -- the shipped serial experiment as is (device-paced, 0.84 ms reply timeout,
+    # link_loss_s and link probe as shipped, inline serving): what the suite's
+    # allowances change
     Scenario("nan, shipped hil_serial.yaml", f"{HOLD}; auto-resume", ["nan@3.0+0.3"], shipped=True),
     Scenario("drop_replies 50 ms, shipped hil_serial.yaml", f"{HOLD}; auto-resume", ["drop_replies@3.0+0.05"],
              shipped=True),
@@ -109,6 +110,23 @@ SCENARIOS: list[Scenario] = [
              ["disconnect@3.0+0.2"], transport="modbus-tcp", safety=PATIENT),
     Scenario("TCP ignore_writes", f"{HOLD}; device watchdog 0 A; exit 3", ["ignore_writes@3.0+1.0"],
              transport="modbus-tcp", expect_exit=3),
+    # -- device pacing (loop.pacing: device, the SYNC flag; serial) ------------------------
+    Scenario("nan, device-paced", f"{HOLD}; auto-resume", ["nan@3.0+0.3"], pacing="device"),
+    Scenario("drop_replies 0.15 s, device-paced", f"{HOLD}; auto-resume", ["drop_replies@3.0+0.15"],
+             pacing="device"),
+    Scenario("disconnect 0.2 s, device-paced", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume "
+             "(link_loss_s 0.5)", ["disconnect@3.0+0.2"], safety=PATIENT, pacing="device"),
+    # -- Modbus RTU (device-paced and served inline, as hil_modbus_rtu.yaml and hil_sim ship;
+    # its client sleeps for the reply, so the two do not starve each other) -------------
+    Scenario("RTU nan", f"{HOLD}; auto-resume", ["nan@3.0+0.3"], transport="modbus-rtu", pacing="device", serve="inline"),
+    Scenario("RTU corrupt_crc 70 ms", f"{HOLD}; auto-resume", ["corrupt_crc@3.0+0.07"], transport="modbus-rtu",
+             pacing="device", serve="inline"),
+    Scenario("RTU garbage", "tolerated: the client hunts for its reply", ["garbage@3.0+0.3"],
+             transport="modbus-rtu", pacing="device", serve="inline", expect_fault=False),
+    Scenario("RTU drop_replies 0.15 s", f"{HOLD}; auto-resume", ["drop_replies@3.0+0.15"], transport="modbus-rtu",
+             pacing="device", serve="inline"),
+    Scenario("RTU disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume (link_loss_s 0.5)",
+             ["disconnect@3.0+0.2"], transport="modbus-rtu", safety=PATIENT, pacing="device"),
     # -- process faults -------------------------------------------------------------------
     Scenario("SIGTERM", "0 A at the device, complete log, exit 0", process="SIGTERM", duration_s=10.0,
              process_at_ticks=1000),

@@ -146,8 +146,8 @@ class Scenario:
     bench_duration_s: float = 60.0
     #: hil_sim --serve: "thread" (default here, see ROBUST_SERVE) or "inline"
     serve: str = ROBUST_SERVE
-    #: loop.pacing of the daemon: "host" (default here: the suite's reply
-    #: deadlines and tick counts are for host pacing) or "device"
+    #: loop.pacing of the daemon: "host" (default here) or "device" (the
+    #: SYNC flag); a shipped scenario runs as its file says
     pacing: str = "host"
     #: True: the experiment exactly as shipped (its safety, timeout and link
     #: sections; hil_sim's default inline serving): no suite allowances at all
@@ -176,9 +176,10 @@ def experiment_config(sc: Scenario, workdir: Path, link: str | None = None, port
         be.update(sc.backend)
         data["link"] = {**data.get("link", {}), **sc.link}
     data["backend"] = be
-    # the suite's figures (ticks to 0 A, reply timeouts) are for host pacing
-    # unless the scenario asks for device pacing (one period more per deadline)
-    data["loop"] = {**data.get("loop", {}), "pacing": sc.pacing}
+    # the scenario's pacing (device pacing: one period more per reply deadline);
+    # a shipped scenario keeps the file's
+    if not sc.shipped:
+        data["loop"] = {**data.get("loop", {}), "pacing": sc.pacing}
     path = workdir / "experiment.yaml"
     path.write_text(json.dumps(data, indent=1) + "\n")
     return path

@@ -232,10 +232,9 @@ class ModbusRtuInline:
             buf += chunk
             for resp in rtu_feed(dev, buf):
                 if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
-                    resp.owed.attach(lambda r=resp: self._write(r.build()))
+                    resp.owed.attach(lambda r=resp: self._reply(r.build()))
                     continue
-                out = dev.reply_now(resp, False, self.delayed)
-                if out is not None and not self._write(out):
+                if not self._reply(resp):
                     return
             if len(buf) > 1024:  # nothing valid in a whole kilobyte: start over
                 dev.bytes_discarded += len(buf)
@@ -246,12 +245,15 @@ class ModbusRtuInline:
             # function (→ ILLEGAL_FUNCTION if its CRC is good) or junk.
             resp = dev.handle_rtu_frame(bytes(buf)) if rtu_request_length(buf) == -1 else None
             if resp is not None:
-                out = dev.reply_now(resp, False, self.delayed)
-                if out is not None:
-                    self._write(out)
+                self._reply(resp)
             else:
                 dev.bytes_discarded += len(buf)
             buf.clear()
+
+    def _reply(self, adu: bytes) -> bool:
+        """One response through the reply faults, then out; False if the tty went away."""
+        out = self.dev.reply_now(adu, False, self.delayed)
+        return True if out is None else self._write(out)
 
     def _write(self, data: bytes) -> bool:
         """Send one reply; False (and ``gone``) if the tty went away."""

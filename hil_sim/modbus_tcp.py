@@ -146,7 +146,13 @@ def _tcp_connection(dev: ModbusDevice, conn: socket.socket, stop: threading.Even
                 if resp is None:
                     continue
                 if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
-                    resp.owed.attach(lambda r=resp: conn.sendall(r.build()))
+
+                    def owed_reply(r: Deferred = resp) -> None:
+                        out = dev.reply_now(r.build(), True, delayed)  # (a deque append is thread-safe)
+                        if out is not None:
+                            conn.sendall(out)
+
+                    resp.owed.attach(owed_reply)
                     continue
                 out = dev.reply_now(resp, True, delayed)
                 if out is not None:
@@ -302,14 +308,22 @@ class ModbusTcpInline:
             if resp is None:
                 continue
             if isinstance(resp, Deferred):  # SYNC: the clock sends it after its tick
-                resp.owed.attach(lambda fd=fd, r=resp: self._send(fd, r.build()))
+                resp.owed.attach(lambda fd=fd, r=resp: self._reply(fd, r.build()))
                 continue
-            q = c[2]
-            n_queued = len(q)
-            out = dev.reply_now(resp, True, q)
-            self._n_delayed += len(q) - n_queued
-            if out is not None and not self._send(fd, out):
+            if not self._reply(fd, resp):
                 return
+
+    def _reply(self, fd: int, adu: bytes) -> bool:
+        """One response through the reply faults, then out; False if the
+        connection is gone."""
+        c = self._conns.get(fd)
+        if c is None:
+            return False  # the connection went away while the reply was owed
+        q = c[2]
+        n_queued = len(q)
+        out = self.dev.reply_now(adu, True, q)
+        self._n_delayed += len(q) - n_queued
+        return True if out is None else self._send(fd, out)
 
     def _send(self, fd: int, data: bytes) -> bool:
         c = self._conns.get(fd)

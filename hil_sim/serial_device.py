@@ -417,6 +417,9 @@ class SerialDevice:
 
 
 def _write_all(fd: int, data: bytes) -> bool:
+    """Write everything; False if the pty is full for too long or gone (a
+    reply owed across a hang-up is lost, as on a pulled cable: never an
+    exception, which in the clock thread would stop the bench)."""
     view = memoryview(data)
     deadline = None
     while view:
@@ -429,6 +432,8 @@ def _write_all(fd: int, data: bytes) -> bool:
             elif now >= deadline:
                 return False
             select.select([], [fd], [], deadline - now)
+        except OSError:  # EBADF/EIO: hung up (the disconnect fault) or the host side gone
+            return False
     return True
 
 

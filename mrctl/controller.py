@@ -135,9 +135,15 @@ class Controller:
     def acquire(self) -> Controller:
         """Device pacing, the blocking half of a tick: the exchange, which
         returns at the device's next tick (the SYNC flag). Never None: a
-        failed exchange is a tick too, for the safety hold and link loss."""
+        failed exchange is a tick too, for the safety hold and link loss,
+        and comes no sooner than one period after the previous tick."""
         self._take_reload()
         self._acq = self._acquire()
+        if self._acq[0] is None and self._prev_now and self.loop is not None:
+            # No reply, so no device clock: a link that fails at once (closed,
+            # refused) must not run ticks back to back, or link_loss_s, held
+            # in ticks, would pass in a fraction of its time. Pace by the host.
+            self.loop.sleep_until(self._prev_now + self._period_ns)
         return self
 
     def tick_paced(self, n: int, now_ns: int, _token: object) -> bool:
@@ -276,4 +282,9 @@ class Controller:
                 last = str(exc)
             except Exception as exc:  # noqa: BLE001 - the last line of defence must not raise
                 return f"{type(exc).__name__}: {exc}"
+            # a link that fails at once (unplugged) is retried every ~1 ms, not
+            # thousands of times: each retry reopens the port
+            pause = min(1e-3, deadline - time.monotonic())
+            if pause > 0:
+                time.sleep(pause)
         return f"{last} ({n} attempts in {budget_s:g} s)"

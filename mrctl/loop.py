@@ -189,6 +189,14 @@ class FixedRateLoop:
                 break
         return n
 
+    def sleep_until(self, t_ns: int) -> None:
+        """Sleep until this loop's clock reads ``t_ns`` (no-op if it has)."""
+        clock, sleep = self._clock, self._sleep
+        now = clock()
+        while now < t_ns:
+            sleep((t_ns - now) * 1e-9)
+            now = clock()
+
     def run_device_paced(
         self,
         wait_sample: Callable[[], object | None],

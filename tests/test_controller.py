@@ -122,3 +122,33 @@ def test_device_paced_ticks_follow_the_device_counter():
     # each exchange carries the current computed on the previous tick
     assert [I for _, I in link.sent][1:4] == pytest.approx([r[5] for r in rows][0:3])
     assert sup.fault_bits == 0  # one silent tick is within the hold
+
+
+def test_device_paced_failures_are_paced_by_the_host():
+    """Device pacing with a link that fails at once (unplugged): no device
+    clock paces the loop, so each failed tick comes one period after the
+    previous one, and link_loss_s, held in ticks, lasts its real time."""
+    from mrctl.loop import FixedRateLoop
+
+    class Clock:
+        t = 0
+
+        def now(self):
+            self.t += 1000  # 1 µs per reading
+            return self.t
+
+        def sleep(self, s):
+            self.t += int(s * 1e9)
+
+    clk = Clock()
+    link = FakeExchangeLink(gone=set(range(3, 1000)))
+    ctl, sup = _ctl(link)
+    ctl.link_loss_ticks = 50
+    ctl.record = lambda *r: None
+    loop = FixedRateLoop(1000.0, wait="sleep", clock=clk.now, sleep=clk.sleep)
+    ctl.loop = loop
+    n = loop.run_device_paced(ctl.acquire, ctl.tick_paced, max_ticks=500)
+    assert "link lost" in (ctl.stopped_reason or "")
+    assert n == 3 + 51  # 3 good ticks, then link_loss_ticks + 1 failures
+    # ... and those 51 failed ticks took 51 periods of the loop's clock, not 51 µs
+    assert clk.t - loop.t_start_ns >= 50 * 1_000_000

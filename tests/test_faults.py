@@ -502,6 +502,22 @@ def test_device_paced_daemon_commands_0A_within_hold_and_recovers(tmp_path: Path
     assert r["truth_final_I_cmd"] == 0.0
 
 
+def test_rtu_device_paced_dropped_replies_give_0A_and_recover(tmp_path: Path) -> None:
+    """Modbus RTU as it ships (device-paced, hil_sim serving inline): dropped
+    replies are missing samples, 0 A within the hold, then auto-resume. (Its
+    device-paced replies once skipped the reply faults: this saw no FAULT.)"""
+    sc = Scenario("ci_rtu_drop", "", ["drop_replies@4.0+0.15"], transport="modbus-rtu", pacing="device",
+                  serve="inline", duration_s=6.0)
+    r = _run(sc, tmp_path)
+    assert _exit_ok(r), r["daemon_stderr"]
+    w = r["windows"][0]
+    assert w["valid"], w
+    assert w["daemon_ticks_to_0A"] is not None and w["daemon_ticks_to_0A"] <= HOLD + 2, w
+    assert w["daemon_fault_bits_at_0A"] & int(Fault.MISSING), w
+    assert w["recovered"], w
+    assert r["truth_final_I_cmd"] == 0.0
+
+
 def test_combined_run_loses_no_tick(sample_and_link_faults) -> None:
     r = sample_and_link_faults
     _check_ticks(r)

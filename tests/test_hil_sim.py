@@ -865,3 +865,62 @@ def test_rtu_inline_sync_reply_is_sent_by_the_tick_and_junk_is_skipped() -> None
     finally:
         os.close(master)
         os.close(slave)
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu"])
+def test_sync_replies_go_through_the_reply_faults(transport: str) -> None:
+    """A device-paced (SYNC) reply, sent by the clock after its tick, meets the
+    same reply faults as any other: drop_replies drops it. (It once bypassed
+    them, so Modbus faults did nothing under device pacing.)"""
+    import tty
+
+    from hil_sim.faults import FaultBit, FaultSchedule, parse_fault_arg
+    from hil_sim.modbus_device import ModbusDevice
+    from hil_sim.modbus_rtu import ModbusRtuInline, rtu_silence_s
+    from hil_sim.modbus_tcp import ModbusTcpInline
+    from mrctl.io.modbus import crc16_modbus
+
+    dev, state = _device()
+    dev.tick(0, 1_000_000)
+    state.faults = FaultSchedule([parse_fault_arg("drop_replies@0+10")[0]], 1000.0)
+    rmap, req = _fc23_request(3, 0.45, 1 | 4)
+    if transport == "tcp":
+        srv = ModbusTcpInline(state, "127.0.0.1", 0, rmap)
+        c = socket.create_connection(("127.0.0.1", srv.port))
+        send, close = c.sendall, lambda: (c.close(), srv.close())
+
+        def received() -> bytes:
+            c.setblocking(False)
+            try:
+                return c.recv(4096)
+            except BlockingIOError:
+                return b""
+    else:
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)
+        srv = ModbusRtuInline(ModbusDevice(state, rmap), master, rtu_silence_s(921600))
+        body = bytes((rmap.unit_id,)) + req[7:]
+        req = body + crc16_modbus(body).to_bytes(2, "little")
+        send, close = (lambda b: os.write(slave, b)), (lambda: (os.close(master), os.close(slave)))
+        os.set_blocking(slave, False)
+
+        def received() -> bytes:
+            try:
+                return os.read(slave, 4096)
+            except BlockingIOError:
+                return b""
+    try:
+        send(req)
+        _poll_until(srv, lambda: state.setpoint()[0] == pytest.approx(0.45))
+        state.fault_bits = state.faults.active(1)  # what the clock does each tick ...
+        assert state.fault_bits == int(FaultBit.DROP_REPLIES)
+        dev.faults = None  # ... here by hand, so the bench keeps these bits
+        dev.tick(1, state.setpoint()[2])
+        for _ in range(200):
+            srv.poll_once()
+        time.sleep(0.02)
+        assert received() == b""
+        assert srv.dev.fault_counts["replies_dropped"] == 1
+    finally:
+        close()
