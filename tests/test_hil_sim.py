@@ -924,3 +924,19 @@ def test_sync_replies_go_through_the_reply_faults(transport: str) -> None:
         assert srv.dev.fault_counts["replies_dropped"] == 1
     finally:
         close()
+
+
+def test_sync_reply_owed_across_a_hangup_is_lost_not_raised() -> None:
+    """A SYNC reply owed when the pty is hung up (the disconnect fault) is
+    sent by the clock thread into a closed fd: it must be lost, as on a
+    pulled cable, not raise there (that stopped the whole bench once)."""
+    dev, state = _device()
+    dev.tick(0, 1_000_000)
+    r, w = os.pipe()
+    ser = SerialDevice(state, w, threading.Event(), 2.0)
+    ser.handle(encode_setpoint(7, 0.25, int(SetpointFlag.ENABLE | SetpointFlag.SYNC), 50))
+    os.close(w)  # hung up before the tick
+    os.close(r)
+    dev.tick(1, state.setpoint()[2])  # runs the owed reply: must not raise
+    assert ser.replies == 0 and ser.replies_dropped == 1
+    assert state.latest_sample().seq == 1
