@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import enum
 import math
+import time
 from typing import NamedTuple, Protocol, runtime_checkable
 
 __all__ = [
@@ -28,7 +29,16 @@ __all__ = [
     "CurrentDriver",
     "Link",
     "SplitLink",
+    "sleep_until_ns",
 ]
+
+
+def sleep_until_ns(t_ns: int) -> None:
+    """Sleep until ``time.monotonic_ns()`` reaches ``t_ns`` (no-op if past).
+    The links' device-paced wait: nothing can arrive before then."""
+    dt = t_ns - time.monotonic_ns()
+    if dt > 0:
+        time.sleep(dt * 1e-9)
 
 
 class Status(enum.IntFlag):

@@ -55,7 +55,7 @@ from typing import Any, Mapping
 
 from pymodbus.constants import ExcCodes
 
-from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample, Status
+from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample, Status, sleep_until_ns
 from mrctl.io.registers import RegisterMap, default_register_map
 
 __all__ = [
@@ -381,13 +381,6 @@ def _plan(rmap: RegisterMap, use_fc23: bool) -> list[_Tx]:
 
 # --------------------------------------------------------------------------
 # Byte transports
-def _sleep_until_ns(t_ns: int) -> None:
-    """Sleep until ``time.monotonic_ns()`` reaches ``t_ns`` (no-op if past)."""
-    dt = t_ns - time.monotonic_ns()
-    if dt > 0:
-        time.sleep(dt * 1e-9)
-
-
 class _FdIO:
     """Serial line over a raw fd: select + os.read with an absolute deadline.
 
@@ -430,7 +423,7 @@ class _FdIO:
         want = max(n, max_n)
         spin = self.spin
         if wake_ns:
-            _sleep_until_ns(wake_ns)
+            sleep_until_ns(wake_ns)
         try:
             while len(out) < n:
                 remaining = deadline - clock()
@@ -492,7 +485,7 @@ class _PySerialIO:
         import serial
 
         if wake_ns:
-            _sleep_until_ns(wake_ns)
+            sleep_until_ns(wake_ns)
         out = b""
         try:
             while len(out) < n:
@@ -615,7 +608,6 @@ class ModbusLink:
         self._period_ns = 0
         self._sleep_margin_ns = 0
         self._t_reply_ns = 0  # monotonic ns of the last device-paced reply (0 = none yet)
-        self._wake_ns = 0  # this exchange's first wait sleeps until then (0 = don't)
         self.spin_wait = bool(spin_wait)
         self._clear_pending = False
         self.timeout_s = self._default_timeout(self.use_fc23 if self.use_fc23 is not None else rmap.fc23_capable)
@@ -866,21 +858,15 @@ class ModbusLink:
         deadline = time.monotonic() + self.timeout_s + self._extra_timeout_s
         period = self._period_ns
         # device pacing: the reply comes one device period after the last
-        self._wake_ns = self._t_reply_ns + period - self._sleep_margin_ns if period and self._t_reply_ns else 0
+        wake_ns = self._t_reply_ns + period - self._sleep_margin_ns if period and self._t_reply_ns else 0
         if self._clear_pending:
-            self._transact_all(current_A, flags | 2, deadline)
+            self._transact_all(current_A, flags | 2, deadline, wake_ns)
             self._clear_pending = False
         else:
-            self._transact_all(current_A, flags, deadline)
+            self._transact_all(current_A, flags, deadline, wake_ns)
         if period:
             self._t_reply_ns = time.monotonic_ns()
         return self._to_sample()
-
-    def _take_wake_ns(self) -> int:
-        """The sleep-until time for this exchange's first wait (then 0)."""
-        w = self._wake_ns
-        self._wake_ns = 0
-        return w
 
     def request_clear_faults(self) -> bool:
         """Set CLEAR_FAULTS (bit 1 of the enable register) in the next exchange's write.
@@ -893,22 +879,26 @@ class ModbusLink:
         self._clear_pending = True
         return True
 
-    def _transact_all(self, current_A: float, enable: bool | int, deadline: float) -> None:
+    def _transact_all(self, current_A: float, enable: bool | int, deadline: float, wake_ns: int = 0) -> None:
+        """The tick's transactions; ``wake_ns``: the first one's wait for its
+        reply starts with a sleep until then (device pacing)."""
         for tx in self._txs:
-            data = self._transaction(tx, current_A, enable, deadline)
+            data = self._transaction(tx, current_A, enable, deadline, wake_ns)
+            wake_ns = 0
             if tx.block >= 0:
                 self._read_bufs[tx.block] = data
 
-    def _transaction(self, tx: _Tx, current_A: float, enable: bool | int, deadline: float) -> bytes:
+    def _transaction(self, tx: _Tx, current_A: float, enable: bool | int, deadline: float,
+                     wake_ns: int = 0) -> bytes:
         """One request/response; counts and maps every failure to a typed error."""
         adu = tx.adu
         if tx.writes:
             self.register_map.encode_write_into(adu, tx.data_off, current_A, enable, self.watchdog_ms)
         try:
             if self._sock is not None:
-                data = self._tcp_transaction(tx, adu, deadline)
+                data = self._tcp_transaction(tx, adu, deadline, wake_ns)
             else:
-                data = self._rtu_transaction(tx, adu, deadline)
+                data = self._rtu_transaction(tx, adu, deadline, wake_ns)
         except LinkTimeout:
             self.timeouts += 1
             raise
@@ -927,7 +917,7 @@ class ModbusLink:
         return data
 
     # TCP ------------------------------------------------------------------------
-    def _tcp_transaction(self, tx: _Tx, adu: bytearray, deadline: float) -> bytes:
+    def _tcp_transaction(self, tx: _Tx, adu: bytearray, deadline: float, wake_ns: int = 0) -> bytes:
         # Non-blocking socket + select.select: Python's own socket timeouts go
         # through poll() with a millisecond timeout rounded up, which would
         # turn a 0.5 ms deadline into 1 ms; select takes microseconds.
@@ -940,7 +930,6 @@ class ModbusLink:
         rx = self._rx
         fds = self._fds
         spin = self.spin_wait
-        wake_ns = self._take_wake_ns()
         try:
             try:
                 sent = sock.send(adu)
@@ -971,7 +960,7 @@ class ModbusLink:
                             continue
                         return decode_tcp_response(frame, tid, self.unit_id, tx.fc, tx.n_regs)
                 if wake_ns:
-                    _sleep_until_ns(wake_ns)
+                    sleep_until_ns(wake_ns)
                     wake_ns = 0
                 remaining = deadline - clock()
                 if not select.select(fds, (), (), 0.0 if spin else (remaining if remaining > 0 else 0))[0]:
@@ -1011,7 +1000,7 @@ class ModbusLink:
             pass
 
     # RTU ------------------------------------------------------------------------
-    def _rtu_transaction(self, tx: _Tx, adu: bytearray, deadline: float) -> bytes:
+    def _rtu_transaction(self, tx: _Tx, adu: bytearray, deadline: float, wake_ns: int = 0) -> bytes:
         io = self._io
         # RTU has no transaction id: whatever is waiting now is a late answer
         # to an earlier request (or noise). Drop it every time (one select(),
@@ -1033,7 +1022,7 @@ class ModbusLink:
         fc = tx.fc
         # ≥ 5 bytes tell an exception (5 bytes long) from data; ask for the
         # whole expected reply at once (RTU: nothing can follow it).
-        buf = io.read(5, deadline, tx.resp_len, self._take_wake_ns())
+        buf = io.read(5, deadline, tx.resp_len, wake_ns)
         skipped = 0
         # Hunt for "unit, fc" (or the exception form) if junk precedes the reply.
         while len(buf) >= 2 and not (buf[0] == unit and (buf[1] == fc or buf[1] == fc | 0x80)):

@@ -25,7 +25,7 @@ from typing import Any, Mapping
 
 import serial  # pyserial
 
-from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample
+from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample, sleep_until_ns
 from mrctl.io.protocol import (
     DEFAULT_WATCHDOG_MS,
     EXCHANGE_BYTES,
@@ -282,9 +282,7 @@ class SerialLink:
             port.write(frame)
             if self._period_ns and self._t_reply_ns:
                 # device pacing: the reply comes one device period after the last
-                wake = self._t_reply_ns + self._period_ns - self._sleep_margin_ns - time.monotonic_ns()
-                if wake > 0:
-                    time.sleep(wake * 1e-9)
+                sleep_until_ns(self._t_reply_ns + self._period_ns - self._sleep_margin_ns)
             while True:
                 n = dec.bytes_needed(SAMPLE_FRAME_SIZE)
                 data = port.read(n)
