@@ -38,6 +38,17 @@ class Table(NamedTuple):
     lines: np.ndarray
     #: every header name, as written
     header: list[str]
+    #: the file read (for messages)
+    path: Path
+
+    def check_finite(self, column: str, allow_nan: bool = False) -> None:
+        """:class:`CsvError` naming the line of the first infinite value in
+        ``column`` (or NaN, unless ``allow_nan``: NaN as "no value")."""
+        col = self.columns[column]
+        bad = np.isinf(col) if allow_nan else ~np.isfinite(col)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise CsvError(f"{self.path}: line {self.lines[k]}: column {column} is not finite: {float(col[k])!r}")
 
 
 def read_table(
@@ -105,7 +116,7 @@ def read_table(
             raise CsvError(f"{p}: cannot parse the data rows") from None  # pragma: no cover
     else:
         data = np.zeros((len(rows), len(idx)))
-    return Table({c: data[:, j].copy() for j, c in enumerate(wanted)}, np.asarray(linenos, dtype=np.int64), header)
+    return Table({c: data[:, j].copy() for j, c in enumerate(wanted)}, np.asarray(linenos, dtype=np.int64), header, p)
 
 
 def _raise_first_bad_value(p: Path, rows: list[str], linenos: list[int], wanted: list[str], idx: list[int]) -> None:

@@ -96,10 +96,8 @@ def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[fl
 
     p = Path(path)
     table = read_table(p, require=columns)  # CsvError is a ValueError
-    for c, col in table.columns.items():
-        bad = [i for i, v in enumerate(col.tolist()) if not math.isfinite(v)]
-        if bad:
-            raise ValueError(f"{p}: line {table.lines[bad[0]]}: column {c} is not finite: {float(col[bad[0]])!r}")
+    for c in table.columns:
+        table.check_finite(c)
     out = {c: col.tolist() for c, col in table.columns.items()}
     t = out[columns[0]]
     if len(t) < 2:

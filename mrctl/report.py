@@ -54,28 +54,22 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     p = Path(path)
     try:
         table = read_table(p, (*REQUIRED_COLUMNS, "F_true"), require=REQUIRED_COLUMNS)
+        for c in REQUIRED_COLUMNS:
+            # NaN is "no value": a daemon log has it in x, v, F_des while the
+            # safety supervisor holds the damper at 0 A, and in F without a
+            # load cell. It plots as a gap and is left out of the metrics.
+            # Time and current are always logged.
+            table.check_finite(c, allow_nan=c not in ("t", "I"))
+        F, name = tracked_force(table.columns)
+        if name == "F_true":  # a simulated bench: judge and plot the plant's own force
+            table.check_finite("F_true", allow_nan=True)
     except CsvError as exc:
         raise ReportError(str(exc)) from None
-    cols = table.columns
-    for c in REQUIRED_COLUMNS:
-        # NaN is "no value": a daemon log has it in x, v, F_des while the
-        # safety supervisor holds the damper at 0 A, and in F without a load
-        # cell. It plots as a gap and is left out of the metrics. Time and
-        # current are always logged.
-        bad = np.isinf(cols[c]) | (np.isnan(cols[c]) if c in ("t", "I") else False)
-        if bad.any():
-            k = int(np.argmax(bad))
-            raise ReportError(f"{p}: line {table.lines[k]}: column {c} is not finite: {float(cols[c][k])!r}")
     n = len(table.lines)
     if n < 2:
         raise ReportError(f"{p}: {n} data row(s); a report needs at least 2")
-    out = {c: cols[c] for c in REQUIRED_COLUMNS}
-    F, name = tracked_force(cols)
-    if name == "F_true":  # a simulated bench: judge and plot the plant's own force
-        bad = np.isinf(F)
-        if bad.any():
-            k = int(np.argmax(bad))
-            raise ReportError(f"{p}: line {table.lines[k]}: column F_true is not finite: {float(F[k])!r}")
+    out = {c: table.columns[c] for c in REQUIRED_COLUMNS}
+    if name == "F_true":
         out["F_measured"] = out["F"]
         out["F"] = F
     return out
