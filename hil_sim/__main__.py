@@ -25,8 +25,6 @@ from pathlib import Path
 from typing import Any, Callable
 
 TRANSPORTS = ("serial", "modbus-tcp", "modbus-rtu")
-#: transports --serve inline applies to (all of them)
-INLINE_TRANSPORTS = TRANSPORTS
 DEFAULT_LINK = "/tmp/mrctl-sim-tty"
 DEFAULT_BIND = "127.0.0.1:5020"
 DEFAULT_BAUD = 921600
@@ -225,7 +223,7 @@ def _run(args: argparse.Namespace) -> int:
     truth = None
     clock_thread = None
     status = 0
-    inline = args.serve == "inline" and args.transport in INLINE_TRANSPORTS
+    inline = args.serve == "inline"
     try:
         if args.truth is not None:
             try:

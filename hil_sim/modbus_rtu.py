@@ -81,7 +81,8 @@ def serve_modbus_rtu(
     try:
         if ready is not None:
             ready(f"modbus-rtu {port_path} @ {baudrate} Bd")
-        _rtu_loop(ModbusRtuInline(dev, fd, rtu_silence_s(baudrate, parity, stopbits), endpoint), stop)
+        _rtu_loop(ModbusRtuInline(dev, fd, rtu_silence_s(baudrate, parity, stopbits), endpoint,
+                                  blocking_writes=True), stop)
     finally:
         if owner is not None:
             try:
@@ -277,7 +278,6 @@ class ModbusRtuInline:
 def _rtu_loop(srv: ModbusRtuInline, stop: threading.Event) -> None:
     """The threaded server: sleep in select() until bytes, silence or a
     delayed reply are due, then poll."""
-    srv.blocking_writes = True
     idle_s = FAULT_POLL_S if srv.state.faults else IDLE_POLL_S
     while not stop.is_set() and not srv.gone:
         ready = False
