@@ -17,11 +17,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
-from mrctl.controller import RUN_COLUMNS, RUN_FORMATS, Controller  # noqa: E402
+from mrctl.daemon.controller import RUN_COLUMNS, RUN_FORMATS, Controller  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.recorder import Recorder  # noqa: E402
-from mrctl.safety import SafetySupervisor  # noqa: E402
-from mrctl.service import make_backend, safety_config  # noqa: E402
+from mrctl.daemon.recorder import Recorder  # noqa: E402
+from mrctl.daemon.safety import SafetySupervisor  # noqa: E402
+from mrctl.daemon.service import make_backend, safety_config  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
 

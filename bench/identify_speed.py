@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Time the full twelve-current identification, and compare the optimisers.
 
-Data: ``config/experiments/identify.yaml`` simulated with ``mrctl.simulate``
+Data: ``config/experiments/identify.yaml`` simulated with ``mrctl.offline.simulate``
 (Table I plant, 2 Hz / 8 mm sine, 0–0.55 A in 0.05 A steps of 2 s, seeded
 load-cell and velocity noise). Target: < 60 s on the 2-core lab machine.
 
@@ -36,11 +36,11 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.identify import (  # noqa: E402
+from mrctl.offline.identify import (  # noqa: E402
     _LINEAR, METHODS, THETA_NAMES, _model_batch, _optimise, _Problem, _window_record, identify, theta_from_params,
 )
 from mrctl.model.params import TABLE_I  # noqa: E402
-from mrctl.simulate import run_duration, simulate  # noqa: E402
+from mrctl.offline.simulate import run_duration, simulate  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "identify.yaml"
 
@@ -110,7 +110,7 @@ def part_compare(run, trials: int) -> dict:
     rng = np.random.default_rng(1)
     ref = results["trf"][0]
     # rebuild the windows exactly as identify does: reuse its per-current data
-    from mrctl.identify import _check_run, _segments, estimate_period  # noqa: E402
+    from mrctl.offline.identify import _check_run, _segments, estimate_period  # noqa: E402
     c = _check_run(run, "run")
     T = estimate_period(c["t"], c["v"])
     dt = float(np.median(np.diff(c["t"])))

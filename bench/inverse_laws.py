@@ -28,9 +28,9 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.model.inverse import SmoothInverse, _ModelBasedLaw  # noqa: E402
+from mrctl.laws.inverse import SmoothInverse, _ModelBasedLaw  # noqa: E402
 from mrctl.model.lugre import force  # noqa: E402
-from mrctl.simulate import simulate  # noqa: E402
+from mrctl.offline.simulate import simulate  # noqa: E402
 
 C_VALUES = (100.0, 250.0, 500.0, 1000.0)
 EXP = ROOT / "config" / "experiments"

@@ -43,9 +43,9 @@ from typing import Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mrctl import rt  # noqa: E402
-from mrctl.loop import WAIT_STRATEGIES, FixedRateLoop  # noqa: E402
-from mrctl.timing import TimingStats  # noqa: E402
+from mrctl.daemon import rt  # noqa: E402
+from mrctl.daemon.loop import WAIT_STRATEGIES, FixedRateLoop  # noqa: E402
+from mrctl.daemon.timing import TimingStats  # noqa: E402
 
 TickFactory = Callable[[float], Callable[[int, int], object]]
 

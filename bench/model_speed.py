@@ -30,10 +30,10 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.model.inverse import PaperInverse, SmoothInverse  # noqa: E402
+from mrctl.laws.inverse import PaperInverse, SmoothInverse  # noqa: E402
 from mrctl.model.params import TABLE_I  # noqa: E402
 from mrctl.model.plant import DamperPlant  # noqa: E402
-from mrctl.simulate import simulate  # noqa: E402
+from mrctl.offline.simulate import simulate  # noqa: E402
 
 DT = 1e-3
 N = 4001

@@ -322,7 +322,7 @@ def _run(args: argparse.Namespace) -> int:
 
         def clock() -> None:
             try:
-                from mrctl.rt import RtSettings, apply_rt
+                from mrctl.daemon.rt import RtSettings, apply_rt
 
                 apply_rt(RtSettings(timer_slack_ns=1000))  # best effort, never raises
                 device.run(cfg.duration_s)

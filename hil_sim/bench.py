@@ -1,7 +1,7 @@
 """The device side of the simulated bench: its own fixed-rate clock.
 
 Each tick k (absolute deadlines on ``time.monotonic_ns``, via
-:class:`mrctl.loop.FixedRateLoop`, hybrid sleep-then-spin by default):
+:class:`mrctl.daemon.loop.FixedRateLoop`, hybrid sleep-then-spin by default):
 
 1. ``SimBench.begin_tick(k)`` moves the shaker to t = k·dt;
 2. the sensors are read (``sample()``: noisy, quantised; F is the last
@@ -41,7 +41,7 @@ import math
 import threading
 
 from mrctl.io.base import Sample, Status
-from mrctl.loop import FixedRateLoop
+from mrctl.daemon.loop import FixedRateLoop
 from mrctl.model.bench import SimBench
 
 from hil_sim.config import BenchConfig

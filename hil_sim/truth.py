@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mrctl.jsonutil import jsonable
+from mrctl.util.jsonutil import jsonable
 
 __all__ = ["COLUMNS", "TruthLog", "summary_path"]
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mrctl import __version__
-from mrctl.jsonutil import jsonable
+from mrctl.util.jsonutil import jsonable
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -33,8 +33,8 @@ def _load(config_path: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from mrctl.metrics import format_summary
-    from mrctl.simulate import run_duration, simulate, write_csv
+    from mrctl.runlog.metrics import format_summary
+    from mrctl.offline.simulate import run_duration, simulate, write_csv
 
     exp = _load(args.config)
     duration = run_duration(exp, args.duration)
@@ -62,7 +62,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from mrctl.report import make_report
+    from mrctl.offline.report import make_report
 
     make_report(args.run, args.out, title=args.title)
     print(f"wrote {args.out}")
@@ -72,7 +72,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     import time
 
-    from mrctl.service import RunOptions, run
+    from mrctl.daemon.service import RunOptions, run
 
     out = time.strftime(args.out) if args.out and "%" in args.out else args.out
     return run(RunOptions(args.config, out=out, duration_s=args.duration,
@@ -80,7 +80,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from mrctl.service import default_status_socket, query_status
+    from mrctl.daemon.service import default_status_socket, query_status
 
     if args.instance:
         path = f"/run/mrctl/{args.instance}/status.sock"
@@ -107,13 +107,13 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    from mrctl.identify import cli_identify
+    from mrctl.offline.identify import cli_identify
 
     return cli_identify(args.runs, args.out, method=args.method, report_png=args.report)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from mrctl.feasibility import assess, wire_time_s
+    from mrctl.daemon.feasibility import assess, wire_time_s
 
     exp = _load(args.config)
     cfg = exp.config
@@ -182,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from mrctl.config import ConfigError
 
     try:
-        from mrctl.report import ReportError
+        from mrctl.offline.report import ReportError
     except ImportError:  # pragma: no cover
         ReportError = ConfigError  # type: ignore[misc,assignment]
     try:

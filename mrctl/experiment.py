@@ -9,10 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from mrctl import demand as demand_mod
-from mrctl import excitation as excitation_mod
+from mrctl.laws import demand as demand_mod
+from mrctl.model import excitation as excitation_mod
 from mrctl.config import ConfigError, Node
-from mrctl.model.inverse import ConstantCurrent, InverseLaw, PaperInverse, ScheduleCurrent, SmoothInverse
+from mrctl.laws.inverse import ConstantCurrent, InverseLaw, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
 

@@ -1,3 +1,3 @@
-"""Loopback HIL helpers for the tests: see :mod:`hil_sim.harness`."""
+"""Loopback HIL helpers for the tests: see :mod:`hil_sim.testing.harness`."""
 
-from hil_sim.harness import ROOT, HilSim, hil_tracking, run_daemon  # noqa: F401
+from hil_sim.testing.harness import ROOT, HilSim, hil_tracking, run_daemon  # noqa: F401

@@ -4,12 +4,12 @@ import math
 
 import pytest
 
-from mrctl.controller import Controller
-from mrctl.demand import Viscous
+from mrctl.daemon.controller import Controller
+from mrctl.laws.demand import Viscous
 from mrctl.io.base import Disconnected, LinkTimeout, Sample
-from mrctl.model.inverse import SmoothInverse
+from mrctl.laws.inverse import SmoothInverse
 from mrctl.model.params import TABLE_I
-from mrctl.safety import SafetyConfig, SafetySupervisor
+from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
 
 
 class FakeExchangeLink:
@@ -100,7 +100,7 @@ def test_device_paced_ticks_follow_the_device_counter():
     tick with no reply leaves a gap, as a skipped deadline does), a silent
     exchange is still a tick (held, counted), and the current computed from
     a sample goes out in the very next exchange."""
-    from mrctl.loop import FixedRateLoop
+    from mrctl.daemon.loop import FixedRateLoop
 
     class Paced(FakeExchangeLink):
         def exchange(self, I):
@@ -128,7 +128,7 @@ def test_device_paced_failures_are_paced_by_the_host():
     """Device pacing with a link that fails at once (unplugged): no device
     clock paces the loop, so each failed tick comes one period after the
     previous one, and link_loss_s, held in ticks, lasts its real time."""
-    from mrctl.loop import FixedRateLoop
+    from mrctl.daemon.loop import FixedRateLoop
 
     class Clock:
         t = 0

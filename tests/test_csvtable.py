@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mrctl.csvtable import CsvError, read_table
+from mrctl.util.csvtable import CsvError, read_table
 
 
 def _write(tmp_path: Path, text: str | bytes) -> Path:

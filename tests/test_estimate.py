@@ -6,7 +6,7 @@ import random
 import numpy as np
 import pytest
 
-from mrctl.estimate import VelocityLead
+from mrctl.estimation import VelocityLead
 
 DT = 1e-3
 W = 2 * math.pi  # 1 Hz

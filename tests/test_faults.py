@@ -7,7 +7,7 @@ of *its* ticks after the first bad sample it saw, found via ``t_dev``/``seq``
 and the ``fault`` column), on exit codes, on the truth log's final state and
 fault column, and on "no missing k" — never on wall-clock latency. The
 daemon's configs are the fig5 HIL experiments with the suite's noise
-allowances (hil_sim/fault_suite.py: 5 ms reply timeout, thread serving, no
+allowances (hil_sim/testing/fault_suite.py: 5 ms reply timeout, thread serving, no
 start-up probe).
 """
 
@@ -28,11 +28,11 @@ import pytest
 
 from hil_sim.bench import BenchDevice
 from hil_sim.config import ConfigError, validate_bench
-from hil_sim.fault_suite import Scenario, run_scenario, usable
+from hil_sim.testing.fault_suite import Scenario, run_scenario, usable
 from hil_sim.faults import FaultBit, FaultSchedule, check_fault_list, check_transport, parse_fault_arg
 from hil_sim.state import DeviceState
 from mrctl.io.base import Disconnected, Sample, Status
-from mrctl.safety import Fault
+from mrctl.daemon.safety import Fault
 
 pytestmark = pytest.mark.hil
 
@@ -131,7 +131,7 @@ def _device(*faults: str, **over) -> tuple[BenchDevice, DeviceState]:
 
 def test_sample_faults_on_the_published_sample_and_truth(tmp_path: Path) -> None:
     from hil_sim.truth import TruthLog
-    from mrctl.recorder import read_run
+    from mrctl.daemon.recorder import read_run
 
     state = DeviceState()
     cfg = validate_bench({"version": 1, "excitation": EXCITATION}, Path("."), "test",
@@ -433,7 +433,7 @@ def _check_ticks(r: dict, expect_exit: int = 0) -> None:
 
 def _exit_ok(r: dict) -> bool:
     """exit 0, or exit 3 caused only by the *exit* 0 A exchange failing on the
-    noisy link (mrctl/service.py reports it; the device then reaches 0 A
+    noisy link (mrctl/daemon/service.py reports it; the device then reaches 0 A
     anyway, by the 0 A setpoint or its watchdog: checked)."""
     if r["exit_code"] == 0:
         return True
@@ -444,7 +444,7 @@ def _exit_ok(r: dict) -> bool:
 
 def _run(sc: Scenario, tmp_path: Path, tries: int = 3) -> dict:
     """run_scenario, again (up to ``tries``) when the run cannot measure what it
-    is for (hil_sim.fault_suite.usable): the daemon failed before its loop ran a
+    is for (hil_sim.testing.fault_suite.usable): the daemon failed before its loop ran a
     tick, or a fault window began while the box's own link noise already had the
     daemon in FAULT (0 A). Neither is what is under test; both are printed."""
     for i in range(tries):

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from mrctl.feasibility import assess, probe, wire_time_s
+from mrctl.daemon.feasibility import assess, probe, wire_time_s
 from mrctl.io.base import LinkTimeout, Sample
 
 
@@ -78,7 +78,7 @@ def test_a_tail_beyond_the_budget_warns_but_the_median_decides():
 def test_device_pacing_check_refuses_a_device_that_ignores_sync():
     import time as _time
 
-    from mrctl.feasibility import check_device_pacing
+    from mrctl.daemon.feasibility import check_device_pacing
 
     class Link:
         def __init__(self, gap_s):

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from hil_util import ROOT, HilSim, hil_tracking, run_daemon
-from mrctl.recorder import read_run, read_sidecar
+from mrctl.daemon.recorder import read_run, read_sidecar
 
 pytestmark = pytest.mark.hil
 BENCH = str(ROOT / "config" / "hil_fig5_bench.yaml")

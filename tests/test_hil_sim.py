@@ -32,7 +32,7 @@ from hil_sim.config import ConfigError, validate_bench  # noqa: E402
 from hil_sim.serial_device import LinkPathError, PtyEndpoint, SerialDevice  # noqa: E402
 from hil_sim.state import DeviceState  # noqa: E402
 from hil_sim.truth import COLUMNS, TruthLog, summary_path  # noqa: E402
-from mrctl.excitation import Sine  # noqa: E402
+from mrctl.model.excitation import Sine  # noqa: E402
 from mrctl.io.base import LinkError, Status  # noqa: E402
 from mrctl.io.protocol import (  # noqa: E402
     PROTOCOL_VERSION,
@@ -602,7 +602,7 @@ def test_truth_log_cooperative_mode_writes_every_row_exactly(tmp_path):
     """Inline serving formats the truth log from the clock's idle spin (no
     writer thread): every recorded row must still reach the file, in order."""
     from hil_sim.truth import TruthLog
-    from mrctl.recorder import read_run
+    from mrctl.daemon.recorder import read_run
 
     log = TruthLog(tmp_path / "t.csv", rate_hz=1000.0, batch_s=0.1, threaded=False)
     rows = [(k, k * 1e-3, 0.1 * k, -0.2, 1.0 / (k + 1), 0.3, 0.25, 0.0, 0.0, float("nan"), k % 4)

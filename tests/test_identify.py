@@ -1,4 +1,4 @@
-"""Identification (mrctl.identify): synthetic Table I data in, Table I back out.
+"""Identification (mrctl.offline.identify): synthetic Table I data in, Table I back out.
 
 The data generator lives here, not in the package: a DamperPlant (the
 forward LuGre model with the daemon's tick protocol) driven by a sine stroke
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mrctl.config import load_params_file, load_yaml
-from mrctl.identify import (
+from mrctl.offline.identify import (
     THETA_NAMES,
     IdentificationError,
     cli_identify,
@@ -260,7 +260,7 @@ def test_decimation_of_fast_records():
 def test_identify_yaml_simulated_and_identified(tmp_path):
     from mrctl.config import load_experiment, validate_experiment
     from mrctl.experiment import build
-    from mrctl.simulate import run_duration, simulate, write_csv
+    from mrctl.offline.simulate import run_duration, simulate, write_csv
 
     exp = build(load_experiment(ROOT / "config" / "experiments" / "identify.yaml"))
     assert exp.config.inverse.law == "schedule"

@@ -6,11 +6,11 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from mrctl.model.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
+from mrctl.laws.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import TABLE_I
 from mrctl.model.plant import DamperPlant
-from mrctl.safety import clamp_current
+from mrctl.daemon.safety import clamp_current
 
 DT = 1e-3
 I_MAX = 1.0

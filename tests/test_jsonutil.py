@@ -6,9 +6,9 @@ import math
 import numpy as np
 
 from mrctl.config import validate_experiment
-from mrctl.jsonutil import jsonable
+from mrctl.util.jsonutil import jsonable
 from mrctl.model.params import TABLE_I
-from mrctl.safety import SafetyConfig, SafetySupervisor
+from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
 
 
 def test_types_and_nonfinite_policies():

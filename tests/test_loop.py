@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from mrctl import rt
-from mrctl.loop import FixedRateLoop
+from mrctl.daemon import rt
+from mrctl.daemon.loop import FixedRateLoop
 
 P = 1_000_000  # period at 1 kHz, ns
 T0 = 5_000_000_000
@@ -437,7 +437,7 @@ def test_real_clock_smoke_hybrid() -> None:
 _RT_CHILD = textwrap.dedent(
     """
     import gc, json, os
-    from mrctl import rt
+    from mrctl.daemon import rt
     s = rt.RtSettings(fifo_priority=10, lock_memory=True,
                       cpus=frozenset(os.sched_getaffinity(0)), timer_slack_ns=1000,
                       gc_freeze=True, gc_disable=True)

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from mrctl.metrics import tracking_summary
+from mrctl.runlog.metrics import tracking_summary
 
 
 def _run(n=3000):

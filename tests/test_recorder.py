@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrctl.recorder import CORE_COLUMNS, Recorder, read_run, read_sidecar, sidecar_path
+from mrctl.daemon.recorder import CORE_COLUMNS, Recorder, read_run, read_sidecar, sidecar_path
 
 ROOT = Path(__file__).resolve().parents[1]
 EXTRA = ("seq", "t_wall_s", "late_us", "compute_us", "I_applied", "fault")
@@ -114,14 +114,14 @@ def test_rows_round_trip_exactly_in_order_over_blocks_and_partial_block(tmp_path
     assert got.shape == want.shape
     assert np.array_equal(got, want)  # '%r' is exact, not just close
     # the report loader reads the same file (core columns by name)
-    from mrctl.report import load_run
+    from mrctl.offline.report import load_run
     core = load_run(path)
     assert np.array_equal(core["F_des"], want[:, 3])
 
 
 def test_core_columns_match_simulator_and_report():
-    from mrctl.report import REQUIRED_COLUMNS
-    from mrctl.simulate import CSV_COLUMNS
+    from mrctl.offline.report import REQUIRED_COLUMNS
+    from mrctl.offline.simulate import CSV_COLUMNS
     assert CORE_COLUMNS == ("t", "x", "v", "F_des", "F", "I")
     assert CSV_COLUMNS[:6] == CORE_COLUMNS == REQUIRED_COLUMNS
 
@@ -303,7 +303,7 @@ def test_read_run_drops_only_a_torn_last_line(tmp_path):
 CHILD = textwrap.dedent(
     """
     import math, sys, time
-    from mrctl.recorder import Recorder
+    from mrctl.daemon.recorder import Recorder
     cols = ("t", "x", "v", "F_des", "F", "I", "seq", "t_wall_s", "late_us", "compute_us",
             "I_applied", "fault")
     rec = Recorder(sys.argv[1], cols, {"child": True}, rate_hz=1000.0, flush_interval_s=1.0)

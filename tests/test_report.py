@@ -1,4 +1,4 @@
-"""Tests of mrctl.report: CSV loading, the summary metrics, and the PNG."""
+"""Tests of mrctl.offline.report: CSV loading, the summary metrics, and the PNG."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrctl.report import ReportError, load_run, make_report, summarize
+from mrctl.offline.report import ReportError, load_run, make_report, summarize
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 OFFSET_N = 0.5  # constant force error built into the synthetic run

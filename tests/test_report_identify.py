@@ -1,4 +1,4 @@
-"""The identification figure (paper's Figs 2 and 3) added to mrctl.report."""
+"""The identification figure (paper's Figs 2 and 3) added to mrctl.offline.report."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrctl.identify import identify
-from mrctl.report import ReportError, make_identification_report, make_report
+from mrctl.offline.identify import identify
+from mrctl.offline.report import ReportError, make_identification_report, make_report
 from test_identify import staircase, write_run_csv  # tests/ is on sys.path (rootdir-less test modules)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -76,7 +76,7 @@ def test_fig5_report_unchanged_on_an_identification_run(run4, tmp_path):
 def test_cli_identify_draws_the_figure(run4, tmp_path):
     import io
 
-    from mrctl.identify import cli_identify
+    from mrctl.offline.identify import cli_identify
 
     csv_path = write_run_csv(tmp_path / "run.csv", run4)
     stream = io.StringIO()

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import mrctl.service as service
+import mrctl.daemon.service as service
 from mrctl.io.base import LinkTimeout, Sample
-from mrctl.recorder import read_run, read_sidecar
-from mrctl.service import RunOptions, Service, query_status
+from mrctl.daemon.recorder import read_run, read_sidecar
+from mrctl.daemon.service import RunOptions, Service, query_status
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG5 = (ROOT / "config" / "experiments" / "fig5.yaml").read_text()
@@ -298,7 +298,7 @@ def test_daemon_path_tracks_exactly_like_the_offline_simulation(tmp_path):
     as through mrctl simulate (real-time figures: bench/run_vs_simulate.py)."""
     from mrctl.config import load_experiment
     from mrctl.experiment import build
-    from mrctl.simulate import simulate
+    from mrctl.offline.simulate import simulate
 
     cfg = _config(tmp_path)
     vc = VirtualClock()
@@ -315,7 +315,7 @@ def test_daemon_path_tracks_exactly_like_the_offline_simulation(tmp_path):
     assert track["force_nrmse"] <= 1.5 * sim.summary["force_nrmse"]
     # mrctl report judges the same force as the daemon (F_true, not the
     # load cell's one-tick-late reading), so its headline is the daemon's
-    from mrctl.report import load_run, summarize
+    from mrctl.offline.report import load_run, summarize
 
     rep = load_run(out)
     assert np.array_equal(rep["F"], cols["F_true"]) and np.array_equal(rep["F_measured"], cols["F"])

@@ -9,7 +9,7 @@ import pytest
 
 from mrctl.config import load_experiment, load_yaml, validate_experiment
 from mrctl.experiment import build
-from mrctl.simulate import CSV_COLUMNS, simulate
+from mrctl.offline.simulate import CSV_COLUMNS, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 EXP = ROOT / "config" / "experiments"
@@ -91,7 +91,7 @@ def test_chirp_and_file_profiles_run(tmp_path):
     data["demand"] = {"type": "file", "path": str(fdes)}
     data.pop("duration_s")
     exp = build(validate_experiment(data, tmp_path))
-    from mrctl.simulate import run_duration
+    from mrctl.offline.simulate import run_duration
 
     res = simulate(exp, run_duration(exp))
     assert res.ticks == 2001

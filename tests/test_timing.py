@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mrctl.timing import LIVE_WINDOW, TimingStats, format_summary
+from mrctl.daemon.timing import LIVE_WINDOW, TimingStats, format_summary
 
 
 def test_percentiles_match_numpy_on_known_data() -> None:

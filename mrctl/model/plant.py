@@ -3,7 +3,7 @@
 This is what stands behind the driver interface in simulation: in-process
 (:mod:`mrctl.io.sim`, ``mrctl simulate``) and in the separate ``hil_sim``
 process. Pure numerics, no I/O; the shaker's motion comes from
-:mod:`mrctl.excitation`.
+:mod:`mrctl.model.excitation`.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ Wait strategies (trade CPU for wake-up accuracy):
 
 * ``"sleep"``  — ``time.sleep`` until the deadline: ~0 CPU, lateness is the
   OS's timer latency + timer slack (50 µs default for SCHED_OTHER; see
-  :mod:`mrctl.rt`, which can lower it).
+  :mod:`mrctl.daemon.rt`, which can lower it).
 * ``"hybrid"`` — sleep until ``spin_margin_s`` before the deadline, then
   busy-spin on the clock: accurate wake-ups for ~margin/period of a core.
 * ``"spin"``   — busy-spin: most accurate, burns a whole core.
@@ -32,7 +32,7 @@ from __future__ import annotations
 import time
 from typing import Callable
 
-from mrctl.timing import TimingStats
+from mrctl.daemon.timing import TimingStats
 
 WAIT_STRATEGIES = ("sleep", "hybrid", "spin")
 _SLEEP, _HYBRID, _SPIN = range(3)
@@ -89,7 +89,7 @@ class FixedRateLoop:
         #: tick, to be finished by until_ns = the moment the wait must begin
         #: (hybrid: deadline − spin margin) minus ``background_guard_s``.
         #: Used to format the run log here rather than in a second thread
-        #: that would take the GIL from the loop (see mrctl/recorder.py).
+        #: that would take the GIL from the loop (see mrctl/daemon/recorder.py).
         self.background = background
         self.background_guard_ns = round(background_guard_s * 1e9)
 

@@ -1,6 +1,6 @@
 """One control tick: read → demand law → inverse law → safety → write → record.
 
-The loop (:mod:`mrctl.loop`) knows timing, not physics; the backends know
+The loop (:mod:`mrctl.daemon.loop`) knows timing, not physics; the backends know
 bytes, not physics; this module joins them and nothing else. The tick is
 called at 1 kHz, so it allocates nothing it can avoid, does no I/O but the
 backend's, and hands its row to the recorder's bounded buffer.
@@ -30,7 +30,7 @@ import time
 from typing import Any, Callable
 
 from mrctl.io.base import Disconnected, LinkError
-from mrctl.safety import SafetySupervisor
+from mrctl.daemon.safety import SafetySupervisor
 
 #: Columns of the run log: the core six of ``mrctl simulate`` first.
 RUN_COLUMNS = (
@@ -79,9 +79,9 @@ class Controller:
         self.reconnect_every_ticks = max(1, reconnect_every_ticks)
         self.consecutive_failures = 0
         self.reconnects = 0
-        from mrctl.estimate import VelocityLead
+        from mrctl.estimation import VelocityLead
 
-        #: latency compensation (mrctl/estimate.py); None when lead_s == 0
+        #: latency compensation (mrctl/estimation.py); None when lead_s == 0
         self.lead = VelocityLead(lead_s, dt) if lead_s > 0.0 else None
         self._k_prev = -1
         self.split = bool(getattr(backend, "split", False))

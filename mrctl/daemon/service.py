@@ -2,15 +2,15 @@
 
 What runs where:
 
-- the **main thread** runs the fixed-rate loop (:class:`mrctl.loop.FixedRateLoop`)
-  with :class:`mrctl.controller.Controller` as its tick. Signal handlers run
+- the **main thread** runs the fixed-rate loop (:class:`mrctl.daemon.loop.FixedRateLoop`)
+  with :class:`mrctl.daemon.controller.Controller` as its tick. Signal handlers run
   here too, so they only set flags (``loop.stop()``, a reload event);
 - a **monitor thread** does everything slow: the live progress line,
   systemd ``STATUS=``/``WATCHDOG=1`` (sent only while the loop's tick
   counter advances, i.e. from a healthy loop), and config reloads (parse and
   validate off the loop, then hand the new laws over at a tick boundary);
 - a **status thread** answers ``mrctl status`` on a Unix socket (mode 0660);
-- the **recorder's writer thread** (:mod:`mrctl.recorder`).
+- the **recorder's writer thread** (:mod:`mrctl.daemon.recorder`).
 
 Every way out of the loop (end of experiment, SIGINT, SIGTERM, driver lost,
 exception) goes through one ``finally`` that commands 0 A first.
@@ -37,15 +37,15 @@ from typing import Any, Callable, TextIO
 
 from mrctl import __version__
 from mrctl.config import ConfigError, Node, load_experiment
-from mrctl.controller import RUN_COLUMNS, RUN_FORMATS, Controller
+from mrctl.daemon.controller import RUN_COLUMNS, RUN_FORMATS, Controller
 from mrctl.experiment import Experiment, build
 from mrctl.io.base import LinkError, Status
-from mrctl.jsonutil import jsonable
-from mrctl.loop import FixedRateLoop
-from mrctl.metrics import format_summary, tracked_force, tracking_summary
-from mrctl.rt import RtSettings, apply_rt, restore
-from mrctl.safety import SafetyConfig, SafetySupervisor
-from mrctl.timing import format_summary as format_timing
+from mrctl.util.jsonutil import jsonable
+from mrctl.daemon.loop import FixedRateLoop
+from mrctl.runlog.metrics import format_summary, tracked_force, tracking_summary
+from mrctl.daemon.rt import RtSettings, apply_rt, restore
+from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+from mrctl.daemon.timing import format_summary as format_timing
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_LINK, EXIT_LOG = 0, 1, 2, 3, 4
 
@@ -399,7 +399,7 @@ class Service:
         """Feasibility of the configured rate on this link (docs/design.md);
         returns the experiment to run (maybe at a reduced rate) or None to refuse."""
         from mrctl.config import load_yaml, validate_experiment
-        from mrctl.feasibility import assess, probe, wire_time_s
+        from mrctl.daemon.feasibility import assess, probe, wire_time_s
 
         cfg = exp.config
         rtts, errors = probe(backend, cfg.link.probe_exchanges)
@@ -464,7 +464,7 @@ class Service:
             ctl.law, ctl.demand, ctl.dt = exp.law, exp.demand, exp.dt
             total_ticks = int(round(duration * cfg.rate_hz)) if duration else None
         if cfg.loop.pacing == "device":
-            from mrctl.feasibility import check_device_pacing
+            from mrctl.daemon.feasibility import check_device_pacing
 
             try:
                 backend.set_device_paced(True, exp.dt, cfg.loop.spin_margin_s)
@@ -499,7 +499,7 @@ class Service:
         old_switch = sys.getswitchinterval()
         try:
             if o.out:
-                from mrctl.recorder import Recorder
+                from mrctl.daemon.recorder import Recorder
 
                 # host pacing: the loop formats the log in its idle time; device
                 # pacing has no idle time between compute and send, but sleeps
@@ -572,7 +572,7 @@ class Service:
             if track:
                 summary["tracking"] = track
                 self.say(format_summary(track, self.exp.I_max))
-                from mrctl.recorder import read_sidecar, sidecar_path, _write_json_atomic
+                from mrctl.daemon.recorder import read_sidecar, sidecar_path, _write_json_atomic
 
                 side = read_sidecar(self.opts.out)
                 side.setdefault("summary", {})["tracking"] = track
@@ -591,7 +591,7 @@ class Service:
     def _tracking(self, path: str | None) -> dict[str, float] | None:
         if not path:
             return None
-        from mrctl.recorder import read_run
+        from mrctl.daemon.recorder import read_run
 
         try:
             cols = read_run(path)

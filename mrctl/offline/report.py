@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mrctl.csvtable import CsvError, read_table
-from mrctl.metrics import tracked_force, tracking_summary
+from mrctl.util.csvtable import CsvError, read_table
+from mrctl.runlog.metrics import tracked_force, tracking_summary
 
 __all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
 
@@ -42,7 +42,7 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     A log with a finite ``F_true`` column (a simulated bench) has it as
     ``F``, the force tracking is judged on (the load cell's reading moves to
     ``F_measured``): the same rule as the daemon's summary
-    (:func:`mrctl.metrics.tracked_force`).
+    (:func:`mrctl.runlog.metrics.tracked_force`).
 
     Columns are found by header name because the loggers add columns (``seq``,
     ``z``, ``fault`` …) in whatever order suits them; those extra columns are
@@ -79,7 +79,7 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S) -> dict[str, float]:
     """Tracking metrics of a run, over ``t >= t[0] + settle``.
 
-    The figures are :func:`mrctl.metrics.tracking_summary`'s (the daemon and
+    The figures are :func:`mrctl.runlog.metrics.tracking_summary`'s (the daemon and
     ``mrctl simulate`` use the same), renamed for the figure title. The
     window drops the start-up transient; a run shorter than ``settle`` (or
     leaving fewer than 2 rows) is taken whole rather than refused, since a
@@ -210,7 +210,7 @@ _THETA_PANELS = (
 
 def _as_identification_result(runs_or_result, **identify_kwargs):
     """An IdentificationResult, identifying first if given runs (paths or column dicts)."""
-    from mrctl.identify import IdentificationError, IdentificationResult, identify, load_identification_run
+    from mrctl.offline.identify import IdentificationError, IdentificationResult, identify, load_identification_run
 
     if isinstance(runs_or_result, IdentificationResult):
         return runs_or_result
@@ -235,9 +235,9 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
                                reference=None, show_reference: bool = True, **identify_kwargs) -> None:
     """Write the identification PNG: the paper's Fig 2 and Fig 3 for this damper.
 
-    ``runs_or_result``: an :class:`mrctl.identify.IdentificationResult`, or run
+    ``runs_or_result``: an :class:`mrctl.offline.identify.IdentificationResult`, or run
     CSV path(s) / column dict(s) to identify first (``identify_kwargs`` go to
-    :func:`mrctl.identify.identify`).
+    :func:`mrctl.offline.identify.identify`).
 
     Top row: (a) force vs velocity at the identified currents nearest to
     0, 0.25 and 0.5 A — measured samples as dots, the per-current fit as a
@@ -254,7 +254,7 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
         from matplotlib.lines import Line2D
     except ImportError:
         raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
-    from mrctl.identify import theta_from_params
+    from mrctl.offline.identify import theta_from_params
     from mrctl.model.params import TABLE_I
 
     if reference is None and show_reference:
@@ -305,7 +305,7 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     Ig = np.linspace(0.0, max(float(I.max()), 1e-3), 200)
     law = np.array([theta_from_params(res.params, float(i)) for i in Ig])
     ref = np.array([theta_from_params(reference, float(i)) for i in Ig]) if reference is not None else None
-    from mrctl.identify import THETA_NAMES
+    from mrctl.offline.identify import THETA_NAMES
 
     for n, (name, label, scale, unit) in enumerate(_THETA_PANELS):
         ax = fig.add_subplot(gs[1 + n // 3, n % 3])

@@ -41,7 +41,7 @@ from typing import Any, Callable, Mapping, Sequence, TextIO
 
 import numpy as np
 
-from mrctl.csvtable import CsvError, read_table
+from mrctl.util.csvtable import CsvError, read_table
 from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
 
 __all__ = [
@@ -1119,7 +1119,7 @@ def cli_identify(run_paths: Sequence[str], out: str, progress_stream: TextIO = s
     Exit 0 ok, 2 bad input, 1 failure. Prints one progress line per current
     and a summary table to ``progress_stream``; errors go to stderr as one
     line, never a traceback. ``report_png``: also draw the identification
-    figure (:func:`mrctl.report.make_identification_report`). Other keyword
+    figure (:func:`mrctl.offline.report.make_identification_report`). Other keyword
     arguments go to :func:`identify`."""
     def err(msg: str) -> None:
         print(f"mrctl identify: {msg}", file=sys.stderr)
@@ -1154,7 +1154,7 @@ def cli_identify(run_paths: Sequence[str], out: str, progress_stream: TextIO = s
     print(f"wrote {out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})",
           file=progress_stream)
     if report_png:
-        from mrctl.report import ReportError, make_identification_report
+        from mrctl.offline.report import ReportError, make_identification_report
 
         try:
             make_identification_report(result, report_png)

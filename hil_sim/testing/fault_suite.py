@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 
 from hil_sim.faults import parse_fault_arg
-from hil_sim.harness import HilSim, env
+from hil_sim.testing.harness import HilSim, env
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BENCH = ROOT / "config" / "hil_fig5_bench.yaml"
 EXPERIMENTS = {"serial": "hil_serial.yaml", "modbus-tcp": "hil_modbus_tcp.yaml", "modbus-rtu": "hil_modbus_rtu.yaml"}
 WD_BIT = 1 << 2  # mrctl.io.base.Status.WATCHDOG_TRIPPED (latched until CLEAR_FAULTS)
@@ -91,7 +91,7 @@ class Daemon:
             cwd=ROOT, env=env(), stdout=subprocess.DEVNULL, stderr=self._err)
 
     def status(self) -> dict[str, Any] | None:
-        from mrctl.service import query_status
+        from mrctl.daemon.service import query_status
 
         try:
             return query_status(self.sock, timeout_s=1.0)
@@ -306,7 +306,7 @@ def _brief_status(st: dict[str, Any] | None) -> dict[str, Any] | None:
 # analysis
 def load_logs(workdir: Path, name: str = "run.csv") -> tuple[dict, dict, dict, dict]:
     """(run columns, sidecar, truth columns, truth summary); missing → {}."""
-    from mrctl.recorder import read_run, read_sidecar
+    from mrctl.daemon.recorder import read_run, read_sidecar
 
     def safe(f, *a):
         try:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
-from mrctl.excitation import Interpolator, load_series
+from mrctl.model.excitation import Interpolator, load_series
 
 
 class Demand(Protocol):

@@ -4,7 +4,7 @@ Each law keeps its own copy of the LuGre state z, advanced with the current it
 commanded on the previous tick (the tick protocol of
 :class:`mrctl.model.lugre.LuGreModel`), and is called once per tick with the
 measured velocity and the desired force. All laws return a current already in
-[0, I_max]; :mod:`mrctl.safety` clamps again, independently.
+[0, I_max]; :mod:`mrctl.daemon.safety` clamps again, independently.
 
 Laws, by the name used in YAML (``inverse.law``):
 

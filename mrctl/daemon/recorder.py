@@ -78,7 +78,7 @@ there, in order, so the data at risk stays within one flush interval.
 while it holds the GIL the loop thread can wait up to
 ``sys.getswitchinterval()`` (5 ms by default) for it. Set e.g.
 ``sys.setswitchinterval(2e-4)`` in the daemon, and construct the Recorder
-(which starts its thread) *before* :func:`mrctl.rt.apply_rt`, so the writer
+(which starts its thread) *before* :func:`mrctl.daemon.rt.apply_rt`, so the writer
 does not inherit SCHED_FIFO / the loop's CPU pinning.
 """
 
@@ -101,7 +101,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from mrctl.jsonutil import jsonable
+from mrctl.util.jsonutil import jsonable
 
 __all__ = ["CORE_COLUMNS", "Recorder", "read_run", "read_sidecar", "sidecar_path"]
 
@@ -690,10 +690,10 @@ def read_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     Tolerates what a killed recorder leaves: a last line without its
     newline is dropped. ``#`` comment lines and blank lines are skipped (so
     ``mrctl simulate`` output reads too). Any other malformed line raises
-    :class:`mrctl.csvtable.CsvError` (a ``ValueError``) naming the file and
+    :class:`mrctl.util.csvtable.CsvError` (a ``ValueError``) naming the file and
     1-based line number.
     """
-    from mrctl.csvtable import read_table
+    from mrctl.util.csvtable import read_table
 
     return read_table(path, torn_last_line_ok=True).columns  # CsvError is a ValueError
 

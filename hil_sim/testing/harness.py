@@ -1,7 +1,7 @@
 """Start ``python -m hil_sim`` and ``mrctl run`` as processes, and join their logs.
 
 The client side of the simulated bench, shared by the loopback HIL tests,
-``bench/hil_loop.py`` and the fault suite (:mod:`hil_sim.fault_suite`).
+``bench/hil_loop.py`` and the fault suite (:mod:`hil_sim.testing.fault_suite`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def env() -> dict[str, str]:

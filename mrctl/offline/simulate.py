@@ -18,8 +18,8 @@ import numpy as np
 
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
-from mrctl.metrics import tracking_summary
-from mrctl.safety import clamp_current
+from mrctl.runlog.metrics import tracking_summary
+from mrctl.daemon.safety import clamp_current
 
 CSV_COLUMNS = ("t", "x", "v", "F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")
 CSV_UNITS = ("s", "m", "m/s", "N", "N", "A", "A", "m", "m", "m/s", "N")

@@ -477,7 +477,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                              doc="latency compensation: predict v this far ahead (s); 'auto' = 1.5 ticks on "
                                  "exchange links (serial, Modbus), 0 on the in-process sim. Off by default: "
                                  "not yet shown to help (docs/performance.md)"),
-        }, doc="what the controller does about actuation delay (mrctl/estimate.py)"),
+        }, doc="what the controller does about actuation delay (mrctl/estimation.py)"),
         "loop": Section({
             "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),
             "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01, doc="hybrid: spin this long before the deadline"),
@@ -662,13 +662,3 @@ def schema_markdown() -> str:
 
     table(experiment_schema(Path(".")), "")
     return "\n".join(lines)
-
-
-if __name__ == "__main__":  # regenerate docs/config.md's generated block
-    import sys as _sys
-
-    _doc = Path(__file__).resolve().parents[1] / "docs" / "config.md"
-    _b, _e = "<!-- BEGIN GENERATED: mrctl.config.schema_markdown -->", "<!-- END GENERATED -->"
-    _src = _doc.read_text()
-    _doc.write_text(_src[: _src.index(_b) + len(_b)] + "\n" + schema_markdown() + "\n" + _src[_src.index(_e):])
-    print(f"updated {_doc}", file=_sys.stderr)

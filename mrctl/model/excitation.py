@@ -92,7 +92,7 @@ def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[fl
 
     Time must start anywhere but strictly increase. Errors are ``ValueError``
     naming the file, line and column, for the config layer to report."""
-    from mrctl.csvtable import read_table
+    from mrctl.util.csvtable import read_table
 
     p = Path(path)
     table = read_table(p, require=columns)  # CsvError is a ValueError
