@@ -36,6 +36,8 @@ def test_tcp_and_sim_have_no_wire_limit():
 
 
 class SlowLink:
+    split = False  # an exchange link (mrctl.io.base.Link)
+
     def __init__(self, delay_s, fail_every=0):
         self.delay_s, self.fail_every, self.n, self.setpoints = delay_s, fail_every, 0, []
 
@@ -81,6 +83,8 @@ def test_device_pacing_check_refuses_a_device_that_ignores_sync():
     from mrctl.daemon.feasibility import check_device_pacing
 
     class Link:
+        split = False
+
         def __init__(self, gap_s):
             self.gap_s = gap_s
 

@@ -46,19 +46,11 @@ class Feasibility:
 
 
 def wire_time_s(backend_cfg: Any) -> float | None:
-    """Seconds one tick occupies the wire, or None where it is not the limit (TCP, sim)."""
-    kind = backend_cfg.type
-    if kind == "serial":
-        from mrctl.io.protocol import exchange_wire_time_s
+    """Seconds one tick occupies the wire, or None where it is not the limit
+    (TCP, sim): asked of the link class that serves ``backend.type``."""
+    from mrctl.io import link_class
 
-        return exchange_wire_time_s(backend_cfg.baudrate)
-    if kind == "modbus-rtu":
-        from mrctl.io.modbus import rtu_bits_per_char, rtu_transaction_wire_time_s
-
-        fc23 = backend_cfg.use_fc23 if backend_cfg.use_fc23 is not None else True
-        bits = rtu_bits_per_char(getattr(backend_cfg, "parity", "E"), getattr(backend_cfg, "stopbits", 1))
-        return rtu_transaction_wire_time_s(backend_cfg.register_map, backend_cfg.baudrate, fc23, bits)
-    return None
+    return link_class(backend_cfg.type).wire_time_s(backend_cfg)
 
 
 def probe(link: Any, n: int) -> tuple[list[float], int]:
@@ -69,7 +61,7 @@ def probe(link: Any, n: int) -> tuple[list[float], int]:
     for _ in range(n):
         t0 = pc()
         try:
-            if getattr(link, "split", False):
+            if link.split:
                 link.read()
                 link.write(0.0)
             else:

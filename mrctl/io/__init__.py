@@ -1,14 +1,17 @@
-"""I/O backends: the neutral types live in :mod:`mrctl.io.base`.
+"""Links to the damper's DAQ and current driver, and the name table.
 
-Only the hardware-free names are re-exported here, so ``import mrctl.io``
-never pulls in pyserial/pymodbus. Import backends explicitly, e.g.
-``from mrctl.io.serial import SerialLink``.
+:data:`BACKENDS` maps every ``backend.type`` a user can write in YAML to the
+class that serves it, imported only when asked for (python-can's
+``BACKENDS``): ``import mrctl.io`` never pulls in pyserial. The neutral types
+(:class:`~mrctl.io.base.Link`, :class:`~mrctl.io.base.Sample`, the
+:class:`~mrctl.io.base.LinkError` tree) live in :mod:`mrctl.io.base`.
 """
 
+from __future__ import annotations
+
+import importlib
+
 from mrctl.io.base import (
-    Backend,
-    CurrentDriver,
-    Daq,
     DeviceError,
     Disconnected,
     FrameError,
@@ -16,14 +19,29 @@ from mrctl.io.base import (
     LinkError,
     LinkTimeout,
     Sample,
-    SplitLink,
     Status,
 )
 
+#: backend.type → (module, class)
+BACKENDS: dict[str, tuple[str, str]] = {
+    "sim": ("mrctl.io.sim", "SimLink"),
+    "serial": ("mrctl.io.serial", "SerialLink"),
+    "modbus-tcp": ("mrctl.io.modbus", "ModbusLink"),
+    "modbus-rtu": ("mrctl.io.modbus", "ModbusLink"),
+}
+
+
+def link_class(kind: str) -> type[Link]:
+    """The class serving ``backend.type: kind``; KeyError names the known ones."""
+    try:
+        module, name = BACKENDS[kind]
+    except KeyError:
+        raise KeyError(f"unknown backend type {kind!r} (known: {', '.join(BACKENDS)})") from None
+    return getattr(importlib.import_module(module), name)
+
+
 __all__ = [
-    "Backend",
-    "CurrentDriver",
-    "Daq",
+    "BACKENDS",
     "DeviceError",
     "Disconnected",
     "FrameError",
@@ -31,6 +49,6 @@ __all__ = [
     "LinkError",
     "LinkTimeout",
     "Sample",
-    "SplitLink",
     "Status",
+    "link_class",
 ]

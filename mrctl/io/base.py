@@ -1,20 +1,28 @@
-"""Backend-neutral I/O types: the sample, the error hierarchy, the interfaces.
+"""What every link shares: the sample, the error tree, and the :class:`Link` base.
 
-Why a separate module: the control loop, the simulator and every hardware
-backend (serial, Modbus, ...) agree on these few names and nothing else.
-Backends know bytes and registers; the loop knows physics. Nothing here
-imports pyserial or pymodbus, so the loop and its tests can use these types
-without any hardware library installed.
+The python-can way: :class:`Link` owns everything that is the same on every
+wire (open/close idempotence and the safe 0 A on close, the per-exchange
+error counting, device pacing's deadline and wake-up, unwrapping the
+device's clock, the counters), and a subclass supplies only its byte
+exchange (:meth:`Link._transact`), its transport (:meth:`Link._open_transport`,
+:meth:`Link._close_transport`), its wire-time estimate and a log line. The
+in-process simulated bench (:mod:`mrctl.io.sim`) is a plain peer: it
+subclasses the same base and says ``split = True``.
 
-Units are SI throughout: m, m/s, N, A, s.
+Nothing here imports pyserial or knows LuGre: links know bytes and
+registers, the loop knows time, the laws know physics. Units are SI: m,
+m/s, N, A, s.
 """
 
 from __future__ import annotations
 
+import abc
 import enum
 import math
 import time
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Any, ClassVar, NamedTuple
+
+from mrctl.errors import LinkFailure
 
 __all__ = [
     "Sample",
@@ -24,11 +32,8 @@ __all__ = [
     "FrameError",
     "DeviceError",
     "Disconnected",
-    "Backend",
-    "Daq",
-    "CurrentDriver",
     "Link",
-    "SplitLink",
+    "CounterUnwrap",
     "sleep_until_ns",
 ]
 
@@ -45,7 +50,7 @@ class Status(enum.IntFlag):
     """Device status bits carried in :attr:`Sample.status`.
 
     Defined here, not in a protocol module, so the loop can interpret status
-    the same way whatever the backend; the serial protocol (docs/protocol.md)
+    the same way whatever the link; the serial protocol (docs/protocol.md)
     uses exactly these bit positions on the wire.
     """
 
@@ -77,12 +82,14 @@ class Sample(NamedTuple):
     current_A: float = math.nan  #: current the driver actually applied, A (nan if unknown)
 
 
-class LinkError(Exception):
-    """Base of every error a backend raises for link/device trouble.
+# ----------------------------------------------------------------------------
+# errors: one root, typed by what the loop should do about them
+class LinkError(LinkFailure):
+    """Base of every error a link raises for link/device trouble.
 
     The loop catches this one type to count a missed tick; subclasses say
     whether to retry (timeout, frame), reconnect (disconnected) or alarm
-    (device error).
+    (device error). One that escapes to the CLI exits 3.
     """
 
 
@@ -97,7 +104,7 @@ class FrameError(LinkError):
 class DeviceError(LinkError):
     """The device answered with an error/NAK (or a Modbus exception).
 
-    ``code`` is the backend's numeric error code, kept so logs and tests can
+    ``code`` is the link's numeric error code, kept so logs and tests can
     tell a CRC NAK from an unsupported request without parsing messages.
     """
 
@@ -110,85 +117,240 @@ class Disconnected(LinkError):
     """The port/connection is gone (unplugged, peer closed, not open). Reopen."""
 
 
-@runtime_checkable
-class Backend(Protocol):
-    """Lifecycle shared by all backends: explicit open/close and a log line."""
+# ----------------------------------------------------------------------------
+class CounterUnwrap:
+    """Extends a wrapping device counter (modulus ``mod``) to a running total.
 
-    def open(self) -> None:
-        """Acquire the port/connection. Idempotent; may raise :class:`LinkError`."""
-        ...
+    A step forward of less than half the modulus is normal progress (also
+    across the wrap); a larger one is the counter going *back*, i.e. the
+    device restarted: the total restarts from the raw value and ``resets``
+    counts it. ``reset()`` forgets the history (after a reopen)."""
 
-    def close(self) -> None:
-        """Release it, leaving the actuator safe (0 A) if possible. Idempotent."""
-        ...
+    __slots__ = ("mod", "half", "last", "total", "resets")
 
-    def describe(self) -> str:
-        """One human-readable line for logs/start-up (port, rate, protocol)."""
-        ...
+    def __init__(self, mod: int) -> None:
+        self.mod = int(mod)
+        self.half = self.mod >> 1
+        self.last: int | None = None
+        self.total = 0
+        self.resets = 0
+
+    def reset(self) -> None:
+        self.last = None
+
+    def __call__(self, raw: int) -> int:
+        last = self.last
+        if last is None:
+            self.total = raw
+        else:
+            delta = (raw - last) % self.mod
+            if delta < self.half:
+                self.total += delta
+            else:
+                self.resets += 1
+                self.total = raw
+        self.last = raw
+        return self.total
 
 
-@runtime_checkable
-class Daq(Backend, Protocol):
-    """Something that measures x, v (and maybe F)."""
+class Link(abc.ABC):
+    """A link to the damper's DAQ and current driver, one transaction per tick.
 
-    def read(self) -> Sample:
-        """Return the latest sample; raise :class:`LinkError` on failure."""
-        ...
+    The controller relies on exactly this interface (no duck typing):
 
+    - ``split``: True if the link can :meth:`read` and :meth:`write` within
+      one tick with no latency (the in-process bench); otherwise every tick
+      is one :meth:`exchange` (setpoint out, latest sample back), and the
+      current computed from a sample goes out on the next tick.
+    - ``host_clocked``: True if the device has no clock of its own and the
+      loop tells it the tick (:meth:`begin_tick`).
+    - :attr:`true_force_N`: the plant's ground-truth force on a simulated
+      bench, NaN on hardware.
+    - :meth:`set_device_paced`: the device's clock paces the loop (SYNC).
+    - :meth:`counters`: cumulative counts for logs and metrics.
 
-@runtime_checkable
-class CurrentDriver(Backend, Protocol):
-    """Something that sets the damper coil current. 0 A is the safe state."""
-
-    def write(self, current_A: float) -> None:
-        """Command ``current_A`` (A); raise :class:`LinkError` on failure."""
-        ...
-
-
-@runtime_checkable
-class Link(Backend, Protocol):
-    """One transaction per tick: send the setpoint, get the latest sample.
-
-    Why combined: on a request/reply wire (the serial protocol) the setpoint
-    and the sample travel in one round trip; splitting it into read() and
-    write() would double the transactions per tick.
+    Subclasses implement :meth:`_open_transport`, :meth:`_close_transport`,
+    :attr:`is_open`, :meth:`_transact` (split links: :meth:`read` and
+    :meth:`write` instead), :meth:`describe`, and the class methods
+    :meth:`from_config` and (for wires whose speed limits the rate)
+    :meth:`wire_time_s`.
     """
 
+    #: the ``backend.type`` names this class serves (the BACKENDS table)
+    kinds: ClassVar[tuple[str, ...]] = ()
+    split: ClassVar[bool] = False
+    host_clocked: ClassVar[bool] = False
+    #: names reported by :meth:`counters` (plain int attributes: cheap to bump per tick)
+    COUNTERS: ClassVar[tuple[str, ...]] = (
+        "exchanges", "timeouts", "frame_errors", "device_errors", "stale_replies", "disconnects",
+    )
+
+    def __init__(self, timeout_s: float, *, safe_on_close: bool = True) -> None:
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        self.timeout_s = float(timeout_s)
+        self.safe_on_close = safe_on_close
+        #: False → setpoints go out with the output disabled (device holds 0 A)
+        self.enabled = True
+        for name in self.COUNTERS:
+            setattr(self, name, 0)
+        # device pacing (set_device_paced)
+        self._period_ns = 0
+        self._sleep_margin_ns = 0
+        self._pace_extra_s = 0.0
+        self._t_reply_ns = 0  # monotonic ns of the last paced reply (0 = none yet)
+
+    # -- construction (the BACKENDS table) ------------------------------------
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, cfg: Any, context: Any = None) -> "Link":
+        """Build from the validated ``backend`` section; ``context`` is the
+        experiment (the sim link builds its bench from it)."""
+
+    @classmethod
+    def wire_time_s(cls, cfg: Any) -> float | None:
+        """Seconds one tick occupies the wire at ``cfg``'s settings, or None
+        where the wire is not the limit (TCP, in-process). Physics only: no
+        link is opened, so ``mrctl check`` can report it."""
+        return None
+
+    # -- lifecycle ---------------------------------------------------------------
+    @property
+    @abc.abstractmethod
+    def is_open(self) -> bool: ...
+
+    def open(self) -> None:
+        """Acquire the port/connection (idempotent). Raises :class:`Disconnected`
+        (or another :class:`LinkError`) if it cannot."""
+        if not self.is_open:
+            self._open_transport()
+
+    def close(self) -> None:
+        """Command 0 A with the output disabled (best effort) and release the
+        transport. Idempotent; never raises."""
+        if not self.is_open:
+            return
+        try:
+            if self.safe_on_close:
+                self._send_safe()
+        except Exception:  # noqa: BLE001 - closing must not fail on a dead link
+            pass
+        finally:
+            self._close_transport()
+
+    def _send_safe(self) -> None:
+        """The last words on close: 0 A, output disabled. Default: one exchange."""
+        enabled, self.enabled = self.enabled, False
+        try:
+            self.exchange(0.0)
+        finally:
+            self.enabled = enabled
+
+    @abc.abstractmethod
+    def _open_transport(self) -> None: ...
+
+    @abc.abstractmethod
+    def _close_transport(self) -> None:
+        """Release the port/socket at once (no more bytes); never raises."""
+
+    @abc.abstractmethod
+    def describe(self) -> str:
+        """One human-readable line for logs and start-up (port, rate, protocol)."""
+
+    def __enter__(self) -> "Link":
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- the tick ----------------------------------------------------------------
     def exchange(self, current_A: float) -> Sample:
         """Write ``current_A`` (A), return the latest sample.
 
         Raises :class:`LinkTimeout`, :class:`FrameError`, :class:`DeviceError`
-        or :class:`Disconnected` (all :class:`LinkError`).
-        """
-        ...
-
-
-class SplitLink:
-    """Adapts a separate :class:`Daq` and :class:`CurrentDriver` to :class:`Link`.
-
-    Lets the loop always speak ``exchange`` even when the hardware has two
-    independent channels (e.g. Modbus DAQ + analogue driver). The setpoint is
-    written before the read, matching the serial protocol's ordering.
-    """
-
-    def __init__(self, daq: Daq, driver: CurrentDriver) -> None:
-        self.daq = daq
-        self.driver = driver
-
-    def open(self) -> None:
-        self.daq.open()
-        self.driver.open()
-
-    def close(self) -> None:
-        # Driver first: make the actuator safe before anything else can fail.
+        or :class:`Disconnected`, each counted; after :class:`Disconnected`
+        the transport is closed and :meth:`open` reconnects."""
+        if not self.is_open:
+            raise Disconnected(f"{self.describe()}: not open")
+        if not -3.4e38 < current_A < 3.4e38:
+            raise ValueError(f"current_A must be finite, got {current_A!r}")
+        period = self._period_ns
+        last = self._t_reply_ns
+        deadline = time.monotonic() + self.timeout_s + self._pace_extra_s
+        wake_ns = last + period - self._sleep_margin_ns if period and last else 0
         try:
-            self.driver.close()
-        finally:
-            self.daq.close()
+            sample = self._transact(current_A, deadline, wake_ns)
+        except LinkTimeout:
+            self.timeouts += 1
+            raise
+        except FrameError:
+            self.frame_errors += 1
+            raise
+        except DeviceError:
+            self.device_errors += 1
+            raise
+        except Disconnected:
+            self.disconnects += 1
+            self._close_transport()
+            raise
+        if period:
+            self._t_reply_ns = time.monotonic_ns()
+        self.exchanges += 1
+        return sample
 
-    def exchange(self, current_A: float) -> Sample:
-        self.driver.write(current_A)
-        return self.daq.read()
+    def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
+        """One tick's bytes: send the setpoint (with :attr:`enabled` and, when
+        paced, the SYNC flag), wait for the reply until ``deadline``
+        (``time.monotonic()`` s), sleeping first until ``wake_ns`` if it is
+        not 0 (nothing can arrive earlier), decode it. Raise the typed
+        :class:`LinkError`; the base counts it."""
+        raise NotImplementedError(f"{type(self).__name__} has no exchange (a split link: read, then write)")
 
-    def describe(self) -> str:
-        return f"daq: {self.daq.describe()}; driver: {self.driver.describe()}"
+    def read(self) -> Sample:
+        """Split links: the sample at this tick."""
+        raise NotImplementedError(f"{type(self).__name__} is not a split link: use exchange()")
+
+    def write(self, current_A: float) -> None:
+        """Split links: command ``current_A`` (A) at this tick."""
+        raise NotImplementedError(f"{type(self).__name__} is not a split link: use exchange()")
+
+    def begin_tick(self, k: int) -> None:
+        """Host-clocked links: the loop's tick index. Others ignore it."""
+
+    @property
+    def true_force_N(self) -> float:
+        """The plant's ground-truth force at this tick (simulated benches), else NaN."""
+        return math.nan
+
+    # -- device pacing -------------------------------------------------------------
+    @property
+    def device_paced(self) -> bool:
+        """True while every setpoint asks the device to answer after its next tick."""
+        return self._period_ns != 0
+
+    def set_device_paced(self, on: bool, period_s: float, spin_margin_s: float = 3e-4) -> None:
+        """Device pacing (docs/protocol.md §6.1): every setpoint carries SYNC,
+        so the device applies it at its next tick and answers after it; an
+        exchange then returns at the device's next tick, and the loop runs
+        on the device's clock with one tick of actuation latency. The reply
+        deadline grows by one period. While waiting, the link sleeps until
+        ``spin_margin_s`` before the reply is due (one period after the
+        previous one), then polls. Raises ValueError if this link cannot."""
+        if on and not period_s > 0:
+            raise ValueError(f"period_s must be > 0, got {period_s!r}")
+        self._set_sync(on)
+        self._period_ns = round(period_s * 1e9) if on else 0
+        self._pace_extra_s = float(period_s) if on else 0.0
+        self._sleep_margin_ns = round(spin_margin_s * 1e9)
+        self._t_reply_ns = 0
+
+    def _set_sync(self, on: bool) -> None:
+        """Turn the SYNC flag of the wire on or off; ValueError if unsupported."""
+        if on:
+            raise ValueError(f"{type(self).__name__} cannot be device-paced")
+
+    # -- counters ------------------------------------------------------------------
+    def counters(self) -> dict[str, int]:
+        """Snapshot of every counter, for logs and metrics (not for the hot path)."""
+        return {name: getattr(self, name) for name in self.COUNTERS}

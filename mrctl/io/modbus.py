@@ -643,6 +643,30 @@ class ModbusLink:
         self.fc23_fallbacks = 0  #: probes that fell back to FC16 + FC3/FC4
         self.last_exception_code: int | None = None
 
+    kinds = ("modbus-tcp", "modbus-rtu")
+    split = False
+    host_clocked = False
+
+    @classmethod
+    def from_config(cls, cfg: Any, context: Any = None) -> "ModbusLink":
+        """From the validated ``backend`` section (type modbus-tcp or modbus-rtu)."""
+        common = dict(unit_id=cfg.unit_id, register_map=cfg.register_map, timeout_s=cfg.timeout_s,
+                      use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms, open_timeout_s=cfg.open_timeout_s,
+                      spin_wait=cfg.spin_wait)
+        if cfg.type == "modbus-tcp":
+            return cls("tcp", host=cfg.host, port=cfg.port, **common)
+        return cls("rtu", url=cfg.url, baudrate=cfg.baudrate, parity=cfg.parity, stopbits=cfg.stopbits,
+                   rtu_local_echo=cfg.rtu_local_echo, **common)
+
+    @classmethod
+    def wire_time_s(cls, cfg: Any) -> float | None:
+        """RTU: every frame of one tick plus the 3.5-character gaps; TCP: None."""
+        if cfg.type != "modbus-rtu":
+            return None
+        fc23 = cfg.use_fc23 if cfg.use_fc23 is not None else True
+        bits = rtu_bits_per_char(getattr(cfg, "parity", "E"), getattr(cfg, "stopbits", 1))
+        return rtu_transaction_wire_time_s(cfg.register_map, cfg.baudrate, fc23, bits)
+
     def _default_timeout(self, fc23: bool) -> float:
         if self._timeout_arg is not None:
             return float(self._timeout_arg)

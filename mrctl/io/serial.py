@@ -152,6 +152,21 @@ class SerialLink:
         self.disconnects = 0
         self.device_clock_resets = 0  #: device time went backwards (device rebooted?)
 
+    kinds = ("serial",)
+    split = False
+    host_clocked = False
+
+    @classmethod
+    def from_config(cls, cfg: Any, context: Any = None) -> "SerialLink":
+        """From the validated ``backend`` section (type serial)."""
+        return cls(cfg.url, cfg.baudrate, timeout_s=cfg.timeout_s, watchdog_ms=cfg.watchdog_ms,
+                   spin_wait=cfg.spin_wait)
+
+    @classmethod
+    def wire_time_s(cls, cfg: Any) -> float | None:
+        """One SETPOINT + one SAMPLE at ``cfg.baudrate`` (8N1)."""
+        return exchange_wire_time_s(cfg.baudrate)
+
     # -- counters ---------------------------------------------------------
     @property
     def crc_errors(self) -> int:
