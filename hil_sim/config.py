@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mrctl.config import (
+from mrctl.util.schema import (
     Bool,
     ConfigError,
     Custom,
@@ -24,10 +24,10 @@ from mrctl.config import (
     Num,
     Section,
     Str,
-    _validate_fields,
-    experiment_schema,
+    validate_fields,
     load_yaml,
 )
+from mrctl.config import experiment_schema
 from mrctl.experiment import EXCITATIONS
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import Sensors
@@ -121,7 +121,7 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         data = {}
     if not isinstance(data, dict):
         raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
-    node, errors = _validate_fields(bench_schema(base_dir), data, "")
+    node, errors = validate_fields(bench_schema(base_dir), data, "")
     exc = node.get("excitation")
     if not errors and exc is not None and exc.get("type") == "chirp" and exc.get("f0_hz") == exc.get("f1_hz"):
         errors.append("excitation.f1_hz: must differ from f0_hz (use type: sine for one frequency)")

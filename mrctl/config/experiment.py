@@ -1,0 +1,287 @@
+"""The experiment schema: what an experiment YAML may say, and its cross-checks.
+
+Every name a user can write is validated here with its key path, all
+errors at once; :mod:`mrctl.experiment` then turns the validated tree into
+live objects. The schema generates ``docs/config.md``'s reference tables
+(``python -m mrctl.config``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from mrctl.config.params import params_check
+from mrctl.model.params import LuGreParams
+from mrctl.util.schema import (
+    Bool,
+    ConfigError,
+    Custom,
+    Node,
+    Num,
+    Section,
+    Str,
+    Union,
+    check_num,
+    file_check,
+    load_yaml,
+    optional_bool,
+    range_check,
+    schema_markdown as _markdown,
+    validate_fields,
+)
+
+CONFIG_VERSION = 1
+SPIN_WAIT_DOC = ("wait for each reply by polling, busy for one round trip (device pacing: for the last "
+                 "loop.spin_margin_s of it), instead of sleeping in select(): a sleeping thread can wake "
+                 "up to ~1.5 ms late on a VM")
+
+
+def _current_list(value: Any, path: str) -> tuple[Any, list[str]]:
+    if not isinstance(value, list) or not value:
+        return None, [f"{path}: must be a non-empty list of currents (A)"]
+    out, errors = [], []
+    for i, v in enumerate(value):
+        num, errs = check_num(Num(min=0.0), v, f"{path}[{i}]")
+        out.append(num)
+        errors += errs
+    return out, errors
+
+
+def _cpu_list(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None:
+        return None, []
+    if not isinstance(value, list) or not value:
+        return None, [f"{path}: must be a non-empty list of CPU numbers or null"]
+    cpus, errors = [], []
+    for i, c in enumerate(value):
+        n, errs = check_num(Num(integer=True, min=0, max=4095), c, f"{path}[{i}]")
+        cpus.append(n)
+        errors += errs
+    return (frozenset(cpus) if not errors else None), errors
+
+
+def _lead_check(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value == "auto":
+        return "auto", []
+    return check_num(Num(min=0.0, max=0.1), value, path)
+
+
+def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
+    """The Modbus register map (docs/registers.md); null = the default map."""
+    try:
+        from mrctl.io.registers import default_register_map
+    except ImportError:  # pragma: no cover - the module ships with mrctl
+        return None, [f"{path}: Modbus register maps are not available in this build"]
+    if value is None:
+        return default_register_map(), []
+    from mrctl.io.registers import validate_register_map
+
+    rmap, errors = validate_register_map(value, path)
+    return rmap, errors
+
+
+def experiment_schema(base_dir: Path) -> dict[str, Any]:
+    """The experiment schema; relative file paths resolve against ``base_dir``."""
+    modbus_common = {
+        "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
+        "use_fc23": Custom(optional_bool, default=None, doc="one FC23 transaction per tick; null = probe at start"),
+        "register_map": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
+        "open_timeout_s": Num(default=1.0, min=0.0, min_exclusive=True, max=60.0, doc="connect and FC23 probe (s)"),
+        "watchdog_ms": Num(default=50, integer=True, min=0, max=65535,
+                           doc="device applies 0 A if setpoints stop this long (0 = device default)"),
+        "spin_wait": Bool(default=True, doc=SPIN_WAIT_DOC),
+    }
+    return {
+        "version": Num(integer=True, min=CONFIG_VERSION, max=CONFIG_VERSION, doc="config format version (1)"),
+        "name": Str(default=None, optional=True, doc="experiment name (logs, file titles)"),
+        "description": Str(default=None, optional=True, doc="free text, kept in the run log"),
+        "duration_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=7 * 86400.0,
+                          doc="run length (s); none = until stopped (excitation files: their length)"),
+        "rate_hz": Num(default=1000.0, min=1.0, max=20000.0, doc="control rate (Hz)"),
+        "parameters": Custom(params_check(base_dir), default="table1",
+                             doc="'table1', a parameters YAML path, or {file: ..., <name>: value} overrides"),
+        "excitation": Union("type", {
+            "sine": {"amplitude_m": Num(min=0.0, max=1.0, doc="displacement amplitude (m)"),
+                     "frequency_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="frequency (Hz)"),
+                     "phase_rad": Num(default=0.0, doc="phase at t = 0 (rad)")},
+            "chirp": {"amplitude_m": Num(min=0.0, max=1.0, doc="displacement amplitude (m)"),
+                      "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="start frequency (Hz)"),
+                      "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
+                      "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
+            "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
+        }, doc="shaker motion on the simulated bench"),
+        "demand": Union("type", {
+            "viscous": {"c_des": Num(min=0.0, max=1e5, doc="desired damping (N·s/m), eq (13)")},
+            "constant": {"F_N": Num(min=-1e4, max=1e4, doc="desired force (N)")},
+            "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,F_des (s, N)")},
+        }, doc="desired-force law"),
+        "inverse": Union("law", {
+            "paper": {},
+            "smooth": {"eps_N_per_A": Num(default=3.0, min=0.0, max=1e4, doc="regularisation: hold where dF/dI is below this (N/A)"),
+                       "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6,
+                                               doc="driver slew rate the law respects (A/s)")},
+            "constant": {"current_A": Num(min=0.0, doc="the current (A), <= safety.I_max")},
+            "schedule": {"currents_A": Custom(_current_list, doc="list of currents (A), each held step_s, then 0 A"),
+                         "step_s": Num(min=0.0, min_exclusive=True, doc="time per current (s)")},
+        }, doc="inverse law"),
+        "safety": Section({
+            "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
+            "max_slew_A_per_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+                                    doc="slew limit of the command (A/s); none = off"),
+            "hold_ticks": Num(default=5, integer=True, min=0, max=1000,
+                              doc="bad samples bridged with the last good one before 0 A"),
+            "max_age_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+                             doc="a sample whose read took longer is late; none = off"),
+            "x_range_m": Custom(range_check, default=None, doc="[lo, hi] valid displacement (m); outside = bad sample"),
+            "v_range_mps": Custom(range_check, default=None, doc="[lo, hi] valid velocity (m/s)"),
+            "F_range_N": Custom(range_check, default=None, doc="[lo, hi] valid load-cell force (N)"),
+            "require_force": Bool(default=False, doc="a non-finite load-cell force is a bad sample"),
+            "fault_on_device_status": Bool(default=True, doc="device fault bits make a sample bad"),
+            "auto_resume": Bool(default=False, doc="leave the fault by itself after good samples"),
+            "resume_good_ticks": Num(default=10, integer=True, min=1, max=100000, doc="good samples needed to resume"),
+            "driver_retries": Num(default=2, integer=True, min=0, max=10,
+                                  doc="extra write attempts within a tick before the driver is lost"),
+            "link_loss_s": Num(default=0.1, min=0.0, min_exclusive=True, max=60.0,
+                               doc="exchange links: no good exchange for this long = driver lost, exit 3"),
+            "reconnect_interval_s": Num(default=0.05, min=0.001, max=60.0,
+                                        doc="exchange links: reopen a disconnected link at most this often"),
+        }),
+        "latency": Section({
+            "lead_s": Custom(_lead_check, default=0.0,
+                             doc="latency compensation: predict v this far ahead (s); 'auto' = 1.5 ticks on "
+                                 "exchange links (serial, Modbus), 0 on the in-process sim. Off by default: "
+                                 "not yet shown to help (docs/performance.md)"),
+        }, doc="what the controller does about actuation delay (mrctl/estimation.py)"),
+        "loop": Section({
+            "wait": Str(default="hybrid", choices=("sleep", "hybrid", "spin"), doc="how to wait for the deadline"),
+            "spin_margin_s": Num(default=3e-4, min=0.0, max=0.01, doc="hybrid: spin this long before the deadline"),
+            "pacing": Str(default="host", choices=("host", "device"),
+                          doc="host: the loop keeps its own deadlines; device: each exchange asks the device to "
+                              "answer after its next tick (SYNC flag, docs/protocol.md), so the loop runs on the "
+                              "device's clock with one tick of actuation latency (serial and Modbus links)"),
+        }, doc="pacing of the real-time loop (mrctl run)"),
+        "rt": Section({
+            "fifo_priority": Num(default=None, optional=True, integer=True, min=1, max=99, doc="SCHED_FIFO priority; null = normal"),
+            "lock_memory": Bool(default=False, doc="mlockall (needs LimitMEMLOCK)"),
+            "cpus": Custom(_cpu_list, default=None, doc="CPU affinity, e.g. [1]; null = any"),
+            "timer_slack_ns": Num(default=None, optional=True, integer=True, min=1, max=10**9, doc="prctl timer slack"),
+            "gc_freeze": Bool(default=True, doc="gc.freeze() after start-up"),
+            "gc_disable": Bool(default=True, doc="no cyclic GC during the loop"),
+        }, doc="real-time settings, each applied or reported refused"),
+        "record": Section({
+            "flush_interval_s": Num(default=1.0, min=0.05, max=10.0, doc="fsync the log at least this often (s)"),
+            "buffer_ticks": Num(default=16384, integer=True, min=256, max=10**7, doc="rows buffered before overflow"),
+        }, doc="run log"),
+        "service": Section({
+            "status_socket": Str(default=None, optional=True, doc="Unix socket for mrctl status"),
+        }),
+        "plant": Section({
+            "parameters": Custom(params_check(base_dir), default=None,
+                                 doc="the simulated damper's own parameter set (same forms as parameters); "
+                                     "null = the law's set. Set it to test a law with identified parameters "
+                                     "against a known damper"),
+            "driver_tau_s": Num(default=0.0, min=0.0, max=1.0, doc="current-driver lag (s), 0 = ideal"),
+            "sensors": Section({
+                "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),
+                "x_noise_m": Num(default=0.0, min=0.0, doc="std dev of displacement noise (m)"),
+                "v_noise_mps": Num(default=0.0, min=0.0, doc="std dev of velocity noise (m/s)"),
+                "F_noise_N": Num(default=0.0, min=0.0, doc="std dev of load-cell noise (N)"),
+                "x_lsb_m": Num(default=0.0, min=0.0, doc="displacement quantisation step (m), 0 = none"),
+                "v_lsb_mps": Num(default=0.0, min=0.0, doc="velocity quantisation step (m/s)"),
+                "F_lsb_N": Num(default=0.0, min=0.0, doc="force quantisation step (N)"),
+            }),
+        }, doc="simulated bench (backend sim)"),
+        "backend": Union("type", {
+            "sim": {},
+            "serial": {
+                "url": Str(doc="device path, socket://host:port or loop://"),
+                "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud (see docs/protocol.md)"),
+                "timeout_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0,
+                                 doc="reply timeout (s); null = wire time + 250 us"),
+                "watchdog_ms": Num(default=50, integer=True, min=1, max=255,
+                                   doc="device applies 0 A if setpoints stop this long"),
+                "spin_wait": Bool(default=True, doc=SPIN_WAIT_DOC),
+            },
+            "modbus-tcp": {
+                "host": Str(default="127.0.0.1", doc="device address"),
+                "port": Num(default=502, integer=True, min=1, max=65535, doc="TCP port"),
+                "unit_id": Num(default=1, integer=True, min=0, max=247, doc="Modbus unit id"),
+                **modbus_common,
+            },
+            "modbus-rtu": {
+                "url": Str(doc="serial device path (or any pyserial URL)"),
+                "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud"),
+                "parity": Str(default="E", choices=("E", "O", "N"), doc="RTU standard: E (8E1); N needs stopbits 2"),
+                "stopbits": Num(default=1, min=1, max=2, doc="stop bits"),
+                "rtu_local_echo": Bool(default=False, doc="an RS-485 adapter echoes our requests: read and drop them"),
+                "unit_id": Num(default=1, integer=True, min=1, max=247, doc="Modbus unit id (RTU: 1-247)"),
+                **modbus_common,
+            },
+        }, default="sim", doc="where samples come from and currents go"),
+        "link": Section({
+            "on_infeasible": Str(default="refuse", choices=("refuse", "reduce_rate"),
+                                 doc="if the link cannot sustain rate_hz: refuse, or run slower"),
+            "probe_exchanges": Num(default=50, integer=True, min=0, max=10000,
+                                   doc="round trips measured at start-up (0 = wire-time estimate only)"),
+        }, doc="start-up feasibility check of real links"),
+    }
+
+
+def _cross_checks(cfg: Node) -> list[str]:
+    """Rules that span keys (each still names the key to fix)."""
+    errors: list[str] = []
+    I_max = cfg.safety.get("I_max") if "safety" in cfg else None
+    params = cfg.get("parameters")
+    if isinstance(params, LuGreParams) and isinstance(I_max, float):
+        errors += [f"parameters: {e}" for e in params.check_range(I_max)]
+    plant_params = cfg.plant.get("parameters") if "plant" in cfg else None
+    if isinstance(plant_params, LuGreParams) and isinstance(I_max, float):
+        errors += [f"plant.parameters: {e}" for e in plant_params.check_range(I_max)]
+    inv = cfg.get("inverse")
+    if inv is not None and inv.get("law") == "constant" and isinstance(I_max, float):
+        cur = inv.get("current_A")
+        if isinstance(cur, float) and cur > I_max:
+            errors.append(f"inverse.current_A: {cur:g} A exceeds safety.I_max = {I_max:g} A")
+    if inv is not None and inv.get("law") == "schedule" and isinstance(I_max, float):
+        for i, cur in enumerate(inv.get("currents_A") or []):
+            if isinstance(cur, float) and cur > I_max:
+                errors.append(f"inverse.currents_A[{i}]: {cur:g} A exceeds safety.I_max = {I_max:g} A")
+    loop, backend = cfg.get("loop"), cfg.get("backend")
+    if loop is not None and loop.get("pacing") == "device" and backend is not None and backend.get("type") == "sim":
+        errors.append("loop.pacing: 'device' needs a device with its own clock (a serial or Modbus backend); "
+                      "the in-process sim bench is ticked by the loop itself")
+    exc = cfg.get("excitation")
+    if exc is not None and exc.get("type") == "chirp":
+        f0, f1 = exc.get("f0_hz"), exc.get("f1_hz")
+        if isinstance(f0, float) and isinstance(f1, float) and f1 == f0:
+            errors.append("excitation.f1_hz: must differ from f0_hz (use type: sine for one frequency)")
+    return errors
+
+
+def validate_experiment(data: Any, base_dir: Path, source: str | None = None) -> Node:
+    """Validate a parsed experiment; raises ConfigError listing every problem."""
+    if not isinstance(data, dict):
+        raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
+    # the safety section is required: a daemon must never guess a current limit
+    schema = experiment_schema(base_dir)
+    schema["safety"] = Section(schema["safety"].fields, optional=False)
+    node, errors = validate_fields(schema, data, "")
+    if not errors:
+        errors = _cross_checks(node)
+    if errors:
+        raise ConfigError(errors, source)
+    return node
+
+
+def load_experiment(path: str | Path) -> Node:
+    """Load and validate an experiment YAML file."""
+    p = Path(path)
+    return validate_experiment(load_yaml(p), p.parent, str(p))
+
+
+
+
+def schema_markdown() -> str:
+    """The experiment schema as markdown tables (docs/config.md's generated part)."""
+    return _markdown(experiment_schema(Path(".")))

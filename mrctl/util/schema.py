@@ -1,0 +1,365 @@
+"""The schema engine: strict YAML, declarative fields, errors with key paths.
+
+Why our own small engine instead of a library: what we need is narrow and
+exact: unknown keys rejected, numbers range-checked, unions chosen by a
+``type`` or ``law`` key, defaults filled, *all* errors collected with their
+key paths so ``mrctl check`` lists every one at once, and the schema itself
+generating its reference tables (``docs/config.md``). Experiment, bench,
+dataset and law-parameter schemas are all written in these terms
+(:mod:`mrctl.config`, ``hil_sim.config``, law classes' ``params``).
+
+YAML traps handled here: duplicate keys are an error (PyYAML silently keeps
+the last), and ``1e-3`` is read as a number (YAML 1.1 makes it a string).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import yaml
+
+from mrctl.errors import BadInput
+
+_REQUIRED = object()
+
+__all__ = [
+    "ConfigError", "load_yaml", "Num", "Str", "Bool", "Section", "Union", "Custom", "Node", "REQUIRED",
+    "check_num", "validate_fields", "validate_union", "file_check", "range_check", "optional_bool",
+    "schema_markdown",
+]
+
+class ConfigError(BadInput):
+    """One or more problems in a config; ``errors`` holds one line per problem."""
+
+    def __init__(self, errors: list[str], source: str | None = None) -> None:
+        self.errors = list(errors)
+        self.source = source
+        head = f"{source}: " if source else ""
+        super().__init__(head + ("; ".join(self.errors) if len(self.errors) == 1 else f"{len(self.errors)} errors:\n  " + "\n  ".join(self.errors)))
+
+
+# --------------------------------------------------------------------------
+# YAML loading
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that rejects duplicate keys and reads 1e-3 as a float."""
+
+
+def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen: dict[Any, yaml.Node] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first at line {seen[key].start_mark.line + 1})", key_node.start_mark
+            )
+        seen[key] = key_node
+    return loader.construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:\d[\d_]*)?(?:\.\d*)?[eE][-+]?\d+$"),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(path: str | Path) -> Any:
+    """Parse a YAML file strictly; errors become ConfigError with line numbers."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError([f"cannot read: {exc.strerror}"], str(p)) from None
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - strict SafeLoader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError([f"{where}invalid YAML: {problem}"], str(p)) from None
+
+
+# --------------------------------------------------------------------------
+# Schema
+@dataclass(frozen=True)
+class Num:
+    """A number field (int or float in YAML; bools rejected)."""
+
+    default: Any = _REQUIRED
+    min: float | None = None
+    max: float | None = None
+    min_exclusive: bool = False
+    integer: bool = False
+    optional: bool = False  # None allowed
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Str:
+    default: Any = _REQUIRED
+    choices: tuple[str, ...] | None = None
+    optional: bool = False
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Bool:
+    default: Any = _REQUIRED
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Section:
+    fields: Mapping[str, Any]
+    doc: str = ""
+    optional: bool = True  # absent section → all defaults
+
+
+@dataclass(frozen=True)
+class Union:
+    """A section whose allowed keys depend on its discriminator key."""
+
+    key: str
+    variants: Mapping[str, Mapping[str, Any]]
+    default: str | None = None
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Custom:
+    """A field validated by a function: value, key path → (result, errors)."""
+
+    check: Callable[[Any, str], tuple[Any, list[str]]]
+    default: Any = _REQUIRED
+    doc: str = ""
+
+
+class Node:
+    """Validated config section: attribute access, read-only, printable."""
+
+    def __init__(self, values: dict[str, Any]) -> None:
+        object.__setattr__(self, "_values", values)
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self._values[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("config is read-only")
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._values
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._values)
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self._values.get(name, default)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (v.to_dict() if isinstance(v, Node) else v) for k, v in self._values.items()}
+
+    def __repr__(self) -> str:
+        return f"Node({self.to_dict()!r})"
+
+
+def _path(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def check_num(spec: Num, value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None and spec.optional:
+        return None, []
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None, [f"{path}: must be a number, got {value!r}"]
+    if spec.integer and not (isinstance(value, int) or float(value).is_integer()):
+        return None, [f"{path}: must be a whole number, got {value!r}"]
+    if not math.isfinite(float(value)):
+        return None, [f"{path}: must be finite, got {value!r}"]
+    v = int(value) if spec.integer else float(value)
+    lo, hi = spec.min, spec.max
+    if lo is not None and (v <= lo if spec.min_exclusive else v < lo):
+        rel = ">" if spec.min_exclusive else ">="
+        return None, [f"{path}: {value!r} out of range (must be {rel} {lo:g}{f' and <= {hi:g}' if hi is not None else ''})"]
+    if hi is not None and v > hi:
+        return None, [f"{path}: {value!r} out of range (must be <= {hi:g})"]
+    return v, []
+
+
+def validate_fields(fields_: Mapping[str, Any], data: Any, path: str) -> tuple[Node, list[str]]:
+    errors: list[str] = []
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        return Node({}), [f"{path or 'config'}: must be a mapping, got {type(data).__name__}"]
+    for key in data:
+        if key not in fields_:
+            allowed = ", ".join(fields_)
+            errors.append(f"{_path(path, str(key))}: unknown key (allowed here: {allowed})")
+    out: dict[str, Any] = {}
+    for key, spec in fields_.items():
+        kpath = _path(path, key)
+        present = key in data
+        value = data.get(key)
+        if isinstance(spec, Section):
+            if not present and not spec.optional:
+                errors.append(f"{kpath}: missing required section")
+                continue
+            node, errs = validate_fields(spec.fields, value if present else {}, kpath)
+            out[key] = node
+            errors += errs
+            continue
+        if isinstance(spec, Union):
+            node, errs = validate_union(spec, value if present else None, kpath, present)
+            out[key] = node
+            errors += errs
+            continue
+        if not present:
+            if spec.default is _REQUIRED:
+                errors.append(f"{kpath}: missing required key")
+            elif isinstance(spec, Custom):  # defaults of custom fields are inputs too
+                out[key], errs = spec.check(spec.default, kpath)
+                errors += errs
+            else:
+                out[key] = spec.default
+            continue
+        if isinstance(spec, Num):
+            v, errs = check_num(spec, value, kpath)
+        elif isinstance(spec, Str):
+            if value is None and spec.optional:
+                v, errs = None, []
+            elif not isinstance(value, str):
+                v, errs = None, [f"{kpath}: must be a string, got {value!r}"]
+            elif spec.choices is not None and value not in spec.choices:
+                v, errs = None, [f"{kpath}: {value!r} not allowed (allowed: {', '.join(spec.choices)})"]
+            else:
+                v, errs = value, []
+        elif isinstance(spec, Bool):
+            v, errs = (value, []) if isinstance(value, bool) else (None, [f"{kpath}: must be true or false, got {value!r}"])
+        elif isinstance(spec, Custom):
+            v, errs = spec.check(value, kpath)
+        else:  # pragma: no cover - schema bug
+            raise TypeError(f"bad schema entry at {kpath}")
+        out[key] = v
+        errors += errs
+    return Node(out), errors
+
+
+def validate_union(spec: Union, data: Any, path: str, present: bool) -> tuple[Node, list[str]]:
+    if not present or data is None:
+        if spec.default is None:
+            return Node({}), [f"{path}: missing required section (with {spec.key}: one of {', '.join(spec.variants)})"]
+        data = {spec.key: spec.default}
+    if not isinstance(data, dict):
+        return Node({}), [f"{path}: must be a mapping, got {type(data).__name__}"]
+    kind = data.get(spec.key, spec.default)
+    if kind is None:
+        return Node({}), [f"{_path(path, spec.key)}: missing (one of {', '.join(spec.variants)})"]
+    if not isinstance(kind, str) or kind not in spec.variants:
+        return Node({}), [f"{_path(path, spec.key)}: {kind!r} not allowed (allowed: {', '.join(spec.variants)})"]
+    variant = {spec.key: Str(default=kind), **spec.variants[kind]}
+    return validate_fields(variant, data, path)
+
+
+REQUIRED = _REQUIRED
+
+
+# --------------------------------------------------------------------------
+# Custom checks many schemas share
+def file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    def check(value: Any, path: str) -> tuple[Any, list[str]]:
+        if not isinstance(value, str) or not value:
+            return None, [f"{path}: must be a file path, got {value!r}"]
+        p = Path(value)
+        full = p if p.is_absolute() else base_dir / p
+        if not full.is_file():
+            return None, [f"{path}: no such file: {full}"]
+        return str(full), []
+
+    return check
+
+
+def range_check(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None:
+        return None, []
+    if not isinstance(value, list) or len(value) != 2:
+        return None, [f"{path}: must be [lo, hi] or null, got {value!r}"]
+    lo, e1 = check_num(Num(), value[0], f"{path}[0]")
+    hi, e2 = check_num(Num(), value[1], f"{path}[1]")
+    if e1 or e2:
+        return None, e1 + e2
+    if not lo <= hi:
+        return None, [f"{path}: need lo <= hi, got {value!r}"]
+    return (lo, hi), []
+
+
+def optional_bool(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None or isinstance(value, bool):
+        return value, []
+    return None, [f"{path}: must be true, false or null (probe), got {value!r}"]
+
+
+# --------------------------------------------------------------------------
+# Reference documentation, generated from the schema (docs/config.md)
+def _kind(spec: Any) -> str:
+    if isinstance(spec, Num):
+        kind = "integer" if spec.integer else "number"
+        lo = "" if spec.min is None else (f"> {spec.min:g}" if spec.min_exclusive else f">= {spec.min:g}")
+        hi = "" if spec.max is None else f"<= {spec.max:g}"
+        rng = ", ".join(x for x in (lo, hi) if x)
+        return kind + (f" ({rng})" if rng else "") + (" or null" if spec.optional else "")
+    if isinstance(spec, Str):
+        return ("one of " + ", ".join(f"`{c}`" for c in spec.choices)) if spec.choices else "string"
+    if isinstance(spec, Bool):
+        return "true/false"
+    return "see description"
+
+
+def _default(spec: Any) -> str:
+    d = getattr(spec, "default", _REQUIRED)
+    if d is _REQUIRED:
+        return "**required**"
+    return "null" if d is None else f"`{d}`"
+
+
+def schema_markdown(schema: Mapping[str, Any]) -> str:
+    """A schema as markdown tables: the generated part of a reference page."""
+    lines: list[str] = []
+
+    def table(fields_: Mapping[str, Any], prefix: str) -> None:
+        rows = [(k, v) for k, v in fields_.items() if not isinstance(v, (Section, Union))]
+        if rows:
+            lines.append("| key | type | default | meaning |")
+            lines.append("|---|---|---|---|")
+            for k, spec in rows:
+                lines.append(f"| `{_path(prefix, k)}` | {_kind(spec)} | {_default(spec)} | {getattr(spec, 'doc', '')} |")
+            lines.append("")
+        for k, spec in fields_.items():
+            path = _path(prefix, k)
+            if isinstance(spec, Section):
+                lines.append(f"### `{path}`" + (f": {spec.doc}" if spec.doc else ""))
+                lines.append("")
+                table(spec.fields, path)
+            elif isinstance(spec, Union):
+                lines.append(f"### `{path}`: {spec.doc}")
+                lines.append("")
+                lines.append(f"Chosen by `{path}.{spec.key}`" + (f" (default `{spec.default}`)" if spec.default else "") + ".")
+                lines.append("")
+                for name, vfields in spec.variants.items():
+                    lines.append(f"#### `{path}.{spec.key}: {name}`")
+                    lines.append("")
+                    if vfields:
+                        table(vfields, path)
+                    else:
+                        lines.append("(no further keys)")
+                        lines.append("")
+
+    table(schema, "")
+    return "\n".join(lines)
