@@ -17,11 +17,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
-from mrctl.daemon.controller import RUN_COLUMNS, RUN_FORMATS, Controller  # noqa: E402
-from mrctl.experiment import build  # noqa: E402
+from mrctl.daemon.controller import Controller  # noqa: E402
 from mrctl.daemon.recorder import Recorder  # noqa: E402
-from mrctl.daemon.safety import SafetySupervisor  # noqa: E402
-from mrctl.daemon.service import make_backend, safety_config  # noqa: E402
+from mrctl.daemon.safety import SafetyConfig, SafetySupervisor  # noqa: E402
+from mrctl.experiment import build  # noqa: E402
+from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
 
@@ -31,13 +31,13 @@ def make_tick(period_s: float, defer_format: bool = True) -> tuple[Callable[[int
     the loop formats the log in its idle time (the background hook)."""
     sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
     exp = build(load_experiment(CONFIG))
-    backend = make_backend(exp)
+    backend = exp.make_link()
     backend.open()
-    sup = SafetySupervisor(safety_config(exp.config, exp.dt))
+    sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
     rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
                    fmt=RUN_FORMATS, defer_format=defer_format)
-    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record)
+    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(backend))
     atexit.register(rec.close)
     return ctl.tick, (rec.format_pending if defer_format else None)
 

@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
+from mrctl.laws.base import Measurement  # noqa: E402
 from mrctl.laws.inverse import PaperInverse, SmoothInverse  # noqa: E402
 from mrctl.model.params import TABLE_I  # noqa: E402
 from mrctl.model.plant import DamperPlant  # noqa: E402
@@ -65,10 +66,12 @@ def time_law(make, traj, overhead) -> dict[str, float]:
     law = make()
     pc = time.perf_counter_ns
     cur = law.current
+    m = Measurement()
     out = []
     for v, Fd in traj:
+        m.v = v
         t0 = pc()
-        cur(v, Fd)
+        cur(m, Fd)
         out.append(pc() - t0)
     return percentiles(out, overhead)
 
@@ -76,7 +79,7 @@ def time_law(make, traj, overhead) -> dict[str, float]:
 def time_plant(traj, overhead) -> dict[str, float]:
     plant = DamperPlant(TABLE_I, DT)
     law = SmoothInverse(TABLE_I, 0.6, DT)
-    currents = [law.current(v, Fd) for v, Fd in traj]
+    currents = [law.current(Measurement(v=v), Fd) for v, Fd in traj]
     pc = time.perf_counter_ns
     tick = plant.tick
     out = []

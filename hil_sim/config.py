@@ -82,7 +82,7 @@ class BenchConfig:
     seed: int
     params: LuGreParams
     excitation: Any
-    driver_tau_s: float
+    driver_tau_s: float | None
     sensor_kw: dict[str, float]
     load_cell: bool
     watchdog_ms: int
@@ -150,7 +150,7 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         seed=seed if seed is not None else int(node.seed),
         params=node.parameters,
         excitation=excitation,
-        driver_tau_s=float(node.plant.driver_tau_s),
+        driver_tau_s=None if node.plant.driver_tau_s is None else float(node.plant.driver_tau_s),
         sensor_kw={k: float(s.get(k)) for k in _SENSOR_KEYS},
         load_cell=bool(node.load_cell),
         watchdog_ms=int(node.watchdog_ms),

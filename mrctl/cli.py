@@ -1,7 +1,9 @@
-"""``mrctl`` command line: simulate, report, check (run/status/identify: see README).
+"""``mrctl`` command line: run, status, simulate, report, identify, check.
 
-Exit codes: 0 success, 1 runtime failure, 2 bad input (config, CSV, usage).
-Every bad input gets one clear line per problem on stderr, never a traceback.
+The one place that turns errors into exit codes: every user-facing error is
+a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
+1 internal error, 2 bad input, 3 link failure, 4 run log incomplete), and
+:func:`main` prints it as one line on stderr, never a traceback.
 """
 
 from __future__ import annotations
@@ -14,11 +16,12 @@ from pathlib import Path
 from typing import Sequence
 
 from mrctl import __version__
+from mrctl.errors import ExitCode, MrctlError
 from mrctl.util.jsonutil import jsonable
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_BAD_INPUT = 2
+EXIT_OK = ExitCode.OK
+EXIT_FAILURE = ExitCode.FAILURE
+EXIT_BAD_INPUT = ExitCode.BAD_INPUT
 
 
 def _err(msg: str) -> None:
@@ -80,7 +83,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from mrctl.daemon.service import default_status_socket, query_status
+    from mrctl.daemon.status import default_status_socket, query_status
 
     if args.instance:
         path = f"/run/mrctl/{args.instance}/status.sock"
@@ -179,25 +182,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from mrctl.config import ConfigError
-
     try:
-        from mrctl.offline.report import ReportError
-    except ImportError:  # pragma: no cover
-        ReportError = ConfigError  # type: ignore[misc,assignment]
-    try:
-        return args.func(args)
-    except ConfigError as exc:
+        return int(args.func(args))
+    except MrctlError as exc:
         _err(str(exc))
-        return EXIT_BAD_INPUT
-    except ReportError as exc:
-        _err(str(exc))
-        return EXIT_BAD_INPUT
+        return int(exc.exit_code)
     except KeyboardInterrupt:
         _err("interrupted")
-        return 130
+        return int(ExitCode.INTERRUPTED)
     except OSError as exc:
         _err(f"{exc.filename or ''}: {exc.strerror or exc}")
+        return EXIT_FAILURE
+    except Exception as exc:  # noqa: BLE001 - a lab user gets one line, not a traceback
+        _err(f"internal error: {type(exc).__name__}: {exc}")
         return EXIT_FAILURE
 
 

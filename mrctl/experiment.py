@@ -1,7 +1,11 @@
-"""A validated config turned into live objects: the one table of names.
+"""A validated config turned into live objects: the one place of name tables.
 
-Every name a user can write in YAML (excitation ``type``, demand ``type``,
-inverse ``law``) maps to its class here, so adding a law is one entry.
+Every name a user can write in YAML maps to its class through a table:
+excitation ``type`` (:data:`EXCITATIONS`), demand ``type`` and inverse
+``law`` (:mod:`mrctl.laws.registry`), ``backend.type``
+(:data:`mrctl.io.BACKENDS`). ``mrctl simulate`` and ``mrctl run`` (and
+``hil_sim``, for its bench) build what they need through here, so the same
+YAML means the same objects everywhere.
 """
 
 from __future__ import annotations
@@ -9,31 +13,54 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from mrctl.laws import demand as demand_mod
-from mrctl.model import excitation as excitation_mod
 from mrctl.config import ConfigError, Node
-from mrctl.laws.inverse import ConstantCurrent, InverseLaw, PaperInverse, ScheduleCurrent, SmoothInverse
+from mrctl.estimation import VelocityLead
+from mrctl.io import link_class
+from mrctl.io.base import Link
+from mrctl.laws.base import CurrentLaw, DemandLaw, LawContext
+from mrctl.laws.registry import current_laws, demand_laws
+from mrctl.model import excitation as excitation_mod
+from mrctl.model.bench import SimBench
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
+from mrctl.util.csvtable import CsvError, load_series
 
+
+def _excitation_file(c: Node) -> excitation_mod.Sampled:
+    data = load_series(c.path, ("t", "x"))
+    return excitation_mod.Sampled(data["t"], data["x"], data.get("v"))
+
+
+#: excitation.type → profile
 EXCITATIONS: dict[str, Callable[[Node], Any]] = {
     "sine": lambda c: excitation_mod.Sine(c.amplitude_m, c.frequency_hz, c.phase_rad),
     "chirp": lambda c: excitation_mod.Chirp(c.amplitude_m, c.f0_hz, c.f1_hz, c.sweep_s),
-    "file": lambda c: excitation_mod.FromFile(c.path),
+    "file": _excitation_file,
 }
 
-DEMANDS: dict[str, Callable[[Node], Any]] = {
-    "viscous": lambda c: demand_mod.Viscous(c.c_des),
-    "constant": lambda c: demand_mod.ConstantForce(c.F_N),
-    "file": lambda c: demand_mod.FromFile(c.path),
-}
 
-LAWS: dict[str, Callable[[Node, LuGreParams, float, float], InverseLaw]] = {
-    "paper": lambda c, p, I_max, dt: PaperInverse(p, I_max, dt),
-    "smooth": lambda c, p, I_max, dt: SmoothInverse(p, I_max, dt, c.eps_N_per_A, c.max_slew_A_per_s),
-    "constant": lambda c, p, I_max, dt: ConstantCurrent(c.current_A, I_max),
-    "schedule": lambda c, p, I_max, dt: ScheduleCurrent(c.currents_A, c.step_s, I_max, dt),
-}
+def make_excitation(c: Node) -> Any:
+    """The shaker profile of an ``excitation`` section; a bad file is a ConfigError."""
+    try:
+        return EXCITATIONS[c.type](c)
+    except (CsvError, ValueError) as e:
+        raise ConfigError([f"excitation.path: {e}"]) from None
+
+
+def make_sensors(s: Node, seed: int | None = None) -> Sensors | None:
+    """Sensor model of a ``plant.sensors`` section, or None when it would be
+    the identity (the fast path)."""
+    keys = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")
+    if not any(s.get(k) for k in keys):
+        return None
+    return Sensors(s.get("seed", 0) if seed is None else seed, *(s.get(k) for k in keys))
+
+
+def make_sim_bench(params: LuGreParams, excitation: Any, dt: float, driver_tau_s: float | None = None,
+                   sensors: Sensors | None = None, has_load_cell: bool = True) -> SimBench:
+    """The simulated bench (shaker + damper + driver + sensors) both the
+    in-process link and ``hil_sim`` run."""
+    return SimBench(params, excitation, dt, driver_tau_s, sensors, has_load_cell)
 
 
 @dataclass
@@ -45,8 +72,8 @@ class Experiment:
     dt: float
     I_max: float
     excitation: Any
-    demand: Any
-    law: InverseLaw
+    demand: DemandLaw
+    law: CurrentLaw
 
     @property
     def name(self) -> str:
@@ -62,23 +89,55 @@ class Experiment:
 
     def make_sensors(self) -> Sensors | None:
         """Sensor model, or None when it would be the identity (fast path)."""
-        s = self.config.plant.sensors
-        if not any(s.get(k) for k in ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")):
-            return None
-        return Sensors(s.seed, s.x_noise_m, s.v_noise_mps, s.F_noise_N, s.x_lsb_m, s.v_lsb_mps, s.F_lsb_N)
+        return make_sensors(self.config.plant.sensors)
+
+    def make_bench(self) -> SimBench:
+        """The in-process simulated bench (backend sim)."""
+        return make_sim_bench(self.plant_params, self.excitation, self.dt, self.config.plant.driver_tau_s,
+                              self.make_sensors())
+
+    def make_link(self) -> Link:
+        """The link named by ``backend.type`` (the BACKENDS table)."""
+        return link_class(self.config.backend.type).from_config(self.config.backend, self)
+
+    def make_lead(self, link: Link) -> VelocityLead | None:
+        """Latency compensation (``latency.lead_s``): explicit, or 'auto' =
+        1.5 ticks on exchange links (one request/reply per tick + the
+        device's own tick), nothing on split links. None when off."""
+        lead = self.config.latency.lead_s
+        lead_s = (0.0 if link.split else 1.5 * self.dt) if lead == "auto" else float(lead)
+        return VelocityLead(lead_s, self.dt) if lead_s > 0.0 else None
+
+    def law_context(self) -> LawContext:
+        return law_context(self.config)
+
+    def at_rate(self, rate_hz: float) -> "Experiment":
+        """The same experiment at another control rate: laws, demand and every
+        tick count rebuilt for the new period (``link.on_infeasible: reduce_rate``)."""
+        return build(self.config.replace(rate_hz=float(rate_hz)))
+
+
+def law_context(config: Node) -> LawContext:
+    """What laws are built with (file paths in their sections are already
+    resolved against the config's directory by the schema)."""
+    return LawContext(config.parameters, config.safety.I_max, 1.0 / config.rate_hz)
+
+
+def make_laws(config: Node) -> tuple[DemandLaw, CurrentLaw]:
+    """The demand and current laws a config names; a file that cannot be
+    read is a ConfigError naming the key."""
+    ctx = law_context(config)
+    try:
+        dem = demand_laws()[config.demand.type].from_config(config.demand, ctx)
+    except (CsvError, ValueError) as e:
+        raise ConfigError([f"demand.path: {e}"]) from None
+    law = current_laws()[config.inverse.law].from_config(config.inverse, ctx)
+    return dem, law  # type: ignore[return-value]
 
 
 def build(config: Node) -> Experiment:
     """Instantiate the experiment; file-loading errors become ConfigError."""
     dt = 1.0 / config.rate_hz
-    I_max = config.safety.I_max
-    try:
-        exc = EXCITATIONS[config.excitation.type](config.excitation)
-    except ValueError as e:
-        raise ConfigError([f"excitation.path: {e}"]) from None
-    try:
-        dem = DEMANDS[config.demand.type](config.demand)
-    except ValueError as e:
-        raise ConfigError([f"demand.path: {e}"]) from None
-    law = LAWS[config.inverse.law](config.inverse, config.parameters, I_max, dt)
-    return Experiment(config, config.parameters, dt, I_max, exc, dem, law)
+    exc = make_excitation(config.excitation)
+    dem, law = make_laws(config)
+    return Experiment(config, config.parameters, dt, config.safety.I_max, exc, dem, law)

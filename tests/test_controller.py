@@ -16,6 +16,8 @@ class FakeExchangeLink:
     """A device answering exchanges; can go silent or vanish for a while."""
 
     split = False
+    host_clocked = False
+    true_force_N = math.nan
 
     def __init__(self, silent=(), gone=()):
         self.k = 0

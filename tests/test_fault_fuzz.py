@@ -64,7 +64,7 @@ def _custom_names(path: str) -> list[str]:
     if path.endswith("parameters"):
         from mrctl.model.params import LuGreParams
 
-        return ["file", *LuGreParams.names()]
+        return ["file", *LuGreParams.all_names()]
     if path.endswith("registers"):
         from mrctl.io.registers import _ENTRY_KEYS, _TOP_KEYS, QUANTITIES
 

@@ -6,11 +6,17 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from mrctl.laws.base import Measurement
 from mrctl.laws.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import TABLE_I
 from mrctl.model.plant import DamperPlant
 from mrctl.daemon.safety import clamp_current
+
+
+def _m(v: float, x: float = 0.0) -> Measurement:
+    """The sample a law sees: velocity v (m/s), displacement x (m)."""
+    return Measurement(v=v, x=x)
 
 DT = 1e-3
 I_MAX = 1.0
@@ -47,7 +53,7 @@ def test_paper_law_recovers_the_current_of_a_lag_free_plant(z, v, I):
     D = TABLE_I.sigma0A * z + TABLE_I.sigma1A * law.model.zdot(v, I) + TABLE_I.sigma2A * v
     assume(abs(D) > 0.5)  # eq (12) is ill-conditioned where ∂F/∂I vanishes
     F = _force_with_frozen_zdot(z, v, I, I)
-    assert law.current(v, F) == pytest.approx(I, abs=1e-9)
+    assert law.current(_m(v), F) == pytest.approx(I, abs=1e-9)
 
 
 @settings(max_examples=300, deadline=None)
@@ -57,7 +63,7 @@ def test_paper_law_inverts_its_own_force_model_for_any_new_current(z, v, I, I_tr
     D = TABLE_I.sigma0A * z + TABLE_I.sigma1A * law.model.zdot(v, I) + TABLE_I.sigma2A * v
     assume(abs(D) > 0.5)
     F = _force_with_frozen_zdot(z, v, I_true, I)
-    assert law.current(v, F) == pytest.approx(I_true, abs=1e-8)
+    assert law.current(_m(v), F) == pytest.approx(I_true, abs=1e-8)
 
 
 @settings(max_examples=300, deadline=None)
@@ -65,7 +71,7 @@ def test_paper_law_inverts_its_own_force_model_for_any_new_current(z, v, I, I_tr
 def test_smooth_law_recovers_the_current_exactly_at_steady_current(z, v, I):
     law = _law_at_state(SmoothInverse, z, v, I)
     F = _force_with_frozen_zdot(z, v, I, I)
-    assert law.current(v, F) == pytest.approx(I, abs=1e-9)  # no regularisation bias here
+    assert law.current(_m(v), F) == pytest.approx(I, abs=1e-9)  # no regularisation bias here
 
 
 @settings(max_examples=300, deadline=None)
@@ -73,7 +79,7 @@ def test_smooth_law_recovers_the_current_exactly_at_steady_current(z, v, I):
 def test_smooth_law_moves_toward_the_true_current_within_its_slew_bound(z, v, I, I_true):
     law = _law_at_state(SmoothInverse, z, v, I)
     F = _force_with_frozen_zdot(z, v, I_true, I)
-    I_new = law.current(v, F)
+    I_new = law.current(_m(v), F)
     assert abs(I_new - I) <= law.max_step_A + 1e-12
     assert abs(I_new - I_true) <= abs(I - I_true) + 1e-12  # never further away
     if abs(I_true - I) <= law.max_step_A:
@@ -89,7 +95,7 @@ def test_closed_loop_law_state_equals_plant_state_without_lag():
     for k in range(3000):
         t = k * DT
         v = 0.0628 * math.cos(2 * math.pi * t)
-        I = law.current(v, 500.0 * v)
+        I = law.current(_m(v), 500.0 * v)
         plant.tick(v, I)
         assert law.model.z == plant.model.z
 
@@ -97,21 +103,21 @@ def test_closed_loop_law_state_equals_plant_state_without_lag():
 def test_paper_clamps_and_non_finite_results():
     law = _law_at_state(PaperInverse, 0.0, 0.0, 0.0)
     # z = v = 0: denominator exactly 0 → ±inf or NaN, clamped to I_max / 0 A
-    assert law.current(0.0, 5.0) == I_MAX
+    assert law.current(_m(0.0), 5.0) == I_MAX
     law = _law_at_state(PaperInverse, 0.0, 0.0, 0.0)
-    assert law.current(0.0, -5.0) == 0.0
+    assert law.current(_m(0.0), -5.0) == 0.0
     law = _law_at_state(PaperInverse, 0.0, 0.0, 0.0)
-    assert law.current(0.0, 0.0) == 0.0  # 0/0 = NaN → the safe side
+    assert law.current(_m(0.0), 0.0) == 0.0  # 0/0 = NaN → the safe side
     law = _law_at_state(PaperInverse, 2e-5, 0.05, 0.2)
-    assert law.current(0.05, 1e6) == I_MAX
+    assert law.current(_m(0.05), 1e6) == I_MAX
     law = _law_at_state(PaperInverse, 2e-5, 0.05, 0.2)
-    assert law.current(0.05, -1e6) == 0.0
+    assert law.current(_m(0.05), -1e6) == 0.0
 
 
 @pytest.mark.parametrize("cls", [PaperInverse, SmoothInverse])
 def test_nan_demand_gives_zero_current(cls):
     law = _law_at_state(cls, 2e-5, 0.05, 0.3)
-    assert law.current(0.05, math.nan) == 0.0
+    assert law.current(_m(0.05), math.nan) == 0.0
 
 
 def test_safety_clamp():
@@ -124,7 +130,7 @@ def test_safety_clamp():
 
 def test_constant_law_and_argument_checks():
     law = ConstantCurrent(0.25, 0.6)
-    assert law.current(0.1, 99.0) == 0.25
+    assert law.current(_m(0.1), 99.0) == 0.25
     with pytest.raises(ValueError):
         ConstantCurrent(0.7, 0.6)
     with pytest.raises(ValueError):
@@ -135,8 +141,8 @@ def test_constant_law_and_argument_checks():
 
 def test_schedule_law_steps_through_currents_then_zero():
     law = ScheduleCurrent([0.1, 0.3], step_s=0.002, I_max=0.6, dt=DT)
-    assert [law.current(0.0, 0.0) for _ in range(6)] == [0.1, 0.1, 0.3, 0.3, 0.0, 0.0]
+    assert [law.current(_m(0.0), 0.0) for _ in range(6)] == [0.1, 0.1, 0.3, 0.3, 0.0, 0.0]
     law.reset()
-    assert law.current(0.0, 0.0) == 0.1
+    assert law.current(_m(0.0), 0.0) == 0.1
     with pytest.raises(ValueError):
         ScheduleCurrent([0.1, 0.9], 1.0, 0.6, DT)

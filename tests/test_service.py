@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import mrctl.daemon.service as service
-from mrctl.io.base import LinkTimeout, Sample
+from mrctl.io.base import Link, LinkTimeout, Sample
 from mrctl.daemon.recorder import read_run, read_sidecar
-from mrctl.daemon.service import RunOptions, Service, query_status
+from mrctl.daemon.service import RunOptions, Service
+from mrctl.daemon.status import query_status
+from mrctl.experiment import Experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG5 = (ROOT / "config" / "experiments" / "fig5.yaml").read_text()
@@ -87,14 +88,14 @@ class Spy:
 @pytest.fixture
 def spy_backend(monkeypatch):
     holder = {}
-    orig = service.make_backend
+    orig = Experiment.make_link
 
     def install(**kw):
         def fake(exp):
             holder["spy"] = Spy(orig(exp), **kw)
             return holder["spy"]
 
-        monkeypatch.setattr(service, "make_backend", fake)
+        monkeypatch.setattr(Experiment, "make_link", fake)
         return holder
 
     return install
@@ -361,3 +362,75 @@ def test_device_pacing_without_an_enable_register_exits_2_at_0A(tmp_path, capsys
     I, _enable, t_ns = state.setpoint()
     assert t_ns > 0 and I == 0.0
     assert state.setpoints_received >= 2  # the start-up 0 A and the stop's 0 A
+
+
+class SlowProbeLink(Link):
+    """An exchange link whose round trip is 1.2 ms while the start-up probe
+    runs (too slow for 1 kHz, fine for 500 Hz), instant afterwards, and
+    silent from exchange ``silent_from`` on (the link is lost)."""
+
+    kinds = ("slow",)
+
+    def __init__(self, probe_exchanges, silent_from):
+        super().__init__(timeout_s=0.01)
+        self.slow_until = 1 + probe_exchanges  # the start-up 0 A, then the probe
+        self.silent_from = silent_from
+        self.n = 0
+        self._open = False
+
+    @classmethod
+    def from_config(cls, cfg, context=None):
+        raise NotImplementedError
+
+    @property
+    def is_open(self):
+        return self._open
+
+    def _open_transport(self):
+        self._open = True
+
+    def _close_transport(self):
+        self._open = False
+
+    def describe(self):
+        return "slow test link"
+
+    def _transact(self, current_A, deadline, wake_ns):
+        self.n += 1
+        if self.n <= self.slow_until:
+            end = time.perf_counter() + 1.2e-3
+            while time.perf_counter() < end:
+                pass
+        if self.n >= self.silent_from:
+            raise LinkTimeout("no reply")
+        k = self.n
+        return Sample(k, k * 2e-3, 0.0, 0.06 * math.cos(k * 2e-3 * 2 * math.pi), math.nan, 0)
+
+
+def test_reduced_rate_rebuilds_every_tick_count_and_filter(tmp_path, monkeypatch):
+    """link.on_infeasible: reduce_rate: the link-loss and reconnect tick
+    counts, the velocity-lead filter, the laws and the loop all run at the
+    reduced rate, so link_loss_s lasts what the user configured."""
+    link = SlowProbeLink(probe_exchanges=20, silent_from=400)
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
+    cfg = _config(tmp_path, extra="link: {on_infeasible: reduce_rate, probe_exchanges: 20}\n"
+                                  "latency: {lead_s: auto}\n",
+                  **{"safety: {I_max: 0.6}": "safety: {I_max: 0.6, link_loss_s: 0.1, reconnect_interval_s: 0.05}",
+                     "backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    vc = VirtualClock()
+    svc, code, out = _run(cfg, tmp_path, duration=10.0, clock_ns=vc.now, sleep=vc.sleep)
+    assert code == 3 and "link lost" in " ".join(svc.messages)
+    assert svc.loop.rate_hz == 500.0 and svc.exp.dt == pytest.approx(2e-3)
+    ctl = svc.ctl
+    assert ctl.link_loss_ticks == 50 and ctl.reconnect_every_ticks == 25
+    assert ctl.lead is not None and ctl.lead.dt == pytest.approx(2e-3) and ctl.lead.lead_s == pytest.approx(3e-3)
+    assert ctl.law.dt == pytest.approx(2e-3)
+    cols = read_run(out)
+    lost = np.isnan(cols["seq"])
+    first = int(np.argmax(lost))
+    assert lost[first:].all()
+    # the link was lost for link_loss_s (0.1 s), not twice that
+    assert cols["t"][-1] - cols["t"][first] == pytest.approx(0.1, abs=2.5e-3)
+    # a reload at the reduced rate builds its laws for that rate too
+    svc._reload()
+    assert ctl.pending is not None and ctl.pending[0].dt == pytest.approx(2e-3)

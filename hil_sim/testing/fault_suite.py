@@ -91,7 +91,7 @@ class Daemon:
             cwd=ROOT, env=env(), stdout=subprocess.DEVNULL, stderr=self._err)
 
     def status(self) -> dict[str, Any] | None:
-        from mrctl.daemon.service import query_status
+        from mrctl.daemon.status import query_status
 
         try:
             return query_status(self.sock, timeout_s=1.0)

@@ -12,6 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from mrctl.config.params import params_check
+from mrctl.laws.base import LawContext
+from mrctl.laws.registry import current_laws, demand_laws
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import (
     Bool,
@@ -22,6 +24,7 @@ from mrctl.util.schema import (
     Section,
     Str,
     Union,
+    bind_paths,
     check_num,
     file_check,
     load_yaml,
@@ -35,17 +38,6 @@ CONFIG_VERSION = 1
 SPIN_WAIT_DOC = ("wait for each reply by polling, busy for one round trip (device pacing: for the last "
                  "loop.spin_margin_s of it), instead of sleeping in select(): a sleeping thread can wake "
                  "up to ~1.5 ms late on a VM")
-
-
-def _current_list(value: Any, path: str) -> tuple[Any, list[str]]:
-    if not isinstance(value, list) or not value:
-        return None, [f"{path}: must be a non-empty list of currents (A)"]
-    out, errors = [], []
-    for i, v in enumerate(value):
-        num, errs = check_num(Num(min=0.0), v, f"{path}[{i}]")
-        out.append(num)
-        errors += errs
-    return out, errors
 
 
 def _cpu_list(value: Any, path: str) -> tuple[Any, list[str]]:
@@ -111,20 +103,10 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
             "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
         }, doc="shaker motion on the simulated bench"),
-        "demand": Union("type", {
-            "viscous": {"c_des": Num(min=0.0, max=1e5, doc="desired damping (N·s/m), eq (13)")},
-            "constant": {"F_N": Num(min=-1e4, max=1e4, doc="desired force (N)")},
-            "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,F_des (s, N)")},
-        }, doc="desired-force law"),
-        "inverse": Union("law", {
-            "paper": {},
-            "smooth": {"eps_N_per_A": Num(default=3.0, min=0.0, max=1e4, doc="regularisation: hold where dF/dI is below this (N/A)"),
-                       "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6,
-                                               doc="driver slew rate the law respects (A/s)")},
-            "constant": {"current_A": Num(min=0.0, doc="the current (A), <= safety.I_max")},
-            "schedule": {"currents_A": Custom(_current_list, doc="list of currents (A), each held step_s, then 0 A"),
-                         "step_s": Num(min=0.0, min_exclusive=True, doc="time per current (s)")},
-        }, doc="inverse law"),
+        "demand": Union("type", {name: bind_paths(cls.params, base_dir) for name, cls in demand_laws().items()},
+                        doc="desired-force law (mrctl.laws: built-ins and plugins)"),
+        "inverse": Union("law", {name: bind_paths(cls.params, base_dir) for name, cls in current_laws().items()},
+                         doc="current law: an inverse law for demand's force, or a law that decides the current"),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
             "max_slew_A_per_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
@@ -181,7 +163,9 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                                  doc="the simulated damper's own parameter set (same forms as parameters); "
                                      "null = the law's set. Set it to test a law with identified parameters "
                                      "against a known damper"),
-            "driver_tau_s": Num(default=0.0, min=0.0, max=1.0, doc="current-driver lag (s), 0 = ideal"),
+            "driver_tau_s": Num(default=None, optional=True, min=0.0, max=1.0,
+                                doc="input lag of the simulated damper (s), 0 = ideal; null = the plant "
+                                    "parameter set's tau_input"),
             "sensors": Section({
                 "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),
                 "x_noise_m": Num(default=0.0, min=0.0, doc="std dev of displacement noise (m)"),
@@ -228,7 +212,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
     }
 
 
-def _cross_checks(cfg: Node) -> list[str]:
+def _cross_checks(cfg: Node, base_dir: Path) -> list[str]:
     """Rules that span keys (each still names the key to fix)."""
     errors: list[str] = []
     I_max = cfg.safety.get("I_max") if "safety" in cfg else None
@@ -238,15 +222,12 @@ def _cross_checks(cfg: Node) -> list[str]:
     plant_params = cfg.plant.get("parameters") if "plant" in cfg else None
     if isinstance(plant_params, LuGreParams) and isinstance(I_max, float):
         errors += [f"plant.parameters: {e}" for e in plant_params.check_range(I_max)]
-    inv = cfg.get("inverse")
-    if inv is not None and inv.get("law") == "constant" and isinstance(I_max, float):
-        cur = inv.get("current_A")
-        if isinstance(cur, float) and cur > I_max:
-            errors.append(f"inverse.current_A: {cur:g} A exceeds safety.I_max = {I_max:g} A")
-    if inv is not None and inv.get("law") == "schedule" and isinstance(I_max, float):
-        for i, cur in enumerate(inv.get("currents_A") or []):
-            if isinstance(cur, float) and cur > I_max:
-                errors.append(f"inverse.currents_A[{i}]: {cur:g} A exceeds safety.I_max = {I_max:g} A")
+    if isinstance(params, LuGreParams) and isinstance(I_max, float):
+        ctx = LawContext(params, I_max, 1.0 / cfg.rate_hz, base_dir)
+        for section, table, key in (("demand", demand_laws(), "type"), ("inverse", current_laws(), "law")):
+            node = cfg.get(section)
+            if node is not None and node.get(key) in table:
+                errors += [f"{section}.{e}" for e in table[node.get(key)].check(node, ctx)]
     loop, backend = cfg.get("loop"), cfg.get("backend")
     if loop is not None and loop.get("pacing") == "device" and backend is not None and backend.get("type") == "sim":
         errors.append("loop.pacing: 'device' needs a device with its own clock (a serial or Modbus backend); "
@@ -268,7 +249,7 @@ def validate_experiment(data: Any, base_dir: Path, source: str | None = None) ->
     schema["safety"] = Section(schema["safety"].fields, optional=False)
     node, errors = validate_fields(schema, data, "")
     if not errors:
-        errors = _cross_checks(node)
+        errors = _cross_checks(node, base_dir)
     if errors:
         raise ConfigError(errors, source)
     return node

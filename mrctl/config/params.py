@@ -24,10 +24,10 @@ def load_params_file(path: str | Path) -> LuGreParams:
         raise ConfigError(["must be a mapping of parameter names to numbers"], str(path))
     values = {k: v for k, v in data.items() if k not in _PARAM_FILE_META}
     errors = []
-    known = set(LuGreParams.names())
+    known = set(LuGreParams.all_names())
     for k in values:
         if k not in known:
-            errors.append(f"{k}: unknown parameter (expected: {', '.join(LuGreParams.names())})")
+            errors.append(f"{k}: unknown parameter (expected: {', '.join(LuGreParams.all_names())})")
     if errors:
         raise ConfigError(errors, str(path))
     try:
@@ -59,10 +59,10 @@ def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
                 return None, [f"{path}.file ({full}): {e}" for e in exc.errors]
         errors = []
         good: dict[str, float] = {}
-        known = set(LuGreParams.names())
+        known = set(LuGreParams.all_names())
         for k, v in overrides.items():
             if k not in known:
-                errors.append(f"{path}.{k}: unknown parameter (expected: file, {', '.join(LuGreParams.names())})")
+                errors.append(f"{path}.{k}: unknown parameter (expected: file, {', '.join(LuGreParams.all_names())})")
             elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
                 errors.append(f"{path}.{k}: must be a finite number, got {v!r}")
             else:

@@ -27,27 +27,18 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
-from mrctl.io.base import Disconnected, LinkError
 from mrctl.daemon.safety import SafetySupervisor
+from mrctl.estimation import VelocityLead
+from mrctl.io.base import Disconnected, Link, LinkError, Sample
+from mrctl.laws.base import CurrentLaw, DemandLaw, Measurement
+from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: F401 - re-exported for callers
 
-#: Columns of the run log: the core six of ``mrctl simulate`` first.
-RUN_COLUMNS = (
-    "t", "x", "v", "F_des", "F", "I",
-    "k", "seq", "t_dev", "I_applied", "F_true", "late_us", "compute_us", "fault", "link_errors",
-)
-#: Their text formats. 9 significant digits are far below any sensor's
-#: resolution, and format 5x faster than exact repr (2.9 vs 14 us per row):
-#: the writer thread shares the GIL with the loop. Counters and clocks get 10
-#: digits, exact for integers below 1e10 and to 1 us for device times.
-RUN_FORMATS = {c: "%.9g" for c in RUN_COLUMNS} | {"t": "%.10g", "k": "%.10g", "seq": "%.10g", "t_dev": "%.10g"}
+if TYPE_CHECKING:
+    from mrctl.daemon.loop import FixedRateLoop
 
 NAN = math.nan
-
-
-class DriverLost(Exception):
-    """The current driver could not be commanded within the tick budget."""
 
 
 class Controller:
@@ -55,9 +46,9 @@ class Controller:
 
     def __init__(
         self,
-        backend: Any,
-        law: Any,
-        demand: Any,
+        backend: Link,
+        law: CurrentLaw,
+        demand: DemandLaw | None,
         supervisor: SafetySupervisor,
         dt: float,
         record: Callable[..., None] | None = None,
@@ -65,7 +56,7 @@ class Controller:
         driver_retries: int = 2,
         link_loss_ticks: int = 100,
         reconnect_every_ticks: int = 50,
-        lead_s: float = 0.0,
+        lead: VelocityLead | None = None,
     ) -> None:
         self.backend = backend
         self.law = law
@@ -79,25 +70,24 @@ class Controller:
         self.reconnect_every_ticks = max(1, reconnect_every_ticks)
         self.consecutive_failures = 0
         self.reconnects = 0
-        from mrctl.estimation import VelocityLead
-
-        #: latency compensation (mrctl/estimation.py); None when lead_s == 0
-        self.lead = VelocityLead(lead_s, dt) if lead_s > 0.0 else None
+        #: latency compensation (mrctl/estimation.py); None when off
+        self.lead = lead
         self._k_prev = -1
-        self.split = bool(getattr(backend, "split", False))
-        self._begin = getattr(backend, "begin_tick", None) if getattr(backend, "host_clocked", False) else None
-        self._truth = (lambda: backend.true_force_N) if hasattr(backend, "true_force_N") else (lambda: NAN)
+        self.split = backend.split
+        self._begin = backend.begin_tick if backend.host_clocked else None
+        #: what the laws see, rewritten in place every tick
+        self.meas = Measurement()
         self.I_next = 0.0  # exchange shape: the current to send on the next tick
         self.I_last = 0.0  # last current actually commanded (A)
         self.link_errors = 0
         self.ticks = 0
         self.stopped_reason: str | None = None
-        self.loop: Any = None  # the FixedRateLoop, for the per-row lateness column
-        self.pending: tuple[Any, Any] | None = None  # (law, demand) from a reload
+        self.loop: FixedRateLoop | None = None  # for the per-row lateness column
+        self.pending: tuple[CurrentLaw, DemandLaw | None] | None = None  # (law, demand) from a reload
         # live values for the status socket (plain attribute stores per tick)
         self.last_x = self.last_v = self.last_F_des = NAN
         # device pacing state (acquire / tick_paced)
-        self._acq: tuple[Any, bool] = (None, True)
+        self._acq: tuple[Sample | None, bool] = (None, True)
         self._seq0: int | None = None
         self._k0 = 0
         self._k_paced = -1
@@ -105,7 +95,18 @@ class Controller:
         self._period_ns = round(dt * 1e9)
 
     # ------------------------------------------------------------------
-    def swap_laws(self, law: Any, demand: Any) -> None:
+    def set_rate(self, dt: float, link_loss_ticks: int, reconnect_every_ticks: int,
+                 lead: VelocityLead | None) -> None:
+        """Everything in the controller that counts ticks or integrates over
+        ``dt`` (``link.on_infeasible: reduce_rate`` changes the period
+        before the loop starts)."""
+        self.dt = dt
+        self._period_ns = round(dt * 1e9)
+        self.link_loss_ticks = link_loss_ticks
+        self.reconnect_every_ticks = max(1, reconnect_every_ticks)
+        self.lead = lead
+
+    def swap_laws(self, law: CurrentLaw, demand: DemandLaw | None) -> None:
         """Take new laws at a tick boundary (SIGHUP reload). The new inverse
         law starts from the current actually commanded, so no step appears."""
         law.reset(I0=self.I_last)
@@ -164,7 +165,7 @@ class Controller:
         self._k_paced = k
         return self._finish(k, now_ns, sample, 0.0, go_on, late_us)
 
-    def _acquire(self) -> tuple[Any, bool]:
+    def _acquire(self) -> tuple[Sample | None, bool]:
         """Read (split) or exchange; (sample or None, go on)."""
         backend = self.backend
         sample = None
@@ -192,7 +193,7 @@ class Controller:
             go_on = False
         return sample, go_on
 
-    def _finish(self, k: int, now_ns: int, sample: Any, age_s: float, go_on: bool, late_us: float) -> bool:
+    def _finish(self, k: int, now_ns: int, sample: Sample | None, age_s: float, go_on: bool, late_us: float) -> bool:
         """Safety check, laws, command, record: the non-blocking part of a tick."""
         sup = self.sup
         s = sup.check_sample(sample, age_s)
@@ -204,8 +205,18 @@ class Controller:
             if lead is not None:  # the state when this current will act
                 v = lead.update(v, k - self._k_prev if self._k_prev >= 0 else 1)
                 self._k_prev = k
-            F_des = self.demand.force(t, x, v)
-            I_law = self.law.current(v, F_des)
+            m = self.meas
+            m.k = k
+            m.t = t
+            m.x = x
+            m.v = v
+            m.F = s.F_N
+            m.I_applied = s.current_A
+            m.I_cmd = self.I_last
+            m.status = s.status
+            demand = self.demand
+            F_des = demand.force(m) if demand is not None else NAN
+            I_law = self.law.current(m, F_des)
         else:
             x = v = F_des = NAN
             I_law = 0.0
@@ -230,7 +241,7 @@ class Controller:
             else:
                 seq = t_dev = F = I_app = NAN
             end = self.clock_ns()
-            rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self._truth(), late_us,
+            rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self.backend.true_force_N, late_us,
                 (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
         return go_on  # even the tick that ends the run is logged
 
@@ -256,35 +267,53 @@ class Controller:
             pass
 
     def safe_stop(self, budget_s: float = 0.25, min_attempts: int = 3) -> str | None:
-        """Command 0 A, at start and on the way out, whatever the reason;
-        returns what went wrong if even that failed (the caller reports it,
-        saying when), None on success.
-        Retried for ``budget_s`` (at least ``min_attempts`` times): a link
-        that stalls at that moment must not leave the coil energised or the
-        start refused (the device's own watchdog is the last resort)."""
-        last = ""
-        n = 0
-        deadline = time.monotonic() + budget_s
-        while n < min_attempts or time.monotonic() < deadline:
-            n += 1
-            try:
-                if self.split:
-                    self.backend.write(0.0)
-                else:
-                    self.backend.exchange(0.0)
-                self.I_last = 0.0
-                self.I_next = 0.0
-                return None
-            except Disconnected as exc:
-                last = str(exc)
-                self._reconnect()
-            except LinkError as exc:
-                last = str(exc)
-            except Exception as exc:  # noqa: BLE001 - the last line of defence must not raise
-                return f"{type(exc).__name__}: {exc}"
-            # a link that fails at once (unplugged) is retried every ~1 ms, not
-            # thousands of times: each retry reopens the port
-            pause = min(1e-3, deadline - time.monotonic())
-            if pause > 0:
-                time.sleep(pause)
-        return f"{last} ({n} attempts in {budget_s:g} s)"
+        """Command 0 A on the way out (:func:`safe_zero`, reopening a vanished
+        link); None on success, else what went wrong."""
+        err = safe_zero(self.backend, budget_s, min_attempts, self._reconnect)
+        if err is None:
+            self.I_last = 0.0
+            self.I_next = 0.0
+        return err
+
+
+def safe_zero(link: Link, budget_s: float = 0.25, min_attempts: int = 3,
+              reconnect: Callable[[], None] | None = None) -> str | None:
+    """Command 0 A, at start and on the way out, whatever the reason; returns
+    what went wrong if even that failed (the caller reports it, saying
+    when), None on success.
+
+    Retried for ``budget_s`` (at least ``min_attempts`` times): a link that
+    stalls at that moment must not leave the coil energised or the start
+    refused (the device's own watchdog is the last resort). A vanished link
+    is reopened between attempts."""
+    last = ""
+    n = 0
+    deadline = time.monotonic() + budget_s
+    while n < min_attempts or time.monotonic() < deadline:
+        n += 1
+        try:
+            if link.split:
+                link.write(0.0)
+            else:
+                link.exchange(0.0)
+            return None
+        except Disconnected as exc:
+            last = str(exc)
+            if reconnect is not None:
+                reconnect()
+            else:
+                try:
+                    link.close()
+                    link.open()
+                except (LinkError, OSError):
+                    pass
+        except LinkError as exc:
+            last = str(exc)
+        except Exception as exc:  # noqa: BLE001 - the last line of defence must not raise
+            return f"{type(exc).__name__}: {exc}"
+        # a link that fails at once (unplugged) is retried every ~1 ms, not
+        # thousands of times: each retry reopens the port
+        pause = min(1e-3, deadline - time.monotonic())
+        if pause > 0:
+            time.sleep(pause)
+    return f"{last} ({n} attempts in {budget_s:g} s)"

@@ -46,6 +46,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 _MCL_CURRENT = 1
 _MCL_FUTURE = 2
@@ -63,6 +64,12 @@ class RtSettings:
     timer_slack_ns: int | None = None
     gc_freeze: bool = False
     gc_disable: bool = False
+
+    @classmethod
+    def from_config(cls, r: Any) -> "RtSettings":
+        """From the validated ``rt`` section."""
+        return cls(fifo_priority=r.fifo_priority, lock_memory=r.lock_memory, cpus=r.cpus,
+                   timer_slack_ns=r.timer_slack_ns, gc_freeze=r.gc_freeze, gc_disable=r.gc_disable)
 
 
 @dataclass(frozen=True)

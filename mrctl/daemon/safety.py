@@ -34,6 +34,9 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, Protocol, TypeVar
 
+from mrctl.io.base import Status
+from mrctl.laws.base import clamp_current
+
 __all__ = [
     "clamp_current",
     "SafetyConfig",
@@ -47,12 +50,6 @@ __all__ = [
 _U32 = 1 << 32
 _U32_HALF = 1 << 31
 
-
-def clamp_current(I: float, I_max: float) -> float:
-    """Clamp to [0, I_max]; NaN → 0 A (comparisons with NaN are false)."""
-    if I > 0.0:
-        return I if I < I_max else I_max
-    return 0.0
 
 
 class SampleLike(Protocol):
@@ -156,6 +153,17 @@ class SafetyConfig:
             raise ValueError(f"resume_good_ticks: must be an int >= 1, got {self.resume_good_ticks!r}")
         if not (math.isfinite(self.dt_s) and self.dt_s > 0.0):
             raise ValueError(f"dt_s: must be finite and > 0, got {self.dt_s!r}")
+
+    @classmethod
+    def from_config(cls, s: Any, dt: float) -> "SafetyConfig":
+        """From the validated ``safety`` section, at tick period ``dt`` (s)."""
+        return cls(
+            I_max=s.I_max, max_slew_A_per_s=s.max_slew_A_per_s, hold_ticks=s.hold_ticks, max_age_s=s.max_age_s,
+            x_range_m=s.x_range_m, v_range_mps=s.v_range_mps, F_range_N=s.F_range_N,
+            require_force=s.require_force,
+            status_fault_mask=int(Status.FAULTS) if s.fault_on_device_status else 0,
+            auto_resume=s.auto_resume, resume_good_ticks=s.resume_good_ticks, dt_s=dt,
+        )
 
 
 @dataclass(frozen=True, slots=True)

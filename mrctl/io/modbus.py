@@ -646,6 +646,10 @@ class ModbusLink:
     kinds = ("modbus-tcp", "modbus-rtu")
     split = False
     host_clocked = False
+    true_force_N = math.nan
+
+    def begin_tick(self, k: int) -> None:
+        pass
 
     @classmethod
     def from_config(cls, cfg: Any, context: Any = None) -> "ModbusLink":

@@ -155,6 +155,10 @@ class SerialLink:
     kinds = ("serial",)
     split = False
     host_clocked = False
+    true_force_N = math.nan
+
+    def begin_tick(self, k: int) -> None:
+        pass
 
     @classmethod
     def from_config(cls, cfg: Any, context: Any = None) -> "SerialLink":

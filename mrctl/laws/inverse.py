@@ -27,33 +27,16 @@ Laws, by the name used in YAML (``inverse.law``):
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from typing import Any
 
+from mrctl.laws.base import CurrentLaw, InverseLaw, LawContext, Measurement
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import LuGreParams
+from mrctl.util.schema import Custom, Num, check_num
 
 
-class InverseLaw(Protocol):
-    """What the controller needs from an inverse law."""
-
-    name: str
-    I_max: float
-
-    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None: ...
-
-    def current(self, v: float, F_des: float) -> float:
-        """Current (A) in [0, I_max] for measured velocity v (m/s), desired F_des (N)."""
-        ...
-
-    def applied(self, I: float) -> None:
-        """Tell the law what was actually commanded (after safety), for its state."""
-        ...
-
-
-class _ModelBasedLaw:
+class _ModelBasedLaw(InverseLaw):
     """Shared state handling: the law's own LuGre model and previous current."""
-
-    name = "base"
 
     def __init__(self, params: LuGreParams, I_max: float, dt: float) -> None:
         if not I_max > 0.0:
@@ -71,8 +54,14 @@ class _ModelBasedLaw:
         self._zdot = self.model.zdot
         self._B = (params.sigma0B, params.sigma1B, params.sigma2B)
         self._A = (params.sigma0A, params.sigma1A, params.sigma2A)
+        self._Fo = params.F_offset
+        self._kx = params.k_x
 
-    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None:
+    @classmethod
+    def from_config(cls, cfg: Any, ctx: LawContext) -> "_ModelBasedLaw":
+        return cls(ctx.params, ctx.I_max, ctx.dt, **{k: cfg.get(k) for k in cls.params})
+
+    def reset(self, I0: float = 0.0, z0: float = 0.0, v0: float = 0.0) -> None:
         self.model.reset(z0, v0)
         self.I_prev = I0
         self._started = False
@@ -97,8 +86,12 @@ class PaperInverse(_ModelBasedLaw):
     """Eq (12) as published (Palka & Maślanka 2013), then clamped to [0, I_max]."""
 
     name = "paper"
+    summary = "eq (12) as published: spikes where the force changes sign"
 
-    def current(self, v: float, F_des: float) -> float:
+    def current(self, m: Measurement, F_des: float) -> float:
+        v = m.v
+        if self._kx != 0.0 or self._Fo != 0.0:
+            F_des -= self._Fo + self._kx * m.x
         Ip = self.I_prev
         z = self._adv(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
@@ -145,6 +138,12 @@ class SmoothInverse(_ModelBasedLaw):
     """
 
     name = "smooth"
+    summary = "eq (12) regularised toward the previous current, inside the driver's slew bound"
+    params = {
+        "eps_N_per_A": Num(default=3.0, min=0.0, max=1e4, doc="regularisation: hold where dF/dI is below this (N/A)"),
+        "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6,
+                                doc="driver slew rate the law respects (A/s)"),
+    }
 
     def __init__(
         self,
@@ -162,7 +161,10 @@ class SmoothInverse(_ModelBasedLaw):
         self.eps2 = float(eps_N_per_A) ** 2
         self.max_step_A = float(max_slew_A_per_s) * self.dt
 
-    def current(self, v: float, F_des: float) -> float:
+    def current(self, m: Measurement, F_des: float) -> float:
+        v = m.v
+        if self._kx != 0.0 or self._Fo != 0.0:
+            F_des -= self._Fo + self._kx * m.x
         Ip = self.I_prev
         z = self._adv(v, Ip, self.dt) if self._started else self._first(v)
         zdot = self._zdot(v, Ip)  # as in eq (12): ż with the previous current
@@ -184,10 +186,23 @@ class SmoothInverse(_ModelBasedLaw):
         return I
 
 
-class ConstantCurrent:
+class ConstantCurrent(CurrentLaw):
     """Open loop: always the same current (identification runs)."""
 
     name = "constant"
+    summary = "a fixed current, open loop"
+    params = {"current_A": Num(min=0.0, doc="the current (A), <= safety.I_max")}
+
+    @classmethod
+    def from_config(cls, cfg: Any, ctx: LawContext) -> "ConstantCurrent":
+        return cls(cfg.current_A, ctx.I_max)
+
+    @classmethod
+    def check(cls, cfg: Any, ctx: LawContext) -> list[str]:
+        cur = cfg.get("current_A")
+        if isinstance(cur, float) and cur > ctx.I_max:
+            return [f"current_A: {cur:g} A exceeds safety.I_max = {ctx.I_max:g} A"]
+        return []
 
     def __init__(self, I: float, I_max: float) -> None:
         if not 0.0 <= I <= I_max:
@@ -195,22 +210,41 @@ class ConstantCurrent:
         self.I = float(I)
         self.I_max = float(I_max)
 
-    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None:
-        pass
-
-    def applied(self, I: float) -> None:
-        pass
-
-    def current(self, v: float, F_des: float) -> float:
+    def current(self, m: Measurement, F_des: float) -> float:
         return self.I
 
 
-class ScheduleCurrent:
+def _current_list(value: Any, path: str) -> tuple[Any, list[str]]:
+    if not isinstance(value, list) or not value:
+        return None, [f"{path}: must be a non-empty list of currents (A)"]
+    out, errors = [], []
+    for i, v in enumerate(value):
+        num, errs = check_num(Num(min=0.0), v, f"{path}[{i}]")
+        out.append(num)
+        errors += errs
+    return out, errors
+
+
+class ScheduleCurrent(CurrentLaw):
     """Open-loop staircase: ``currents_A[i]`` for ticks in [i·step, (i+1)·step), then 0 A.
 
     Counts its own ticks (one call per tick), so it needs no clock."""
 
     name = "schedule"
+    summary = "a staircase of constant currents, open loop (identification runs)"
+    params = {
+        "currents_A": Custom(_current_list, doc="list of currents (A), each held step_s, then 0 A"),
+        "step_s": Num(min=0.0, min_exclusive=True, doc="time per current (s)"),
+    }
+
+    @classmethod
+    def from_config(cls, cfg: Any, ctx: LawContext) -> "ScheduleCurrent":
+        return cls(cfg.currents_A, cfg.step_s, ctx.I_max, ctx.dt)
+
+    @classmethod
+    def check(cls, cfg: Any, ctx: LawContext) -> list[str]:
+        return [f"currents_A[{i}]: {cur:g} A exceeds safety.I_max = {ctx.I_max:g} A"
+                for i, cur in enumerate(cfg.get("currents_A") or []) if isinstance(cur, float) and cur > ctx.I_max]
 
     def __init__(self, currents_A: list[float], step_s: float, I_max: float, dt: float) -> None:
         if not currents_A:
@@ -223,13 +257,10 @@ class ScheduleCurrent:
         self.I_max = float(I_max)
         self.k = 0
 
-    def reset(self, z0: float = 0.0, v0: float = 0.0, I0: float = 0.0) -> None:
+    def reset(self, I0: float = 0.0) -> None:
         self.k = 0
 
-    def applied(self, I: float) -> None:
-        pass
-
-    def current(self, v: float, F_des: float) -> float:
+    def current(self, m: Measurement, F_des: float) -> float:
         i = self.k // self.ticks_per_step
         self.k += 1
         return self.currents_A[i] if i < len(self.currents_A) else 0.0

@@ -33,7 +33,7 @@ class SimBench:
         params: LuGreParams,
         excitation,
         dt: float,
-        driver_tau_s: float = 0.0,
+        driver_tau_s: float | None = None,
         sensors: Sensors | None = None,
         has_load_cell: bool = True,
     ) -> None:
@@ -69,8 +69,12 @@ class SimBench:
             self._plant_tick(self.k)
 
     def _plant_tick(self, j: int) -> None:
-        v = self.v if j == self.k else self.excitation.velocity(j * self.dt)
-        self.F = self.plant.tick(v, self.I_cmd)
+        if j == self.k:
+            x, v = self.x, self.v
+        else:
+            t = j * self.dt
+            x, v = self.excitation.position(t), self.excitation.velocity(t)
+        self.F = self.plant.tick(v, self.I_cmd, x)
         self.kp = j
 
     @property

@@ -2,7 +2,8 @@
 
 Each profile gives position and velocity analytically (or by interpolation of
 a file), so the simulated bench has no differentiation noise of its own.
-``settle_s`` is the start-up transient excluded from tracking metrics: the
+Pure numerics: a profile from a file gets its samples from the caller
+(:class:`Sampled`). ``settle_s`` is the start-up transient excluded from tracking metrics: the
 first excitation period, as in the paper's Fig 5 (which starts at 1 s).
 """
 
@@ -10,7 +11,6 @@ from __future__ import annotations
 
 import bisect
 import math
-from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -87,27 +87,6 @@ class Chirp(_PointwiseTrajectory):
         return self.A * rate * math.cos(phase)
 
 
-def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[float]]:
-    """Read a CSV time series with a header naming at least ``columns``.
-
-    Time must start anywhere but strictly increase. Errors are ``ValueError``
-    naming the file, line and column, for the config layer to report."""
-    from mrctl.util.csvtable import read_table
-
-    p = Path(path)
-    table = read_table(p, require=columns)  # CsvError is a ValueError
-    for c in table.columns:
-        table.check_finite(c)
-    out = {c: col.tolist() for c, col in table.columns.items()}
-    t = out[columns[0]]
-    if len(t) < 2:
-        raise ValueError(f"{p}: needs at least 2 data rows")
-    for i in range(1, len(t)):
-        if not t[i] > t[i - 1]:
-            raise ValueError(f"{p}: line {table.lines[i]}: {columns[0]} must strictly increase")
-    return out
-
-
 class Interpolator:
     """Linear interpolation in a strictly increasing table, O(1) amortised for
     monotone queries (the common case in a loop), held at the ends."""
@@ -133,17 +112,14 @@ class Interpolator:
         return self.y[i] + w * (self.y[i + 1] - self.y[i])
 
 
-class FromFile(_PointwiseTrajectory):
-    """Displacement from a CSV with columns ``t,x`` (s, m) and optionally ``v``.
+class Sampled(_PointwiseTrajectory):
+    """Displacement from samples ``t, x`` (s, m) and optionally ``v`` (m/s),
+    linearly interpolated and held at the ends (an excitation file: loaded by
+    :mod:`mrctl.experiment`). Without ``v`` the velocity is the central
+    difference of x."""
 
-    Without a ``v`` column the velocity is the central difference of x."""
-
-    def __init__(self, path: str | Path) -> None:
-        data = load_series(path, ("t", "x"))
-        t, x = data["t"], data["x"]
-        if "v" in data:
-            v = data["v"]
-        else:
+    def __init__(self, t: list[float], x: list[float], v: list[float] | None = None) -> None:
+        if v is None:
             n = len(t)
             v = [0.0] * n
             for i in range(n):

@@ -28,11 +28,24 @@ def langevin(x: float) -> float:
 
 @dataclass(frozen=True, slots=True)
 class LuGreParams:
-    """The thirteen constants of Table I; names are the spec's (SI units).
+    """Table I's thirteen constants and three bench terms (SI units).
 
-    The defaults are the paper's Table I, identified for 0 … 0.55 A under a
-    2 Hz sine. ``sigma1`` is negative below ~0.26 A: the fit is not physical
-    there, and the model keeps it because the paper's inverse law assumes it.
+    The first thirteen are the paper's Table I (names as in the spec),
+    identified for 0 … 0.55 A under a 2 Hz sine. ``sigma1`` is negative below
+    ~0.26 A: the fit is not physical there, and the model keeps it because
+    the paper's inverse law assumes it.
+
+    The last three are what real benches add around the damper's friction
+    (docs/identification.md); their defaults (0) leave Table I unchanged:
+
+    - ``F_offset`` (N): a constant force: a gas accumulator's preload, a
+      load cell's zero;
+    - ``k_x`` (N/m): a linear stiffness on displacement (the accumulator);
+    - ``tau_input`` (s): a first-order lag between the commanded input and
+      the input the damper feels (coil inductance, driver).
+
+    The damper's force is then F = F_LuGre(z, v, I_d) + F_offset + k_x·x,
+    where I_d follows the command with time constant ``tau_input``.
     """
 
     F0: float = 2.90  # N, residual Coulomb force at 0 A
@@ -48,6 +61,9 @@ class LuGreParams:
     FsB: float = 0.6466  # N
     vsA: float = -0.0164  # m/(s·A)
     vsB: float = 0.0281  # m/s
+    F_offset: float = 0.0  # N, constant force (accumulator preload, load-cell zero)
+    k_x: float = 0.0  # N/m, stiffness on displacement
+    tau_input: float = 0.0  # s, first-order lag of the input the damper feels
 
     # -- laws (6)–(11) -----------------------------------------------------
     def Fc(self, I: float) -> float:
@@ -77,6 +93,10 @@ class LuGreParams:
         """Stribeck velocity (m/s), eq (11)."""
         return self.vsA * I + self.vsB
 
+    def bench_force(self, x: float) -> float:
+        """The force around the friction (N): F_offset + k_x·x."""
+        return self.F_offset + self.k_x * x
+
     def g(self, v: float, I: float, Fc: float | None = None) -> float:
         """Stribeck function g(v, I) (N), eq (3); ``Fc`` may be given (eq 12 lags it)."""
         if Fc is None:
@@ -93,6 +113,17 @@ class LuGreParams:
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
+        """Table I's thirteen names (the spec's), in its order."""
+        return tuple(f.name for f in fields(cls))[:13]
+
+    @classmethod
+    def bench_names(cls) -> tuple[str, ...]:
+        """The bench terms around the friction: F_offset, k_x, tau_input."""
+        return tuple(f.name for f in fields(cls))[13:]
+
+    @classmethod
+    def all_names(cls) -> tuple[str, ...]:
+        """Every name a parameters file may set."""
         return tuple(f.name for f in fields(cls))
 
     def check_range(self, I_max: float, samples: int = 201) -> list[str]:
@@ -102,6 +133,8 @@ class LuGreParams:
         and needs vs != 0 and sigma0 > 0 for z to stay bounded. Checked on a
         grid, which is exact for the linear laws and ample for eq (6)."""
         problems: list[str] = []
+        if not self.tau_input >= 0.0:
+            problems.append(f"tau_input must be >= 0 s, got {self.tau_input:g}")
         for name, fn in (("sigma0", self.sigma0), ("Fs", self.Fs), ("vs", self.vs), ("Fc", self.Fc)):
             worst = min(fn(I_max * k / (samples - 1)) for k in range(samples))
             if not worst > 0.0:
@@ -120,12 +153,12 @@ def params_from_mapping(data: Any) -> LuGreParams:
     Raises ``ValueError`` naming the offending key; the config layer turns it
     into a user-facing error with the file and key path."""
     if not isinstance(data, dict):
-        raise ValueError(f"parameters must be a mapping of {', '.join(LuGreParams.names())}")
-    known = set(LuGreParams.names())
+        raise ValueError(f"parameters must be a mapping of {', '.join(LuGreParams.all_names())}")
+    known = set(LuGreParams.all_names())
     values: dict[str, float] = {}
     for key, value in data.items():
         if key not in known:
-            raise ValueError(f"{key}: unknown parameter (expected one of {', '.join(LuGreParams.names())})")
+            raise ValueError(f"{key}: unknown parameter (expected one of {', '.join(LuGreParams.all_names())})")
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"{key}: must be a number, got {value!r}")
         if not math.isfinite(float(value)):

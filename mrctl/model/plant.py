@@ -38,22 +38,34 @@ class DriverLag:
 class DamperPlant:
     """The damper as the driver sees it: command in, true force out, once per tick.
 
-    ``tick(v, I_cmd)`` advances the LuGre state over the last interval with
-    the current applied then, updates the driver, and returns the force at
-    this tick with the newly applied current. With τ = 0 this is exactly the
-    tick protocol the inverse laws assume (see :class:`LuGreModel`)."""
+    ``tick(v, I_cmd, x)`` advances the LuGre state over the last interval
+    with the current applied then, updates the driver, and returns the force
+    at this tick with the newly applied current, plus the bench terms
+    F_offset + k_x·x. With no lag this is exactly the tick protocol the
+    inverse laws assume (see :class:`LuGreModel`).
 
-    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started")
+    The input lag is ``driver_tau_s`` when given, else the parameter set's
+    ``tau_input``: a bench key may impose a lag on a set that has none."""
 
-    def __init__(self, params: LuGreParams, dt: float, driver_tau_s: float = 0.0) -> None:
+    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx")
+
+    def __init__(self, params: LuGreParams, dt: float, driver_tau_s: float | None = None) -> None:
         self.model = LuGreModel(params)
-        self.driver = DriverLag(driver_tau_s, dt)
+        self.driver = DriverLag(params.tau_input if driver_tau_s is None else driver_tau_s, dt)
         self.dt = dt
         self.I_applied = 0.0
         self.F = 0.0
         self._started = False
+        self._Fo = params.F_offset
+        self._kx = params.k_x
 
-    def tick(self, v: float, I_cmd: float) -> float:
+    @property
+    def tau_s(self) -> float:
+        """The input lag in effect (s)."""
+        a = self.driver.alpha
+        return 0.0 if a >= 1.0 else -self.dt / math.log(1.0 - a)
+
+    def tick(self, v: float, I_cmd: float, x: float = 0.0) -> float:
         if self._started:
             self.model.advance(v, self.I_applied, self.dt)
         else:
@@ -63,7 +75,12 @@ class DamperPlant:
         I = I_cmd if driver.alpha == 1.0 else driver.update(I_cmd)
         driver.I = I
         self.I_applied = I
-        F = self.F = self.model.force(v, I)
+        F = self.model.force(v, I)
+        if self._kx != 0.0:
+            F += self._Fo + self._kx * x
+        elif self._Fo != 0.0:
+            F += self._Fo
+        self.F = F
         return F
 
 

@@ -41,6 +41,7 @@ from typing import Any, Callable, Mapping, Sequence, TextIO
 
 import numpy as np
 
+from mrctl.errors import BadInput
 from mrctl.util.csvtable import CsvError, read_table
 from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
 
@@ -80,7 +81,7 @@ _SMALL_AH = 1e-8
 _FD_STEP = 1e-7
 
 
-class IdentificationError(Exception):
+class IdentificationError(BadInput):
     """The runs cannot be identified from; the message says why, for the user."""
 
 
@@ -1080,7 +1081,9 @@ def write_params_yaml(result: IdentificationResult, path: str | Path, descriptio
             f"sine tests ({currents.min():g}–{currents.max():g} A, period {result.period_s:.4g} s)"),
         "source": ", ".join(result.sources),
     }
-    doc.update({k: float(v) for k, v in p.as_dict().items()})
+    values = p.as_dict()
+    doc.update({k: float(values[k]) for k in p.names()})
+    doc.update({k: float(values[k]) for k in p.bench_names() if values[k] != 0.0})  # only the terms a fit set
     doc["fit"] = result_metadata(result)
     out = Path(path)
     try:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mrctl.errors import BadInput
 from mrctl.util.csvtable import CsvError, read_table
 from mrctl.runlog.metrics import tracked_force, tracking_summary
 
@@ -31,7 +32,7 @@ REQUIRED_COLUMNS: tuple[str, ...] = ("t", "x", "v", "F_des", "F", "I")
 DEFAULT_SETTLE_S = 1.0
 
 
-class ReportError(Exception):
+class ReportError(BadInput):
     """A run file cannot be reported on; the message says why, for the CLI user."""
 
 

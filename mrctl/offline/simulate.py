@@ -19,7 +19,7 @@ import numpy as np
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
 from mrctl.runlog.metrics import tracking_summary
-from mrctl.daemon.safety import clamp_current
+from mrctl.laws.base import Measurement, clamp_current
 
 CSV_COLUMNS = ("t", "x", "v", "F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")
 CSV_UNITS = ("s", "m", "m/s", "N", "N", "A", "A", "m", "m", "m/s", "N")
@@ -53,7 +53,9 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
 
     The shaker's motion is an open-loop input, so it is computed for the
     whole run up front (numpy); the loop itself is the per-tick plain-float
-    code the daemon runs."""
+    code the daemon runs. The laws see what the daemon's sim link gives
+    them: x and v at tick k, the load cell's reading of the force of tick
+    k − 1, sensor noise drawn in the same order (x, v, F per tick)."""
     n = int(round(duration_s / exp.dt)) + 1
     I_max = exp.I_max
     plant = exp.make_plant()
@@ -63,37 +65,42 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     t_arr = np.arange(n) * exp.dt
     x_arr, v_arr = exp.excitation.trajectory(t_arr)
     ts, xs, vs = t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist()
-    if sensors is None:
-        xms, vms = xs, vs
-    else:
-        xms = [sensors.x(x) for x in xs]
-        vms = [sensors.v(v) for v in vs]
-    cols = {c: array("d", bytes(8 * n)) for c in ("F_des", "F", "I", "I_applied", "z")}
+    cols = {c: array("d", bytes(8 * n)) for c in ("F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")}
     cfd, cf, ci, cia, cz = cols["F_des"], cols["F"], cols["I"], cols["I_applied"], cols["z"]
+    cxm, cvm, cfm = cols["x_meas"], cols["v_meas"], cols["F_meas"]
     # local bindings: attribute lookups cost as much as the physics here
-    demand, current, applied = exp.demand.force, law.current, law.applied
+    demand = exp.demand.force if exp.demand is not None else None
+    current, applied = law.current, law.applied
     ptick, model = plant.tick, plant.model
-    clamp = clamp_current
+    m = Measurement()
+    F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
+    I = 0.0
     t0 = time.perf_counter()
     for k in range(n):
-        vm = vms[k]
-        Fd = demand(ts[k], xms[k], vm)
-        I = current(vm, Fd)
-        Ic = clamp(I, I_max)
+        x, v = xs[k], vs[k]
+        if sensors is None:
+            xm, vm, Fm = x, v, F_prev
+        else:
+            xm, vm, Fm = sensors.x(x), sensors.v(v), sensors.F(F_prev)
+        if k:
+            cfm[k - 1] = Fm
+        m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
+        Fd = demand(m) if demand is not None else math.nan
+        I = current(m, Fd)
+        Ic = clamp_current(I, I_max)
         if Ic != I:  # tell the law only when the guard changed its output
             I = Ic
             applied(I)
-        cf[k] = ptick(vs[k], I)
+        F_prev = cf[k] = ptick(v, I, x)
+        cxm[k], cvm[k] = xm, vm
         cfd[k] = Fd
         ci[k] = I
         cia[k] = plant.I_applied
         cz[k] = model.z
+    cfm[n - 1] = F_prev if sensors is None else sensors.F(F_prev)
     wall = time.perf_counter() - t0
     out = {"t": t_arr, "x": np.asarray(x_arr, float), "v": np.asarray(v_arr, float)}
     out.update({c: np.frombuffer(a, dtype=float) for c, a in cols.items()})
-    out["x_meas"] = np.asarray(xms, float)
-    out["v_meas"] = np.asarray(vms, float)
-    out["F_meas"] = out["F"].copy() if sensors is None else np.array([sensors.F(F) for F in out["F"].tolist()])
     summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], I_max, exp.excitation.settle_s)
     summary["ticks"] = float(n)
     summary["simulated_s"] = (n - 1) * exp.dt

@@ -22,10 +22,12 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-__all__ = ["CsvError", "Table", "read_table"]
+from mrctl.errors import BadInput
+
+__all__ = ["CsvError", "Table", "read_table", "load_series"]
 
 
-class CsvError(ValueError):
+class CsvError(BadInput, ValueError):
     """A table cannot be read; the message names the file, line and column."""
 
 
@@ -128,3 +130,23 @@ def _raise_first_bad_value(p: Path, rows: list[str], linenos: list[int], wanted:
                 float(fields[k])
             except ValueError:
                 raise CsvError(f"{p}: line {n}: column {c} is not a number: {fields[k].strip()!r}") from None
+
+
+def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[float]]:
+    """Read a CSV time series with a header naming at least ``columns``.
+
+    Time must start anywhere but strictly increase. Errors are
+    :class:`CsvError` naming the file, line and column, for the config layer
+    to report with its key path."""
+    p = Path(path)
+    table = read_table(p, require=columns)
+    for c in table.columns:
+        table.check_finite(c)
+    out = {c: col.tolist() for c, col in table.columns.items()}
+    t = out[columns[0]]
+    if len(t) < 2:
+        raise CsvError(f"{p}: needs at least 2 data rows")
+    for i in range(1, len(t)):
+        if not t[i] > t[i - 1]:
+            raise CsvError(f"{p}: line {table.lines[i]}: {columns[0]} must strictly increase")
+    return out

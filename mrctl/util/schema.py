@@ -28,7 +28,7 @@ _REQUIRED = object()
 
 __all__ = [
     "ConfigError", "load_yaml", "Num", "Str", "Bool", "Section", "Union", "Custom", "Node", "REQUIRED",
-    "check_num", "validate_fields", "validate_union", "file_check", "range_check", "optional_bool",
+    "FilePath", "bind_paths", "check_num", "validate_fields", "validate_union", "file_check", "range_check", "optional_bool",
     "schema_markdown",
 ]
 
@@ -139,6 +139,24 @@ class Custom:
     doc: str = ""
 
 
+@dataclass(frozen=True)
+class FilePath:
+    """A path to an existing file, relative to the file that names it.
+
+    Law and profile classes declare their fields without knowing where the
+    config lives; :func:`bind_paths` turns each into a check against the
+    config file's directory when the schema is assembled."""
+
+    default: Any = _REQUIRED
+    doc: str = ""
+
+
+def bind_paths(fields_: Mapping[str, Any], base_dir: Path) -> dict[str, Any]:
+    """``fields_`` with every :class:`FilePath` resolved against ``base_dir``."""
+    return {k: (Custom(file_check(base_dir), default=v.default, doc=v.doc) if isinstance(v, FilePath) else v)
+            for k, v in fields_.items()}
+
+
 class Node:
     """Validated config section: attribute access, read-only, printable."""
 
@@ -165,6 +183,13 @@ class Node:
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (v.to_dict() if isinstance(v, Node) else v) for k, v in self._values.items()}
+
+    def replace(self, **changes: Any) -> "Node":
+        """A copy with top-level keys changed (the config stays read-only)."""
+        unknown = set(changes) - set(self._values)
+        if unknown:
+            raise KeyError(f"not in this section: {', '.join(sorted(unknown))}")
+        return Node({**self._values, **changes})
 
     def __repr__(self) -> str:
         return f"Node({self.to_dict()!r})"

@@ -1,0 +1,70 @@
+"""The monitor thread: everything slow that watches the loop from outside.
+
+It shows the live progress line, sends systemd ``STATUS=`` and
+``WATCHDOG=1`` (the watchdog only while the loop's tick counter advances,
+i.e. from a healthy loop), and runs config reloads off the loop (SIGHUP
+only sets an event). It never touches the link or the laws directly.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable, TextIO
+
+from mrctl.daemon.notify import Notifier
+
+
+class Monitor:
+    """Polls the running service every 50 ms from its own thread."""
+
+    def __init__(self, notifier: Notifier, ticks: Callable[[], int], live_line: Callable[[], str],
+                 reload: Callable[[], None], err: TextIO, live: bool) -> None:
+        self.notifier = notifier
+        self.ticks = ticks
+        self.live_line = live_line
+        self.reload = reload
+        self.err = err
+        self.live = live
+        self.reload_event = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="mrctl-monitor", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        n = self.notifier
+        wd = n.watchdog_s
+        last_ticks = -1
+        last_wd = 0.0
+        last_live = 0.0
+        is_tty = self.err.isatty() if hasattr(self.err, "isatty") else False
+        while not self._stop.wait(0.05):
+            now = time.monotonic()
+            if self.reload_event.is_set():
+                self.reload_event.clear()
+                self.reload()
+            ticks = self.ticks()
+            if wd is not None and now - last_wd >= wd / 2:
+                if ticks > last_ticks:  # the loop is alive: only then feed the watchdog
+                    n.send("WATCHDOG=1")
+                    last_wd = now
+                last_ticks = ticks
+            if now - last_live >= (0.5 if is_tty else 5.0):
+                last_live = now
+                line = self.live_line()
+                if n.enabled:
+                    n.send(f"STATUS={line}")
+                if self.live:
+                    if is_tty:
+                        print("\r" + line[:160].ljust(160), end="", file=self.err, flush=True)
+                    else:
+                        print(line, file=self.err, flush=True)
+        if self.live and is_tty:
+            print(file=self.err, flush=True)
