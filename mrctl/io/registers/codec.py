@@ -7,10 +7,10 @@ what to do with it (nothing, scale, mask, join two little-order words).
 For the default map every read quantity is taken as unpacked, so decoding
 the sample block is ``unpack`` + one ``itemgetter``.
 
-Why not code generated per map (``exec``, as this module once did): it was
-measured to save well under a microsecond per tick against a 1000 µs period
-(bench/register_codec.py, figures in docs/registers.md), and plain tables
-are easier to read, test and debug.
+Why tables and not code generated per map with ``exec`` (which saves
+about a microsecond per tick, bench/register_codec.py, figures in
+docs/registers.md): against a 1000 µs period that does not matter, and
+plain tables are easier to read, test and debug.
 
 Host side: :meth:`RegisterCodec.decode_read` (sample blocks → ReadValues) and
 :meth:`RegisterCodec.encode_write_into` (setpoint → write block); device side
@@ -236,9 +236,9 @@ class RegisterCodec:
                 conv = (lambda e: e & 7) if n == "enable" else host_writer(specs[n])  # enable: bool or flag bits
                 wplan.append((a, i, _words(specs[n].type) if sp else None, conv))
         self._wplan = tuple(wplan)
-        # device write side: per read block (pack, values, ((ReadValues index, slot, words, converter), ...))
+        # device write side: per read block (pack, values, fast tier or None, slow plan); see encode_sample
         self._splan = tuple(
-            (lay.struct.pack, lay.nvalues, tuple(
+            (lay.struct.pack, lay.nvalues, _fast_tier(specs, lay), tuple(
                 (ReadValues._fields.index(n), i, _words(specs[n].type) if sp else None, device_writer(specs[n]))
                 for n, (i, sp) in lay.slots.items()))
             for lay in read_layouts
@@ -255,11 +255,14 @@ class RegisterCodec:
     def decode_read(self, *blocks: bytes | bytearray | memoryview) -> ReadValues:
         """One bytes-like per read block, exactly ``2*count`` bytes each (else ``struct.error``)."""
         unpackers = self._unpackers
-        if len(blocks) != len(unpackers):
+        if len(blocks) == 1 == len(unpackers):
+            v = unpackers[0](blocks[0])
+        elif len(blocks) == len(unpackers):
+            v = ()
+            for unpack, b in zip(unpackers, blocks, strict=True):
+                v += unpack(b)
+        else:
             raise TypeError(f"decode_read takes {len(unpackers)} blocks, got {len(blocks)}")
-        v = unpackers[0](blocks[0])
-        for j in range(1, len(unpackers)):
-            v += unpackers[j](blocks[j])
         if not self._fixes:
             return tuple.__new__(ReadValues, self._pick(v))
         out = list(self._pick(v))
@@ -287,10 +290,26 @@ class RegisterCodec:
 
     # -- device ----------------------------------------------------------------
     def encode_sample(self, s: Sequence[Any]) -> tuple[bytes, ...]:
-        """Bytes of every read block from a Sample (or any 7-sequence in ReadValues order)."""
+        """Bytes of every read block from a Sample (or any 7-sequence in ReadValues order).
+
+        Two tiers per block: the fast one takes the values as they are
+        (float32 and unsigned counters) or through a plain conversion and
+        packs them; if that raises (overflow, NaN or a float in an integer
+        register, a counter out of range), every value goes through its
+        device converter (wrap, saturate, ±inf), which never raises."""
         out = []
-        for pack, n, plan in self._splan:
-            vals: list[Any] = [0] * n
+        for pack, n, fast, plan in self._splan:
+            if fast is not None:
+                pick, fixes = fast
+                try:
+                    vals = list(pick(s))
+                    for j, fix in fixes:
+                        vals[j] = fix(vals[j])
+                    out.append(pack(*vals))
+                    continue
+                except _PACK_ERRORS:
+                    pass
+            vals = [0] * n
             for k, i, words, conv in plan:
                 raw = conv(s[k])
                 if words is None:
@@ -317,6 +336,34 @@ class RegisterCodec:
         if en is None:
             return WriteValues(cur, None, wd)
         return WriteValues(cur, (en & 1) != 0, wd, (en & 2) != 0, (en & 4) != 0)
+
+
+_PACK_ERRORS = (OverflowError, TypeError, ValueError, struct.error)
+
+
+def _fast_tier(specs: dict[str, Any], lay: BlockLayout) -> tuple[Callable[[Any], Any], tuple] | None:
+    """The fast tier of encode_sample for one block: (pick the values in slot
+    order, ((slot, conversion), ...)), or None if a value is split in words."""
+    if any(sp for _, sp in lay.slots.values()):
+        return None
+    order = sorted(lay.slots, key=lambda n: lay.slots[n][0])
+    ks = [ReadValues._fields.index(n) for n in order]
+    pick = itemgetter(*ks) if len(ks) > 1 else (lambda s, k=ks[0]: (s[k],))
+    fixes = []
+    for j, n in enumerate(order):
+        sp = specs[n]
+        k, o = sp.scale, sp.offset
+        identity = k == 1.0 and o == 0.0
+        if not sp.is_integer:
+            if not identity:
+                fixes.append((j, lambda x, k=k, o=o: (x - o) / k))
+        elif n in _COUNTERS and not DATA_TYPES[sp.type][3]:
+            if not identity:
+                mask = (1 << (16 * DATA_TYPES[sp.type][0])) - 1
+                fixes.append((j, lambda x, k=k, o=o, mask=mask: round((x - o) / k) & mask))
+        else:
+            fixes.append((j, device_writer(sp)))
+    return pick, tuple(fixes)
 
 
 def _read_fix(s: Any, i: int, split: bool) -> Callable[[tuple], Any]:
