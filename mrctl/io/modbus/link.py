@@ -48,6 +48,7 @@ can't shift later exchanges by one).
 
 from __future__ import annotations
 
+import abc
 import math
 import time
 from typing import Any, ClassVar, Mapping
@@ -177,35 +178,35 @@ class ModbusLink(Link):
         self._decode_read = rmap.decode_read
         # counters: seq extended to 32 bits (no restarts: see CounterUnwrap), t_dev unwrapped
         seq_mod, t_mod = rmap.counter_modulus("seq"), rmap.counter_modulus("t_dev")
-        self._seq = CounterUnwrap(seq_mod, restarts=False) if seq_mod and seq_mod != 1 << 32 else None
+        self._seq_unwrap = CounterUnwrap(seq_mod, restarts=False) if seq_mod and seq_mod != 1 << 32 else None
         self._seq_local = 0  # exchanges counted when the map has no seq register
         self._clock = CounterUnwrap(t_mod) if t_mod else None
         self.last_exception_code: int | None = None
 
     # -- what a transport supplies ------------------------------------------------
+    @abc.abstractmethod
     def _configure(self, **options: Any) -> None:
         """Check and keep the transport's own constructor options."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _default_timeout(self, fc23: bool) -> float:
         """The per-tick deadline when none was given."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _connect(self) -> Any:
         """Open the byte transport (raises :class:`Disconnected`)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _wrap(self, sock: Any, io: Any) -> Any:
         """An already-open transport as this link's byte transport (:meth:`_attach_transport`)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _exchange_tx(self, tx: Tx, deadline: float, wake_ns: int) -> bytes:
         """Send ``tx.adu`` (write block already packed), return the response's register bytes."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _where(self) -> str:
         """The first part of :meth:`describe`."""
-        raise NotImplementedError
 
     @classmethod
     def from_config(cls, cfg: Any, context: Any = None) -> "ModbusLink":
@@ -216,9 +217,9 @@ class ModbusLink(Link):
                    spin_wait=cfg.spin_wait, **sub._options(cfg))
 
     @classmethod
+    @abc.abstractmethod
     def _options(cls, cfg: Any) -> dict[str, Any]:
         """The transport's own constructor options from the ``backend`` section."""
-        raise NotImplementedError
 
     # -- lifecycle -------------------------------------------------------------------
     @property
@@ -228,8 +229,8 @@ class ModbusLink(Link):
     def _open_transport(self) -> None:
         """Connect; probe FC23 if ``use_fc23`` was None (the probe's error fails open())."""
         self._io = self._connect()
-        if self._seq is not None:
-            self._seq.reset()
+        if self._seq_unwrap is not None:
+            self._seq_unwrap.reset()
         try:
             if self.use_fc23_config is None and self.register_map.fc23_capable:
                 self._probe()
@@ -365,7 +366,7 @@ class ModbusLink(Link):
         if seq is None:
             self._seq_local = (self._seq_local + 1) & _U32
             return self._seq_local
-        return seq if self._seq is None else self._seq(seq) & _U32
+        return seq if self._seq_unwrap is None else self._seq_unwrap(seq) & _U32
 
     def _t_out(self, t_raw: int | float | None) -> float:
         """t_dev in seconds: an integer one unwrapped; none → the host's clock."""
