@@ -474,7 +474,7 @@ def _modbus_client_cost(transport: str) -> Callable[[argparse.Namespace], dict[s
             from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
 
             fr = (FramerSocket if transport == "tcp" else FramerRTU)(DecodePDU(False))
-            resp = link._sock.responses[23] if transport == "tcp" else link._io.responses[23]  # noqa: SLF001
+            resp = (link._io.sock if transport == "tcp" else link._io).responses[23]  # noqa: SLF001
 
             def pm_encode() -> bytes:
                 return fr.buildFrame(ReadWriteMultipleRegistersRequest(

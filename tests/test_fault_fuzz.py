@@ -66,7 +66,7 @@ def _custom_names(path: str) -> list[str]:
 
         return ["file", *LuGreParams.all_names()]
     if path.endswith("registers"):
-        from mrctl.io.registers import _ENTRY_KEYS, _TOP_KEYS, QUANTITIES
+        from mrctl.io.registers.spec import ENTRY_KEYS as _ENTRY_KEYS, QUANTITIES, TOP_KEYS as _TOP_KEYS
 
         return [*_TOP_KEYS, *QUANTITIES, *_ENTRY_KEYS]
     return []

@@ -65,6 +65,7 @@ from mrctl.io.base import (  # noqa: E402
     Status,
 )
 from mrctl.io.modbus import (  # noqa: E402
+    EXCEPTION_NAMES,
     FC_READ_HOLDING,
     FC_READ_INPUT,
     FC_READ_WRITE,
@@ -325,6 +326,14 @@ def test_crc_matches_pymodbus() -> None:
     assert crc16_modbus(b"56789", crc16_modbus(b"1234")) == 0x4B37
 
 
+def test_exception_names_match_pymodbus() -> None:
+    """Our table names every code as pymodbus's ExcCodes does (messages unchanged without it)."""
+    from pymodbus.constants import ExcCodes
+
+    assert EXCEPTION_NAMES == {int(c): c.name for c in ExcCodes}
+    assert all(exception_name(int(c)) == c.name for c in ExcCodes)
+
+
 def test_requests_match_pymodbus_framers() -> None:
     data = default_register_map().encode_write(1.5, True, 50)
     words = list(struct.unpack(">4H", data))
@@ -561,7 +570,7 @@ def test_fuzz_whole_exchange(transport: str, fc23: bool, reply: bytes, keep_head
         return
     finally:
         if transport == "tcp":
-            link._sock.close()  # type: ignore[union-attr]  # noqa: SLF001
+            link._io.close()  # noqa: SLF001 - the socketpair
     assert isinstance(s, Sample) and math.isfinite(s.x_m) and math.isfinite(s.v_mps)
 
 

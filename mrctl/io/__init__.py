@@ -26,8 +26,8 @@ from mrctl.io.base import (
 BACKENDS: dict[str, tuple[str, str]] = {
     "sim": ("mrctl.io.sim", "SimLink"),
     "serial": ("mrctl.io.serial", "SerialLink"),
-    "modbus-tcp": ("mrctl.io.modbus", "ModbusLink"),
-    "modbus-rtu": ("mrctl.io.modbus", "ModbusLink"),
+    "modbus-tcp": ("mrctl.io.modbus", "ModbusTcpLink"),
+    "modbus-rtu": ("mrctl.io.modbus", "ModbusRtuLink"),
 }
 
 

@@ -124,13 +124,16 @@ class CounterUnwrap:
     A step forward of less than half the modulus is normal progress (also
     across the wrap); a larger one is the counter going *back*, i.e. the
     device restarted: the total restarts from the raw value and ``resets``
-    counts it. ``reset()`` forgets the history (after a reopen)."""
+    counts it. With ``restarts=False`` every step is progress (a sequence
+    number extended to 32 bits: a restart must not look like the sequence
+    going back, which the safety layer would take for stale samples).
+    ``reset()`` forgets the history (after a reopen)."""
 
     __slots__ = ("mod", "half", "last", "total", "resets")
 
-    def __init__(self, mod: int) -> None:
+    def __init__(self, mod: int, *, restarts: bool = True) -> None:
         self.mod = int(mod)
-        self.half = self.mod >> 1
+        self.half = self.mod >> 1 if restarts else self.mod
         self.last: int | None = None
         self.total = 0
         self.resets = 0
@@ -173,17 +176,25 @@ class Link(abc.ABC):
     :attr:`is_open`, :meth:`_transact` (split links: :meth:`read` and
     :meth:`write` instead), :meth:`describe`, and the class methods
     :meth:`from_config` and (for wires whose speed limits the rate)
-    :meth:`wire_time_s`.
+    :meth:`wire_time_s`. Optional hooks: :meth:`_send_safe` (the last words
+    on close), :meth:`_set_sync` (device pacing), :meth:`_note_error` (extra
+    bookkeeping per failed exchange; call the base), ``_clock`` (a
+    :class:`CounterUnwrap` for the device's wrapping clock: reset at every
+    :meth:`open`, its restarts reported as ``device_clock_resets``) and
+    ``COUNTERS`` (extend the tuple; a name may be a property).
     """
 
     #: the ``backend.type`` names this class serves (the BACKENDS table)
     kinds: ClassVar[tuple[str, ...]] = ()
     split: ClassVar[bool] = False
     host_clocked: ClassVar[bool] = False
-    #: names reported by :meth:`counters` (plain int attributes: cheap to bump per tick)
+    #: names reported by :meth:`counters`: plain int attributes (cheap to bump
+    #: per tick, set to 0 here) or read-only properties of the subclass
     COUNTERS: ClassVar[tuple[str, ...]] = (
         "exchanges", "timeouts", "frame_errors", "device_errors", "stale_replies", "disconnects",
     )
+    #: the device's wrapping clock counter, if the link unwraps one
+    _clock: CounterUnwrap | None = None
 
     def __init__(self, timeout_s: float, *, safe_on_close: bool = True) -> None:
         if not timeout_s > 0:
@@ -192,8 +203,10 @@ class Link(abc.ABC):
         self.safe_on_close = safe_on_close
         #: False → setpoints go out with the output disabled (device holds 0 A)
         self.enabled = True
+        cls = type(self)
         for name in self.COUNTERS:
-            setattr(self, name, 0)
+            if not isinstance(getattr(cls, name, None), property):
+                setattr(self, name, 0)
         # device pacing (set_device_paced)
         self._period_ns = 0
         self._sleep_margin_ns = 0
@@ -221,9 +234,13 @@ class Link(abc.ABC):
 
     def open(self) -> None:
         """Acquire the port/connection (idempotent). Raises :class:`Disconnected`
-        (or another :class:`LinkError`) if it cannot."""
-        if not self.is_open:
-            self._open_transport()
+        (or another :class:`LinkError`) if it cannot. The device's clock is
+        unwrapped afresh after every open (it may have restarted meanwhile)."""
+        if self.is_open:
+            return
+        if self._clock is not None:
+            self._clock.reset()
+        self._open_transport()
 
     def close(self) -> None:
         """Command 0 A with the output disabled (best effort) and release the
@@ -281,23 +298,26 @@ class Link(abc.ABC):
         wake_ns = last + period - self._sleep_margin_ns if period and last else 0
         try:
             sample = self._transact(current_A, deadline, wake_ns)
-        except LinkTimeout:
-            self.timeouts += 1
-            raise
-        except FrameError:
-            self.frame_errors += 1
-            raise
-        except DeviceError:
-            self.device_errors += 1
-            raise
-        except Disconnected:
-            self.disconnects += 1
-            self._close_transport()
+        except LinkError as e:
+            self._note_error(e)
             raise
         if period:
             self._t_reply_ns = time.monotonic_ns()
         self.exchanges += 1
         return sample
+
+    def _note_error(self, e: LinkError) -> None:
+        """Count a failed exchange by its type; after :class:`Disconnected`,
+        release the transport. Subclasses may note more (call the base)."""
+        if isinstance(e, LinkTimeout):
+            self.timeouts += 1
+        elif isinstance(e, FrameError):
+            self.frame_errors += 1
+        elif isinstance(e, DeviceError):
+            self.device_errors += 1
+        elif isinstance(e, Disconnected):
+            self.disconnects += 1
+            self._close_transport()
 
     def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
         """One tick's bytes: send the setpoint (with :attr:`enabled` and, when
@@ -351,6 +371,11 @@ class Link(abc.ABC):
             raise ValueError(f"{type(self).__name__} cannot be device-paced")
 
     # -- counters ------------------------------------------------------------------
+    @property
+    def device_clock_resets(self) -> int:
+        """Times the device's clock went back (the device restarted?)."""
+        return 0 if self._clock is None else self._clock.resets
+
     def counters(self) -> dict[str, int]:
         """Snapshot of every counter, for logs and metrics (not for the hot path)."""
         return {name: getattr(self, name) for name in self.COUNTERS}

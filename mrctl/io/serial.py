@@ -1,15 +1,18 @@
 """SerialLink: the compact binary protocol (mrctl.io.protocol) over pyserial.
 
-One :meth:`SerialLink.exchange` per tick = one SETPOINT out, one SAMPLE back.
-The port is opened with ``serial.serial_for_url`` so a device path
-(``/dev/ttyACM0``), ``socket://host:port`` (device behind a TCP bridge or a
-simulator) and ``loop://`` all work unchanged.
+One exchange per tick = one SETPOINT out, one SAMPLE back. The port is
+opened with ``serial.serial_for_url`` so a device path (``/dev/ttyACM0``),
+``socket://host:port`` (device behind a TCP bridge or a simulator) and
+``loop://`` all work unchanged. Lifecycle, error counting, device pacing and
+the device-clock unwrap are :class:`~mrctl.io.base.Link`'s; this module
+supplies the bytes of one tick (:meth:`SerialLink._transact`).
 
 Timing: the reply must arrive within ``timeout_s`` of sending the request.
 pyserial only has a per-read timeout, and changing ``port.timeout`` on POSIX
-costs a tcsetattr per call, so the port's read timeout is fixed at a short
-``poll_s`` slice and the exchange loops on its own monotonic deadline. An
-exchange therefore returns within ``timeout_s + poll_s`` (plus scheduling).
+costs a tcsetattr per call, so the port's read timeout is fixed (0 with
+``spin_wait``, else a short ``poll_s`` slice) and the exchange loops on its
+own monotonic deadline. An exchange therefore returns within ``timeout_s +
+poll_s`` (plus scheduling).
 
 Default ``timeout_s`` = wire time of request + reply at the configured baud
 plus 250 µs for device turnaround and OS latency, but at least 0.5 ms
@@ -19,13 +22,21 @@ at 921600 Bd; 2 Mbaud is comfortable (see docs/protocol.md).
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any, Mapping
 
 import serial  # pyserial
 
-from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample, sleep_until_ns
+from mrctl.io.base import (
+    CounterUnwrap,
+    DeviceError,
+    Disconnected,
+    FrameError,
+    Link,
+    LinkTimeout,
+    Sample,
+    sleep_until_ns,
+)
 from mrctl.io.protocol import (
     DEFAULT_WATCHDOG_MS,
     EXCHANGE_BYTES,
@@ -41,8 +52,8 @@ from mrctl.io.protocol import (
     SetpointEncoder,
     SetpointFlag,
     SetpointFrame,
-    exchange_wire_time_s,
     encode_setpoint,
+    exchange_wire_time_s,
 )
 
 __all__ = ["SerialLink", "default_reply_timeout_s", "DEFAULT_BAUD"]
@@ -53,10 +64,8 @@ TURNAROUND_ALLOWANCE_S = 250e-6
 MIN_REPLY_TIMEOUT_S = 0.5e-3
 
 _U32 = 0xFFFFFFFF
-_HALF_U32 = 1 << 31
-
-
 _ENABLE = int(SetpointFlag.ENABLE)
+_SYNC = int(SetpointFlag.SYNC)
 
 
 def default_reply_timeout_s(baud: float) -> float:
@@ -64,8 +73,8 @@ def default_reply_timeout_s(baud: float) -> float:
     return max(MIN_REPLY_TIMEOUT_S, exchange_wire_time_s(baud) + TURNAROUND_ALLOWANCE_S)
 
 
-class SerialLink:
-    """:class:`mrctl.io.base.Link` over a serial port (or any pyserial URL).
+class SerialLink(Link):
+    """:class:`~mrctl.io.base.Link` over a serial port (or any pyserial URL).
 
     Error mapping per exchange:
 
@@ -81,6 +90,12 @@ class SerialLink:
     earlier tick) is discarded and counted in ``stale_replies``; our own
     SETPOINT coming back (``loop://``, RS-485 echo) is counted in ``echoes``.
     """
+
+    kinds = ("serial",)
+    COUNTERS = Link.COUNTERS + (
+        "echoes", "crc_errors", "header_errors", "bytes_discarded", "unknown_frames", "foreign_frames",
+        "device_clock_resets",
+    )
 
     def __init__(
         self,
@@ -111,11 +126,12 @@ class SerialLink:
         """
         if not 0 <= watchdog_ms <= 255:
             raise ValueError(f"watchdog_ms must be 0..255, got {watchdog_ms!r}")
+        super().__init__(
+            float(timeout_s) if timeout_s is not None else default_reply_timeout_s(baudrate),
+            safe_on_close=safe_on_close,
+        )
         self.url = url
         self.baudrate = int(baudrate)
-        self.timeout_s = float(timeout_s) if timeout_s is not None else default_reply_timeout_s(baudrate)
-        if not self.timeout_s > 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
         self.poll_s = (
             float(poll_s)
             if poll_s is not None
@@ -125,40 +141,14 @@ class SerialLink:
             float(write_timeout_s) if write_timeout_s is not None else max(self.timeout_s, 5e-3)
         )
         self.watchdog_ms = int(watchdog_ms)
-        self.safe_on_close = safe_on_close
-        #: False → SETPOINTs go out without ENABLE (device holds 0 A, output off).
-        self.enabled = True
         self._serial_kwargs = dict(serial_kwargs or {})
         self.spin_wait = spin_wait
-        # device pacing (set_device_paced): SYNC flag on, longer deadline
-        self._sync_flag = 0
-        self._base_timeout_s = self.timeout_s
-        self._period_ns = 0
-        self._sleep_margin_ns = 0
-        self._t_reply_ns = 0  # monotonic ns of the last good reply (device pacing)
+        self._sync_flag = 0  # SYNC while device-paced
         self._port: Any = None
         self._seq = 0
         self._enc = SetpointEncoder()
         self._dec = FrameDecoder()
-        self._t_last_us: int | None = None
-        self._t_total_us = 0
-        # counters (cumulative over reopen)
-        self.exchanges = 0  #: successful exchanges
-        self.timeouts = 0
-        self.frame_errors = 0  #: exchanges that ended in FrameError
-        self.stale_replies = 0
-        self.device_errors = 0
-        self.echoes = 0
-        self.disconnects = 0
-        self.device_clock_resets = 0  #: device time went backwards (device rebooted?)
-
-    kinds = ("serial",)
-    split = False
-    host_clocked = False
-    true_force_N = math.nan
-
-    def begin_tick(self, k: int) -> None:
-        pass
+        self._clock = CounterUnwrap(1 << 32)  # the device's µs clock
 
     @classmethod
     def from_config(cls, cfg: Any, context: Any = None) -> "SerialLink":
@@ -171,43 +161,19 @@ class SerialLink:
         """One SETPOINT + one SAMPLE at ``cfg.baudrate`` (8N1)."""
         return exchange_wire_time_s(cfg.baudrate)
 
-    # -- counters ---------------------------------------------------------
-    @property
-    def crc_errors(self) -> int:
-        return self._dec.crc_errors
-
-    @property
-    def bytes_discarded(self) -> int:
-        return self._dec.bytes_discarded
-
-    def counters(self) -> dict[str, int]:
-        """Snapshot of all counters, for logs/metrics (not for the hot path)."""
-        d = self._dec
-        return {
-            "exchanges": self.exchanges,
-            "timeouts": self.timeouts,
-            "frame_errors": self.frame_errors,
-            "crc_errors": d.crc_errors,
-            "header_errors": d.header_errors,
-            "bytes_discarded": d.bytes_discarded,
-            "stale_replies": self.stale_replies,
-            "device_errors": self.device_errors,
-            "echoes": self.echoes,
-            "unknown_frames": d.unknown_frames,
-            "foreign_frames": d.foreign_frames,
-            "disconnects": self.disconnects,
-            "device_clock_resets": self.device_clock_resets,
-        }
+    # -- counters kept by the frame decoder ---------------------------------
+    crc_errors = property(lambda self: self._dec.crc_errors)
+    header_errors = property(lambda self: self._dec.header_errors)
+    bytes_discarded = property(lambda self: self._dec.bytes_discarded)
+    unknown_frames = property(lambda self: self._dec.unknown_frames)
+    foreign_frames = property(lambda self: self._dec.foreign_frames)
 
     # -- lifecycle --------------------------------------------------------
     @property
     def is_open(self) -> bool:
         return self._port is not None
 
-    def open(self) -> None:
-        """Open the port (idempotent). Raises :class:`Disconnected` if it can't."""
-        if self._port is not None:
-            return
+    def _open_transport(self) -> None:
         try:
             port = serial.serial_for_url(
                 self.url,
@@ -221,33 +187,21 @@ class SerialLink:
         except (serial.SerialException, OSError, ValueError) as e:
             raise Disconnected(f"cannot open {self.url}: {e}") from e
         self._dec.reset()
-        self._t_last_us = None
         self._port = port
 
-    def close(self) -> None:
-        """Send a disabled 0 A setpoint (best effort), close the port. Idempotent."""
+    def _send_safe(self) -> None:
+        """A disabled 0 A SETPOINT, flushed; no reply awaited."""
+        self._seq = (self._seq + 1) & _U32
+        self._port.write(encode_setpoint(self._seq, 0.0, 0, self.watchdog_ms))
+        self._port.flush()
+
+    def _close_transport(self) -> None:
         port, self._port = self._port, None
-        if port is None:
-            return
-        try:
-            if self.safe_on_close:
-                self._seq = (self._seq + 1) & _U32
-                port.write(encode_setpoint(self._seq, 0.0, 0, self.watchdog_ms))
-                port.flush()
-        except Exception:  # noqa: BLE001 - closing must not fail on a dead port
-            pass
-        finally:
+        if port is not None:
             try:
                 port.close()
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - closing must not fail on a dead port
                 pass
-
-    def __enter__(self) -> "SerialLink":
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def describe(self) -> str:
         wire_us = exchange_wire_time_s(self.baudrate) * 1e6
@@ -258,36 +212,13 @@ class SerialLink:
             f"device watchdog {self.watchdog_ms} ms"
         )
 
+    def _set_sync(self, on: bool) -> None:
+        self._sync_flag = _SYNC if on else 0
+
     # -- the tick ---------------------------------------------------------
-    @property
-    def device_paced(self) -> bool:
-        """True while every SETPOINT carries SYNC (:meth:`set_device_paced`)."""
-        return self._sync_flag != 0
-
-    def set_device_paced(self, on: bool, period_s: float, spin_margin_s: float = 3e-4) -> None:
-        """Device pacing (docs/protocol.md §6.1): every SETPOINT carries SYNC,
-        so the device applies it at its next tick and answers after it; an
-        exchange then blocks until the device's next tick, and the host loop
-        runs at the device's rate with one tick of actuation latency.
-        The reply deadline grows by one period. While waiting, the link
-        sleeps until ``spin_margin_s`` before the reply is due (one period
-        after the previous one), then polls: a sleeping thread wakes late on
-        a VM, a spinning one costs a core."""
-        if on and not period_s > 0:
-            raise ValueError(f"period_s must be > 0, got {period_s!r}")
-        self._sync_flag = int(SetpointFlag.SYNC) if on else 0
-        self.timeout_s = self._base_timeout_s + (period_s if on else 0.0)
-        self._period_ns = round(period_s * 1e9) if on else 0
-        self._sleep_margin_ns = round(spin_margin_s * 1e9)
-        self._t_reply_ns = 0
-
-    def exchange(self, current_A: float) -> Sample:
+    def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
         """Send ``current_A`` (A) as a SETPOINT, return the matching SAMPLE."""
         port = self._port
-        if port is None:
-            raise Disconnected(f"{self.url} is not open")
-        if not math.isfinite(current_A):
-            raise ValueError(f"current_A must be finite, got {current_A!r}")
         seq = self._seq = (self._seq + 1) & _U32
         frame = self._enc.encode(
             seq, current_A, (_ENABLE if self.enabled else 0) | self._sync_flag, self.watchdog_ms
@@ -295,48 +226,45 @@ class SerialLink:
         dec = self._dec
         crc0 = dec.crc_errors
         disc0 = dec.bytes_discarded
-        clock = time.monotonic
-        deadline = clock() + self.timeout_s
         try:
             port.write(frame)
-            if self._period_ns and self._t_reply_ns:
-                # device pacing: the reply comes one device period after the last
-                sleep_until_ns(self._t_reply_ns + self._period_ns - self._sleep_margin_ns)
-            while True:
-                n = dec.bytes_needed(SAMPLE_FRAME_SIZE)
-                data = port.read(n)
-                if data:
-                    reply = None
-                    for f in dec.feed(data):
-                        r = self._accept(f, seq)
-                        if r is not None:
-                            if reply is None:
-                                reply = r
-                            else:
-                                self.stale_replies += 1  # duplicate answer
-                    if reply is not None:
-                        self.exchanges += 1
-                        if self._period_ns:
-                            self._t_reply_ns = time.monotonic_ns()
-                        return self._to_sample(reply)
-                if clock() >= deadline:
-                    break
+            if wake_ns:  # device pacing: the reply comes one device period after the last
+                sleep_until_ns(wake_ns)
+            reply = self._await_reply(port, seq, deadline)
         except serial.SerialTimeoutException as e:
-            self.timeouts += 1
             raise LinkTimeout(f"{self.url}: write blocked > {self.write_timeout_s * 1e3:.3g} ms") from e
         except (serial.SerialException, OSError) as e:
-            self.disconnects += 1
-            self._drop_port()
             raise Disconnected(f"{self.url}: {e}") from e
+        if reply is not None:
+            return Sample(reply.seq, self._clock(reply.t_dev_us) * 1e-6, reply.x_m, reply.v_mps,
+                          reply.F_N, reply.status, reply.current_A)
+        ms = (self.timeout_s + self._pace_extra_s) * 1e3
         if dec.crc_errors != crc0 or dec.bytes_discarded != disc0:
-            self.frame_errors += 1
             raise FrameError(
-                f"{self.url}: no valid reply to seq {seq} within {self.timeout_s * 1e3:.3g} ms; "
-                f"discarded {dec.bytes_discarded - disc0} bytes, "
-                f"{dec.crc_errors - crc0} CRC errors"
+                f"{self.url}: no valid reply to seq {seq} within {ms:.3g} ms; "
+                f"discarded {dec.bytes_discarded - disc0} bytes, {dec.crc_errors - crc0} CRC errors"
             )
-        self.timeouts += 1
-        raise LinkTimeout(f"{self.url}: no reply to seq {seq} within {self.timeout_s * 1e3:.3g} ms")
+        raise LinkTimeout(f"{self.url}: no reply to seq {seq} within {ms:.3g} ms")
+
+    def _await_reply(self, port: Any, seq: int, deadline: float) -> SampleFrame | None:
+        """Read until the SAMPLE answering ``seq`` (None at the deadline)."""
+        dec = self._dec
+        clock = time.monotonic
+        while True:
+            data = port.read(dec.bytes_needed(SAMPLE_FRAME_SIZE))
+            if data:
+                reply = None
+                for f in dec.feed(data):
+                    r = self._accept(f, seq)
+                    if r is not None:
+                        if reply is None:
+                            reply = r
+                        else:
+                            self.stale_replies += 1  # duplicate answer
+                if reply is not None:
+                    return reply
+            if clock() >= deadline:
+                return None
 
     def _accept(self, f: object, seq: int) -> SampleFrame | None:
         """The reply to ``seq``, or None after counting/discarding ``f``."""
@@ -350,10 +278,7 @@ class SerialLink:
                 raise ProtocolVersionError(PROTOCOL_VERSION, f.detail)
             # A NAK names the offending request, except BAD_CRC: the device
             # can't trust a corrupt seq, so it echoes the last good one (ours - 1).
-            if f.echo_seq == seq or (
-                f.code == ErrorCode.BAD_CRC and f.echo_seq == (seq - 1) & _U32
-            ):
-                self.device_errors += 1
+            if f.echo_seq == seq or (f.code == ErrorCode.BAD_CRC and f.echo_seq == (seq - 1) & _U32):
                 try:
                     name = ErrorCode(f.code).name
                 except ValueError:
@@ -367,28 +292,3 @@ class SerialLink:
             self.echoes += 1
         return None
 
-    def _to_sample(self, f: SampleFrame) -> Sample:
-        """Unwrap the 32-bit µs device clock into seconds."""
-        t = f.t_dev_us
-        last = self._t_last_us
-        if last is None:
-            self._t_total_us = t
-        else:
-            delta = (t - last) & _U32
-            if delta < _HALF_U32:
-                self._t_total_us += delta
-            else:  # went backwards: device restarted its clock
-                self.device_clock_resets += 1
-                self._t_total_us = t
-        self._t_last_us = t
-        return Sample(
-            f.seq, self._t_total_us * 1e-6, f.x_m, f.v_mps, f.F_N, f.status, f.current_A
-        )
-
-    def _drop_port(self) -> None:
-        port, self._port = self._port, None
-        if port is not None:
-            try:
-                port.close()
-            except Exception:  # noqa: BLE001
-                pass
