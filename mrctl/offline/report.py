@@ -135,8 +135,8 @@ def make_report(csv_path: str | os.PathLike[str], out_path: str | os.PathLike[st
     """Write the Fig-5-style PNG of one run to ``out_path``.
 
     Uses an explicit Agg canvas (no pyplot, no global backend state) so it
-    works on a headless controller and cannot disturb a caller's matplotlib
-    session. ``title`` replaces the default title (the run file's name).
+    works on a headless controller and cannot disturb a caller's own matplotlib
+    figures. ``title`` replaces the default title (the run file's name).
     """
     cols = load_run(csv_path)
     try:
