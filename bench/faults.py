@@ -6,7 +6,7 @@ fault scheduled on the device's tick time base) and ``mrctl run`` on the fig5
 HIL experiment for that transport (``config/experiments/hil_*.yaml``) with
 ``safety: {hold_ticks: 5, auto_resume: true}`` (or a latched variant), waits
 for the end, and measures from the daemon's run log + sidecar and hil_sim's
-truth log + summary (hil_sim/testing/fault_suite.py says exactly how). It then
+truth log + summary (hil_sim/testing/fault_suite/ says exactly how). It then
 rewrites the generated part of ``docs/reliability.md``.
 
     python bench/faults.py                       # everything (~5 min), rewrites docs/reliability.md
@@ -14,7 +14,7 @@ rewrites the generated part of ``docs/reliability.md``.
     python bench/faults.py --json runs/faults.json --keep /tmp/faults
 
 The daemon's configs are the shipped fig5 HIL experiments with the suite's
-allowances for a noisy shared VM (hil_sim/testing/fault_suite.py: 5 ms reply
+allowances for a noisy shared VM (hil_sim/testing/fault_suite/scenario.py: 5 ms reply
 timeout, hil_sim serving from a thread, no start-up probe, safety pinned to
 hold_ticks 5 / auto_resume / link_loss_s 0.1); two rows run the shipped
 serial experiment exactly as shipped, for comparison. A daemon that fails

@@ -36,9 +36,9 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.offline.identify import (  # noqa: E402
-    _LINEAR, METHODS, THETA_NAMES, _model_batch, _optimise, _Problem, _window_record, identify, theta_from_params,
-)
+from mrctl.offline.identify import METHODS, THETA_NAMES, identify, theta_from_params  # noqa: E402
+from mrctl.offline.identify.fit import _LINEAR, _optimise, _Problem  # noqa: E402
+from mrctl.offline.identify.model import _model_batch, _window_record  # noqa: E402
 from mrctl.model.params import TABLE_I  # noqa: E402
 from mrctl.offline.simulate import run_duration, simulate  # noqa: E402
 
@@ -110,7 +110,7 @@ def part_compare(run, trials: int) -> dict:
     rng = np.random.default_rng(1)
     ref = results["trf"][0]
     # rebuild the windows exactly as identify does: reuse its per-current data
-    from mrctl.offline.identify import _check_run, _segments, estimate_period  # noqa: E402
+    from mrctl.offline.identify.runs import _check_run, _segments, estimate_period  # noqa: E402
     c = _check_run(run, "run")
     T = estimate_period(c["t"], c["v"])
     dt = float(np.median(np.diff(c["t"])))

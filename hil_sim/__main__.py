@@ -192,8 +192,10 @@ def _run(args: argparse.Namespace) -> int:
     cfg = _load_config(args)
 
     from hil_sim.bench import BenchDevice
-    from hil_sim.serial_device import LinkPathError, PtyEndpoint, SerialDevice, run_server
+    from hil_sim.pty_endpoint import LinkPathError, PtyEndpoint
+    from hil_sim.serial_device import SerialDevice
     from hil_sim.state import DeviceState
+    from hil_sim.threads import run_server
     from hil_sim.truth import TruthLog
     from mrctl.io.registers import default_register_map
 

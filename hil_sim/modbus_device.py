@@ -1,6 +1,7 @@
 """The simulated bench as a Modbus slave: the device (register image, request
 handling, reply faults). Its servers: :mod:`hil_sim.modbus_tcp` (TCP, many
-clients) and :mod:`hil_sim.modbus_rtu` (RTU on a tty).
+clients) and :mod:`hil_sim.modbus_rtu` (RTU on a tty); where a request ends
+in their byte streams, and the exception codes: :mod:`hil_sim.modbus_wire`.
 
 Reads serve ``state.latest_sample()`` encoded by the register map; writes to
 the setpoint block call ``state.set_setpoint(current_A, enable)``.
@@ -41,8 +42,14 @@ from collections import deque
 from typing import Any, Callable, NamedTuple
 
 from hil_sim.faults import FaultBit
+from hil_sim.modbus_wire import (
+    GATEWAY_NO_RESPONSE,
+    ILLEGAL_DATA_ADDRESS,
+    ILLEGAL_DATA_VALUE,
+    ILLEGAL_FUNCTION,
+    SLAVE_DEVICE_FAILURE,
+)
 from hil_sim.state import DeviceState, OwedReply
-from mrctl.io.base import FrameError
 from mrctl.io.modbus import (
     FC_READ_HOLDING,
     FC_READ_INPUT,
@@ -53,33 +60,13 @@ from mrctl.io.modbus import (
 from mrctl.io.registers import RegisterMap
 from mrctl.io.registers import default_register_map as _default_register_map
 
-__all__ = [
-    "default_register_map",
-    "Deferred",
-    "ModbusDevice",
-    "mbap_frame_length",
-    "rtu_request_length",
-    "ILLEGAL_FUNCTION",
-    "ILLEGAL_DATA_ADDRESS",
-    "ILLEGAL_DATA_VALUE",
-    "GATEWAY_NO_RESPONSE",
-]
-
-ILLEGAL_FUNCTION = 0x01
-ILLEGAL_DATA_ADDRESS = 0x02
-ILLEGAL_DATA_VALUE = 0x03
-GATEWAY_NO_RESPONSE = 0x0B
+__all__ = ["Deferred", "ModbusDevice", "default_register_map"]
 
 _HHB = struct.Struct(">HHB")
 _HH = struct.Struct(">HH")
 _RW = struct.Struct(">HHHHB")
 _RW_FULL = struct.Struct(">BHHHHB")
 _MBAP = struct.Struct(">HHHB")
-#: how often the servers' idle waits look at ``stop`` (s) ...
-IDLE_POLL_S = 0.05
-#: ... and at the fault bits, when faults are scheduled (s)
-FAULT_POLL_S = 0.001
-SLAVE_DEVICE_FAILURE = 0x04
 
 _DROP = int(FaultBit.DROP_REPLIES)
 _DELAY = int(FaultBit.DELAY_REPLIES)
@@ -93,44 +80,6 @@ _REPLY_FAULTS = _DROP | _DELAY | _CORRUPT | _GARBAGE
 def default_register_map() -> RegisterMap:
     """The map hil_sim serves unless told otherwise (docs/registers.md)."""
     return _default_register_map()
-
-
-def mbap_frame_length(buf: bytes | bytearray) -> int:
-    """Total length of the MBAP frame at the start of ``buf``; 0 = need more bytes.
-
-    Raises :class:`FrameError` for an impossible header (protocol id ≠ 0,
-    length < 2 or > 254): the stream can't be resynchronised, drop the
-    connection. Never raises anything else.
-    """
-    if len(buf) < 6:
-        return 0
-    pid = buf[2] << 8 | buf[3]
-    length = buf[4] << 8 | buf[5]
-    if pid != 0:
-        raise FrameError(f"MBAP protocol id {pid}, expected 0")
-    if not 2 <= length <= 254:
-        raise FrameError(f"MBAP length {length} out of range 2..254")
-    total = 6 + length
-    return total if len(buf) >= total else 0
-
-
-def rtu_request_length(buf: bytes | bytearray) -> int | None:
-    """Length of the RTU request at the start of ``buf``.
-
-    None = need more bytes; -1 = unknown function code, delimit it by line
-    silence. Never raises.
-    """
-    n = len(buf)
-    if n < 2:
-        return None
-    fc = buf[1]
-    if fc in (1, 2, 3, 4, 5, 6):
-        return 8
-    if fc == FC_WRITE_MULTIPLE:
-        return 9 + buf[6] if n >= 7 else None
-    if fc == FC_READ_WRITE:
-        return 13 + buf[10] if n >= 11 else None
-    return -1
 
 
 class Deferred(NamedTuple):

@@ -18,7 +18,8 @@ from collections import deque
 from typing import Any, Callable
 
 from hil_sim.faults import FaultBit
-from hil_sim.modbus_device import FAULT_POLL_S, IDLE_POLL_S, Deferred, ModbusDevice, rtu_request_length
+from hil_sim.modbus_device import Deferred, ModbusDevice
+from hil_sim.modbus_wire import FAULT_POLL_S, IDLE_POLL_S, rtu_request_length
 from hil_sim.state import DeviceState
 from mrctl.io.modbus import crc16_modbus, open_serial_port
 from mrctl.io.registers import RegisterMap
@@ -52,7 +53,7 @@ def serve_modbus_rtu(
 ) -> None:
     """Serve Modbus RTU on a tty until ``stop`` is set.
 
-    ``endpoint``: the :class:`hil_sim.serial_device.PtyEndpoint` whose master fd
+    ``endpoint``: the :class:`hil_sim.pty_endpoint.PtyEndpoint` whose master fd
     ``port_path`` is; needed for the ``disconnect`` fault (pty hung up, then a
     new one linked at the same path).
 

@@ -18,7 +18,8 @@ from collections import deque
 from typing import Any, Callable
 
 from hil_sim.faults import FaultBit
-from hil_sim.modbus_device import FAULT_POLL_S, IDLE_POLL_S, Deferred, ModbusDevice, mbap_frame_length
+from hil_sim.modbus_device import Deferred, ModbusDevice
+from hil_sim.modbus_wire import FAULT_POLL_S, IDLE_POLL_S, mbap_frame_length
 from hil_sim.state import DeviceState
 from mrctl.io.registers import RegisterMap
 from mrctl.io.base import FrameError

@@ -1,14 +1,8 @@
 """Serial transport: the framed binary protocol (docs/protocol.md) on a pty.
 
-:class:`PtyEndpoint` creates a pseudo-terminal pair and publishes the
-*host-side* tty (the slave, e.g. ``/dev/pts/7``) as a symlink at the
-``--link`` path, so the host opens it like a real port
-(``serial_for_url('/tmp/mrctl-sim-tty')``). The device side is the master
-fd. The process keeps the slave fd open itself, so the host may close and
-reopen the port without the master seeing EIO.
-
-:class:`SerialDevice` serves the protocol on the master fd from its own
-thread (the device's "UART interrupt"): it decodes SETPOINT frames with
+:class:`SerialDevice` serves the protocol on the master fd of a pty
+(:class:`hil_sim.pty_endpoint.PtyEndpoint`) from its own thread (the
+device's "UART interrupt"), or inline from the clock: it decodes SETPOINT frames with
 :class:`~mrctl.io.protocol.FrameDecoder`, hands each to
 :meth:`DeviceState.set_setpoint` (which restarts the watchdog) and replies
 at once with a SAMPLE built from :meth:`DeviceState.latest_sample`, echoing
@@ -39,13 +33,9 @@ import errno
 import os
 import random
 import select
-import stat
-import sys
 import threading
 import time
-import tty
 from collections import deque
-from pathlib import Path
 
 from mrctl.io.base import Sample, Status
 from mrctl.io.protocol import (
@@ -63,9 +53,10 @@ from mrctl.io.protocol import (
 
 from hil_sim.bench import clamp_setpoint
 from hil_sim.faults import FaultBit
+from hil_sim.pty_endpoint import PtyEndpoint
 from hil_sim.state import DeviceState
 
-__all__ = ["LinkPathError", "PtyEndpoint", "SerialDevice", "run_server"]
+__all__ = ["SerialDevice"]
 
 _U32 = 0xFFFFFFFF
 _ENABLE = int(SetpointFlag.ENABLE)
@@ -83,107 +74,6 @@ _IGNORE = int(FaultBit.IGNORE_WRITES)
 _REPLY_FAULTS = _DROP | _DELAY | _CORRUPT | _GARBAGE
 _POLL_S = 0.05  # how often the server looks at its stop event
 _WRITE_BUDGET_S = 0.01  # how long a reply may wait for room in the pty buffer
-
-
-class LinkPathError(Exception):
-    """The ``--link`` path can't be used (a regular file, missing directory...)."""
-
-
-class PtyEndpoint:
-    """A pty pair whose host-side tty is symlinked at ``link_path``.
-
-    An existing symlink at ``link_path`` is replaced (atomically); anything
-    else there (a regular file, a directory) is refused. :meth:`close`
-    removes the symlink if it still points at this pty, and closes both fds.
-    """
-
-    def __init__(self, link_path: str | os.PathLike[str]) -> None:
-        self.link = Path(link_path)
-        try:
-            st = os.lstat(self.link)
-        except FileNotFoundError:
-            st = None
-        except OSError as e:
-            raise LinkPathError(f"link path {self.link}: {e.strerror}") from None
-        if st is not None and not stat.S_ISLNK(st.st_mode):
-            kind = ("a regular file" if stat.S_ISREG(st.st_mode)
-                    else "a directory" if stat.S_ISDIR(st.st_mode) else "not a symlink")
-            raise LinkPathError(f"link path {self.link} is {kind}; refusing to replace it "
-                                "(remove it or choose another --link)")
-        if not self.link.parent.is_dir():
-            raise LinkPathError(f"link path {self.link}: directory {self.link.parent} does not exist")
-        self.master_fd = self.slave_fd = -1
-        self._linked = False
-        self.tty_path = ""
-        self.hangups = 0
-        self._open()
-
-    def _open(self) -> None:
-        self.master_fd, self.slave_fd = os.openpty()
-        try:
-            tty.setraw(self.slave_fd)  # no echo / CR-LF mangling before the host configures it
-            self.tty_path = os.ttyname(self.slave_fd)
-            tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-            os.symlink(self.tty_path, tmp)
-            os.replace(tmp, self.link)
-            self._linked = True
-            os.set_blocking(self.master_fd, False)
-        except OSError as e:
-            self._close_fds()
-            raise LinkPathError(f"link path {self.link}: cannot create symlink: {e.strerror}") from None
-
-    @property
-    def is_open(self) -> bool:
-        return self.master_fd >= 0
-
-    def hangup(self) -> None:
-        """The ``disconnect`` fault: remove the symlink and close both ends of the
-        pty, as if the USB-serial adapter were unplugged. The host's open port
-        then fails every read/write with EIO (pyserial: ``SerialException`` →
-        mrctl ``Disconnected``) and reopening the link path fails (no such file)
-        until :meth:`reopen`."""
-        self._unlink()
-        if self.master_fd >= 0:
-            self._close_fds()
-        self.hangups += 1
-
-    def reopen(self) -> None:
-        """After :meth:`hangup`: a new pty (a new ``/dev/pts/N``) at the same link path."""
-        if self.master_fd < 0:
-            self._open()
-
-    def _close_fds(self) -> None:
-        for fd in (self.master_fd, self.slave_fd):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-        self.master_fd = self.slave_fd = -1
-
-    def _unlink(self) -> None:
-        if self._linked:
-            self._linked = False
-            try:
-                if os.readlink(self.link) == self.tty_path:
-                    os.unlink(self.link)
-            except OSError:
-                pass
-
-    def close(self) -> None:
-        """Remove the symlink (if still ours) and close the pty. Idempotent."""
-        self._unlink()
-        if self.master_fd >= 0:
-            self._close_fds()
-
-    def __enter__(self) -> "PtyEndpoint":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class SerialDevice:
@@ -435,20 +325,3 @@ def _write_all(fd: int, data: bytes) -> bool:
         except OSError:  # EBADF/EIO: hung up (the disconnect fault) or the host side gone
             return False
     return True
-
-
-def run_server(target, name: str, failed: list[str], stop: threading.Event) -> threading.Thread:
-    """Run ``target()`` in a daemon thread; an exception is reported, recorded
-    in ``failed`` and sets ``stop`` (the process then exits non-zero)."""
-
-    def body() -> None:
-        try:
-            target()
-        except BaseException as e:  # noqa: BLE001 - a server thread must not die silently
-            failed.append(f"{name}: {type(e).__name__}: {e}")
-            print(f"hil_sim: {name} failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
-            stop.set()
-
-    t = threading.Thread(target=body, name=f"hil_sim-{name}", daemon=True)
-    t.start()
-    return t

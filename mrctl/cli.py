@@ -110,9 +110,23 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    from mrctl.offline.identify import cli_identify
+    """One progress line per current, the summary table, what was written.
+    Errors are raised (IdentificationError exit 2, DependencyMissing without
+    scipy exit 1, ReportError exit 2) for :func:`main`'s handler."""
+    from mrctl.offline.identify import format_summary, identify_files
 
-    return cli_identify(args.runs, args.out, method=args.method, report_png=args.report)
+    def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
+        print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
+
+    result = identify_files(args.runs, args.out, method=args.method, progress=progress)
+    print(format_summary(result))
+    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
+    if args.report:
+        from mrctl.offline.report import make_identification_report
+
+        make_identification_report(result, args.report)
+        print(f"wrote {args.report}")
+    return EXIT_OK
 
 
 def cmd_check(args: argparse.Namespace) -> int:

@@ -52,3 +52,9 @@ class LogIncomplete(MrctlError):
     """The run log could not be written completely."""
 
     exit_code = ExitCode.LOG
+
+
+class DependencyMissing(MrctlError):
+    """An optional dependency is not installed; the message says what to install."""
+
+    exit_code = ExitCode.FAILURE

@@ -7,7 +7,7 @@ of *its* ticks after the first bad sample it saw, found via ``t_dev``/``seq``
 and the ``fault`` column), on exit codes, on the truth log's final state and
 fault column, and on "no missing k" — never on wall-clock latency. The
 daemon's configs are the fig5 HIL experiments with the suite's noise
-allowances (hil_sim/testing/fault_suite.py: 5 ms reply timeout, thread serving, no
+allowances (hil_sim/testing/fault_suite/scenario.py: 5 ms reply timeout, thread serving, no
 start-up probe).
 """
 
@@ -263,7 +263,8 @@ def test_serial_link_faults_in_process() -> None:
 def test_serial_disconnect_hangs_up_the_pty_and_relinks_it(tmp_path: Path) -> None:
     """What the host sees: EIO on its open port (SerialLink: Disconnected), the
     link path gone (reopen fails), then a new pty at the same path."""
-    from hil_sim.serial_device import PtyEndpoint, SerialDevice
+    from hil_sim.pty_endpoint import PtyEndpoint
+    from hil_sim.serial_device import SerialDevice
     from mrctl.io.serial import SerialLink
 
     link = tmp_path / "tty"

@@ -29,7 +29,8 @@ serial = pytest.importorskip("serial")
 
 from hil_sim.bench import BenchDevice, clamp_setpoint  # noqa: E402
 from hil_sim.config import ConfigError, validate_bench  # noqa: E402
-from hil_sim.serial_device import LinkPathError, PtyEndpoint, SerialDevice  # noqa: E402
+from hil_sim.pty_endpoint import LinkPathError, PtyEndpoint  # noqa: E402
+from hil_sim.serial_device import SerialDevice  # noqa: E402
 from hil_sim.state import DeviceState  # noqa: E402
 from hil_sim.truth import COLUMNS, TruthLog, summary_path  # noqa: E402
 from mrctl.model.excitation import Sine  # noqa: E402

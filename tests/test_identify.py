@@ -8,7 +8,6 @@ through a staircase of constant currents, with seeded sensor noise — what
 
 from __future__ import annotations
 
-import io
 import math
 from pathlib import Path
 
@@ -19,7 +18,6 @@ from mrctl.config import load_params_file, load_yaml
 from mrctl.offline.identify import (
     THETA_NAMES,
     IdentificationError,
-    cli_identify,
     estimate_period,
     identify,
     lugre_force,
@@ -52,6 +50,19 @@ def staircase(currents, step_s=2.0, amplitude_m=0.008, freq_hz=2.0, dt=1e-3, F_n
     return {"t": t, "x": x, "v": v, "F": F, "I": I, "I_applied": Ia,
             "v_meas": np.array([sensors.v(q) for q in v.tolist()]),
             "F_meas": np.array([sensors.F(q) for q in F.tolist()])}
+
+
+def cli_identify(paths, out, report_png=None) -> int:
+    """``mrctl identify PATHS --out OUT [--report PNG]``: mrctl.cli's parser and
+    cmd_identify, an error reported as mrctl.cli.main reports every MrctlError
+    (``mrctl: <message>`` on stderr, its exit_code). Output on stdout/stderr."""
+    from mrctl.cli import main
+
+    argv = ["identify", *map(str, paths), "--out", str(out)] + (["--report", str(report_png)] if report_png else [])
+    try:
+        return main(argv)
+    except SystemExit as exc:  # a usage error, e.g. no run CSV: argparse exits 2
+        return exc.code
 
 
 def write_run_csv(path: Path, run: dict, extra_text_column: bool = False) -> Path:
@@ -257,7 +268,7 @@ def test_decimation_of_fast_records():
 
 
 # -- end to end: the experiment file, the lead's schedule law, the CLI entry ------------
-def test_identify_yaml_simulated_and_identified(tmp_path):
+def test_identify_yaml_simulated_and_identified(tmp_path, capsys):
     from mrctl.config import load_experiment, validate_experiment
     from mrctl.experiment import build
     from mrctl.offline.simulate import run_duration, simulate, write_csv
@@ -269,9 +280,9 @@ def test_identify_yaml_simulated_and_identified(tmp_path):
     csv_path = tmp_path / "identify.csv"
     write_csv(sim, csv_path)
     out = tmp_path / "params.yaml"
-    stream = io.StringIO()
-    assert cli_identify([str(csv_path)], str(out), progress_stream=stream) == 0
-    text = stream.getvalue()
+    capsys.readouterr()
+    assert cli_identify([str(csv_path)], str(out)) == 0
+    text = capsys.readouterr().out
     assert text.count("] I = ") == 12  # a progress line per current
     assert "Fc (N)" in text and "NRMSE" in text and f"wrote {out}" in text
     p = load_params_file(out)
@@ -311,11 +322,10 @@ def test_cli_bad_inputs(tmp_path, capsys, run12):
     assert not Path(out).exists()
 
 
-def test_cli_reads_csv_with_extra_columns(tmp_path):
+def test_cli_reads_csv_with_extra_columns(tmp_path, capsys):
     run = staircase([0.0, 0.25, 0.5], step_s=1.5)
     path = write_run_csv(tmp_path / "run.csv", run, extra_text_column=True)
     out = tmp_path / "p.yaml"
-    stream = io.StringIO()
-    assert cli_identify([str(path)], str(out), progress_stream=stream) == 0
-    assert stream.getvalue().count("] I = ") == 3
+    assert cli_identify([str(path)], str(out)) == 0
+    assert capsys.readouterr().out.count("] I = ") == 3
     assert load_params_file(out).Fc(0.5) == pytest.approx(TABLE_I.Fc(0.5), rel=0.05)

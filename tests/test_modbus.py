@@ -42,17 +42,19 @@ from pymodbus.pdu.register_message import (  # noqa: E402
 )
 
 from hil_sim.modbus_device import (  # noqa: E402
-    ILLEGAL_DATA_ADDRESS,
-    ILLEGAL_DATA_VALUE,
-    ILLEGAL_FUNCTION,
     Deferred,
     ModbusDevice,
     default_register_map as device_default_map,
-    mbap_frame_length,
-    rtu_request_length,
 )
 from hil_sim.modbus_rtu import ModbusRtuInline, rtu_feed, rtu_silence_s, serve_modbus_rtu  # noqa: E402
 from hil_sim.modbus_tcp import serve_modbus_tcp, serve_modbus_tcp_inline  # noqa: E402
+from hil_sim.modbus_wire import (  # noqa: E402
+    ILLEGAL_DATA_ADDRESS,
+    ILLEGAL_DATA_VALUE,
+    ILLEGAL_FUNCTION,
+    mbap_frame_length,
+    rtu_request_length,
+)
 from hil_sim.state import DeviceState  # noqa: E402
 from mrctl.io.base import (  # noqa: E402
     DeviceError,

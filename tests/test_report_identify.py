@@ -9,7 +9,7 @@ import pytest
 
 from mrctl.offline.identify import identify
 from mrctl.offline.report import ReportError, make_identification_report, make_report
-from test_identify import staircase, write_run_csv  # tests/ is on sys.path (rootdir-less test modules)
+from test_identify import cli_identify, staircase, write_run_csv  # tests/ is on sys.path (rootdir-less test modules)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -73,14 +73,9 @@ def test_fig5_report_unchanged_on_an_identification_run(run4, tmp_path):
     _png_size(tmp_path / "fig5.png")
 
 
-def test_cli_identify_draws_the_figure(run4, tmp_path):
-    import io
-
-    from mrctl.offline.identify import cli_identify
-
+def test_cli_identify_draws_the_figure(run4, tmp_path, capsys):
     csv_path = write_run_csv(tmp_path / "run.csv", run4)
-    stream = io.StringIO()
     png = tmp_path / "ident.png"
-    assert cli_identify([str(csv_path)], str(tmp_path / "p.yaml"), progress_stream=stream, report_png=str(png)) == 0
-    assert f"wrote {png}" in stream.getvalue()
+    assert cli_identify([str(csv_path)], str(tmp_path / "p.yaml"), report_png=str(png)) == 0
+    assert f"wrote {png}" in capsys.readouterr().out
     _png_size(png)

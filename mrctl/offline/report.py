@@ -4,10 +4,13 @@
 turns such a log into one PNG an engineer can judge at a glance: desired vs
 actual force and the coil current over time, plus the force–velocity and
 force–displacement loops, with a one-line tracking summary in the title.
+:func:`make_identification_report` draws the paper's Figs 2 and 3 from an
+identification (:mod:`mrctl.offline.identify`; the dependency is one way:
+identification never imports this module).
 
 Nothing here runs on the control hot path. matplotlib is an optional
-dependency (``mrctl[plot]``) and is imported only inside :func:`make_report`
-so the daemon itself never needs it.
+dependency (``mrctl[plot]``) and is imported only inside the two figure
+functions, so the daemon itself never needs it.
 """
 
 from __future__ import annotations
@@ -19,8 +22,17 @@ from pathlib import Path
 import numpy as np
 
 from mrctl.errors import BadInput
-from mrctl.util.csvtable import CsvError, read_table
+from mrctl.model.params import TABLE_I
+from mrctl.offline.identify import (
+    THETA_NAMES,
+    IdentificationError,
+    IdentificationResult,
+    identify,
+    load_identification_run,
+    theta_from_params,
+)
 from mrctl.runlog.metrics import tracked_force, tracking_summary
+from mrctl.util.csvtable import CsvError, read_table
 
 __all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
 
@@ -33,7 +45,8 @@ DEFAULT_SETTLE_S = 1.0
 
 
 class ReportError(BadInput):
-    """A run file cannot be reported on; the message says why, for the CLI user."""
+    """A run file cannot be reported on, or the figure cannot be made; the
+    message says why, for the CLI user (exit code 2)."""
 
 
 # -- loading ----------------------------------------------------------------
@@ -122,8 +135,8 @@ def make_report(csv_path: str | os.PathLike[str], out_path: str | os.PathLike[st
     """Write the Fig-5-style PNG of one run to ``out_path``.
 
     Uses an explicit Agg canvas (no pyplot, no global backend state) so it
-    works on a headless controller and cannot disturb a caller's matplotlib
-    session. ``title`` replaces the default title (the run file's name).
+    works on a headless controller and cannot disturb a caller's own matplotlib
+    figures. ``title`` replaces the default title (the run file's name).
     """
     cols = load_run(csv_path)
     try:
@@ -211,8 +224,6 @@ _THETA_PANELS = (
 
 def _as_identification_result(runs_or_result, **identify_kwargs):
     """An IdentificationResult, identifying first if given runs (paths or column dicts)."""
-    from mrctl.offline.identify import IdentificationError, IdentificationResult, identify, load_identification_run
-
     if isinstance(runs_or_result, IdentificationResult):
         return runs_or_result
     items = runs_or_result
@@ -255,9 +266,6 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
         from matplotlib.lines import Line2D
     except ImportError:
         raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
-    from mrctl.offline.identify import theta_from_params
-    from mrctl.model.params import TABLE_I
-
     if reference is None and show_reference:
         reference = TABLE_I
     fits = res.fits
@@ -306,8 +314,6 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     Ig = np.linspace(0.0, max(float(I.max()), 1e-3), 200)
     law = np.array([theta_from_params(res.params, float(i)) for i in Ig])
     ref = np.array([theta_from_params(reference, float(i)) for i in Ig]) if reference is not None else None
-    from mrctl.offline.identify import THETA_NAMES
-
     for n, (name, label, scale, unit) in enumerate(_THETA_PANELS):
         ax = fig.add_subplot(gs[1 + n // 3, n % 3])
         j = THETA_NAMES.index(name)

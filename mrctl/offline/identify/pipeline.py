@@ -1,0 +1,156 @@
+"""Identification from end to end: runs in, an IdentificationResult out.
+
+:func:`identify` works on run records (``{column: array}``);
+:func:`identify_files` is what ``mrctl identify`` calls: run CSVs in, the
+parameters YAML written, the result returned, every problem a typed error
+(:mod:`mrctl.offline.identify.errors`) whose message is for the user.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from mrctl.offline.identify.errors import IdentificationError, require_scipy
+from mrctl.offline.identify.fit import DEFAULT_METHOD, METHODS, _fit_one_current, _identifiability, _noise_N
+from mrctl.offline.identify.laws import fit_laws, theta_from_params
+from mrctl.offline.identify.model import THETA_NAMES, _model_batch
+from mrctl.offline.identify.result import CurrentFit, IdentificationResult, write_params_yaml
+from mrctl.offline.identify.runs import _check_run, common_period, decimate, fit_windows, load_identification_run
+
+__all__ = ["ProgressFn", "identify", "identify_files"]
+
+#: ``progress(index, total, current_A, elapsed_s, nrmse)``, index 1-based
+ProgressFn = Callable[[int, int, float, float, float], None]
+
+
+def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
+             settle_periods: float = 1.0, warmup_periods: float = 1.0, fit_periods: float | None = None,
+             max_rate_hz: float | None = 2000.0, period_s: float | None = None, F0: str = "fit",
+             progress: ProgressFn | None = None, sources: Sequence[str] | None = None) -> IdentificationResult:
+    """Identify the 13 LuGre constants from constant-current sine runs.
+
+    Args:
+        runs: run records ``{column: array}`` with t, I (commanded current),
+            F_meas (or F), v_meas (or v); I_applied is used when present.
+        method: "trf" (default), "trf-bounds", "lm" or "nelder-mead" (the
+            paper's fminsearch); see :data:`METHODS` and docs/identification.md.
+        settle_periods: periods dropped after every change of current.
+        warmup_periods: periods the candidate model runs before Q is
+            accumulated (taken from the settling part when it is long enough).
+        fit_periods: whole periods per segment in Q (None: all available).
+        max_rate_hz: records sampled faster are decimated (plain subsampling).
+        period_s: excitation period; estimated from the velocity if None.
+        F0: "fit" or "measured" (see :func:`fit_laws`).
+        progress: called after each current as
+            ``progress(index, total, current_A, elapsed_s, nrmse)``, index 1-based,
+            elapsed since the start of identify.
+        sources: a name per run for messages and the YAML (default "run 1"…).
+    Raises:
+        IdentificationError: bad or insufficient input, with a message for the user.
+        DependencyMissing: scipy is not installed.
+    """
+    if method not in METHODS:
+        raise IdentificationError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    if isinstance(runs, Mapping):
+        runs = [runs]
+    runs = list(runs)
+    if not runs:
+        raise IdentificationError("no runs given")
+    labels = list(sources) if sources is not None else [f"run {k + 1}" for k in range(len(runs))]
+    if len(labels) != len(runs):
+        raise IdentificationError("sources: need one name per run")
+    if settle_periods < 0 or warmup_periods < 0 or (fit_periods is not None and fit_periods < 1):
+        raise IdentificationError("settle/warm-up periods must be ≥ 0 and fit_periods ≥ 1")
+    require_scipy()
+    t_start = time.perf_counter()
+    warnings: list[str] = []
+    checked = [_check_run(r, lab) for r, lab in zip(runs, labels)]
+    dts = decimate(checked, labels, max_rate_hz, warnings)
+    T = common_period(checked, labels, period_s)
+    groups = fit_windows(checked, labels, dts, T, settle_periods, warmup_periods, fit_periods, warnings)
+
+    fits: list[CurrentFit] = []
+    total = len(groups)
+    for gi, I_cmd in enumerate(sorted(groups)):
+        t0 = time.perf_counter()
+        windows = []
+        Iapp = []
+        segs_info = []
+        for r, w0, f0, f1 in groups[I_cmd]:
+            c = checked[r]
+            h = np.empty(f1 - w0)
+            h[1:] = np.diff(c["t"][w0:f1])
+            h[0] = dts[r]
+            windows.append((c["v"][w0:f1], c["F"][w0:f1], h, f0 - w0))
+            Iapp.append(c.get("I_applied", c["I"])[f0:f1])
+            segs_info.append((r, float(c["t"][f0]), float(c["t"][f1 - 1])))
+        theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method)
+        rec = prob.rec
+        F_fit = _model_batch(theta[None, :], rec)[0]
+        res = F_fit - rec.F
+        rms = float(np.sqrt(np.mean(res * res)))
+        ptp = float(np.ptp(rec.F))
+        noise = float(np.median([_noise_N(w[1][w[3]:]) for w in windows]))
+        se, rel_se, sens, corr, det = _identifiability(prob, p, theta, ptp)
+        cf = CurrentFit(
+            current=float(np.mean(np.concatenate(Iapp))), current_cmd=float(I_cmd),
+            theta={k: float(theta[j]) for j, k in enumerate(THETA_NAMES)},
+            theta0={k: float(theta0[j]) for j, k in enumerate(THETA_NAMES)}, start_notes=notes,
+            nrmse=rms / ptp if ptp > 0 else math.nan, noise_nrmse=noise / ptp if ptp > 0 else math.nan,
+            rms_N=rms, ptp_N=ptp, noise_N=noise, se=se, rel_se=rel_se, sensitivity=sens, corr=corr,
+            determined=det,
+            nfev=nfev, starts=starts, time_s=time.perf_counter() - t0, samples=int(rec.F.size),
+            periods=float(sum((f1 - f0) for _, _, f0, f1 in groups[I_cmd]) * dts[groups[I_cmd][0][0]] / T),
+            segments=segs_info, v=rec.v[rec.fit].copy(), F_meas=rec.F.copy(), F_fit=F_fit,
+        )
+        cf._rec = rec  # type: ignore[attr-defined]  # for the law-based NRMSE below
+        fits.append(cf)
+        if progress is not None:
+            progress(gi + 1, total, cf.current, time.perf_counter() - t_start, cf.nrmse)
+
+    I_arr = np.array([f.current for f in fits])
+    params, laws = fit_laws(I_arr, {k: np.array([f.theta[k] for f in fits]) for k in THETA_NAMES}, F0)
+    for f in fits:
+        th = theta_from_params(params, f.current)
+        rec = f._rec  # type: ignore[attr-defined]
+        if th[0] > 0 and th[3] > 0 and th[4] > 0 and th[5] != 0:
+            with np.errstate(all="ignore"):
+                F_law = _model_batch(th[None, :], rec)[0]
+            f.F_laws = F_law
+            f.nrmse_laws = float(np.sqrt(np.mean((F_law - rec.F) ** 2))) / f.ptp_N
+        del f._rec  # type: ignore[attr-defined]
+    problems = params.check_range(float(I_arr.max()))
+    warnings += [f"fitted laws: {p_}" for p_ in problems]
+    return IdentificationResult(params=params, fits=fits, laws=laws, method=method, period_s=T,
+                                dt_s=float(np.median(dts)), settle_periods=settle_periods,
+                                warmup_periods=warmup_periods, fit_periods=fit_periods,
+                                sources=labels, time_s=time.perf_counter() - t_start, warnings=warnings)
+
+
+def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
+                   method: str = DEFAULT_METHOD, progress: ProgressFn | None = None,
+                   **kwargs: Any) -> IdentificationResult:
+    """``mrctl identify``'s work: read the run CSVs, identify, write the parameters YAML.
+
+    ``progress`` as for :func:`identify` (called once per current); other
+    keyword arguments go to :func:`identify`. Nothing is written unless
+    identification succeeds.
+
+    Raises:
+        IdentificationError: no path given, a file that cannot be read or
+            identified from, or ``out`` cannot be written (exit code 2).
+        DependencyMissing: scipy is not installed (exit code 1); checked
+            before any file is read.
+    """
+    if not paths:
+        raise IdentificationError("no run CSV given")
+    require_scipy()
+    runs = [load_identification_run(p) for p in paths]
+    result = identify(runs, method=method, progress=progress, sources=[str(p) for p in paths], **kwargs)
+    write_params_yaml(result, out)
+    return result
