@@ -108,9 +108,9 @@ class BenchDevice:
         self.fault_events: list[dict] = []
         #: every watchdog expiry: {k, last_setpoint_age_ms, last_setpoint_k}
         self.watchdog_events: list[dict] = []
-        #: setpoint sessions (first setpoint after silence) with the tick that applied it
-        self.sessions: list[dict] = []
-        self._sessions_seen = 0
+        #: host starts (first setpoint after silence) with the tick that applied it
+        self.starts: list[dict] = []
+        self._starts_seen = 0
         #: set once the first sample is published (the process may say READY)
         self.first_tick = threading.Event()
 
@@ -143,8 +143,8 @@ class BenchDevice:
                 if fbits & _IGNORE_SP:
                     I_req, enable = self._frozen_sp
             self._prev_sp = (I_req, enable)
-        if len(state.sessions) != self._sessions_seen:
-            self._tag_sessions(k)
+        if len(state.starts) != self._starts_seen:
+            self._tag_starts(k)
         if clears != self._clears_seen:
             self._clears_seen = clears
             self._tripped = False
@@ -205,12 +205,12 @@ class BenchDevice:
         self._fbits = fbits
         self.state.fault_bits = fbits
 
-    def _tag_sessions(self, k: int) -> None:
-        """Give the setpoint sessions that began since the last tick their tick k."""
-        new = self.state.sessions[self._sessions_seen:]
-        self._sessions_seen += len(new)
+    def _tag_starts(self, k: int) -> None:
+        """Give the host starts that began since the last tick their tick k."""
+        new = self.state.starts[self._starts_seen:]
+        self._starts_seen += len(new)
         for ns, I, en in new:
-            self.sessions.append({"k": k, "first_setpoint_A": I, "enable": en, "t_mono_ns": ns})
+            self.starts.append({"k": k, "first_setpoint_A": I, "enable": en, "t_mono_ns": ns})
 
     def _skip_noise(self, n: int) -> None:
         """Draw the noise of ``n`` skipped ticks, so tick k's noise depends on
@@ -264,5 +264,5 @@ class BenchDevice:
             "faults": self.faults.describe() if self.faults is not None else [],
             "fault_events": self.fault_events,
             "watchdog_events": self.watchdog_events,
-            "setpoint_sessions": self.sessions,
+            "setpoint_starts": self.starts,
         }

@@ -14,11 +14,11 @@ from typing import Callable
 
 from mrctl.io.base import Sample
 
-#: a setpoint after this much silence starts a new "session" (a host (re)start,
+#: a setpoint after this much silence marks a host start (a host (re)start,
 #: a reconnect): the first setpoint of each is kept, to show what a restarted
 #: host commands first (docs/hil_sim.md)
-SESSION_GAP_NS = 20_000_000
-MAX_SESSIONS = 1000
+START_GAP_NS = 20_000_000
+MAX_STARTS = 1000
 
 
 class OwedReply:
@@ -74,9 +74,9 @@ class DeviceState:
         self._owed: list = []
         #: clock side: the owed replies taken with this tick's setpoint
         self.owed_now: list = []
-        #: "session starts": (monotonic ns, current A, enable) of every setpoint that
-        #: arrived after SESSION_GAP_NS of silence (or the very first); bounded
-        self.sessions: list[tuple[int, float, bool]] = []
+        #: "host starts": (monotonic ns, current A, enable) of every setpoint that
+        #: arrived after START_GAP_NS of silence (or the very first); bounded
+        self.starts: list[tuple[int, float, bool]] = []
 
     # -- clock side -------------------------------------------------------
     def publish(self, sample: Sample) -> None:
@@ -125,9 +125,9 @@ class DeviceState:
         this setpoint (taken in the same locked step, so never earlier)."""
         now = time.monotonic_ns()
         with self._lock:
-            if (self._setpoint_ns == 0 or now - self._setpoint_ns > SESSION_GAP_NS) \
-                    and len(self.sessions) < MAX_SESSIONS:
-                self.sessions.append((now, float(current_A), bool(enable)))
+            if (self._setpoint_ns == 0 or now - self._setpoint_ns > START_GAP_NS) \
+                    and len(self.starts) < MAX_STARTS:
+                self.starts.append((now, float(current_A), bool(enable)))
             self._setpoint_A = current_A
             self._enable = enable
             self._setpoint_ns = now

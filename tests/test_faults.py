@@ -175,17 +175,17 @@ def test_ignore_setpoints_keeps_the_old_current_and_the_watchdog_fed() -> None:
     assert dev.bench.I_cmd == 0.2
 
 
-def test_setpoint_sessions_record_what_a_restarted_host_sends_first() -> None:
+def test_setpoint_starts_record_what_a_restarted_host_sends_first() -> None:
     dev, state = _device()
     state.set_setpoint(0.0, True)
     dev.tick(0, state.setpoint()[2])
     state.set_setpoint(0.3, True)
     dev.tick(1, state.setpoint()[2])
-    time.sleep(0.03)  # silence > 20 ms: the next setpoint starts a session
+    time.sleep(0.03)  # silence > 20 ms: the next setpoint is a new host start
     state.set_setpoint(0.25, True)
     dev.tick(2, state.setpoint()[2] + 60_000_000)
-    sessions = dev.summary()["setpoint_sessions"]
-    assert [(s["k"], s["first_setpoint_A"]) for s in sessions] == [(0, 0.0), (2, 0.25)]
+    starts = dev.summary()["setpoint_starts"]
+    assert [(s["k"], s["first_setpoint_A"]) for s in starts] == [(0, 0.0), (2, 0.25)]
 
 
 # =============================================================================

@@ -157,7 +157,7 @@ def write_config(tmp_path: Path, text: str) -> Path:
 
 
 # --- end to end over the serial protocol ----------------------------------------
-def test_serial_session_against_truth(spawn, tmp_path: Path) -> None:
+def test_serial_exchanges_against_truth(spawn, tmp_path: Path) -> None:
     link_path = tmp_path / "tty"
     truth_path = tmp_path / "truth.csv"
     sim = spawn("--transport", "serial", "--link", str(link_path), "--duration", "60",

@@ -122,7 +122,7 @@ class FixedRateLoop:
         if max_ticks is not None and max_ticks <= 0:
             return 0
         clock = self._clock
-        sleep = self._sleep
+        wait = self._wait
         record = self.stats.record
         period = self.period_ns
         margin = self.spin_margin_ns
@@ -149,28 +149,8 @@ class FixedRateLoop:
             if bg is not None and now < deadline - bg_lead:
                 bg(deadline - bg_lead)
                 now = clock()
-            idle = self._idle
-            if mode == _SPIN:
-                if idle is None:
-                    while now < deadline:
-                        now = clock()
-                else:
-                    while now < deadline:
-                        idle()
-                        now = clock()
-            elif mode == _HYBRID:
-                if deadline - now > margin:
-                    sleep((deadline - margin - now) * 1e-9)
-                    now = clock()
-                while now < deadline:
-                    if idle is not None:
-                        idle()
-                    now = clock()
-            else:
-                while now < deadline:
-                    sleep((deadline - now) * 1e-9)
-                    now = clock()
-
+            if now < deadline:
+                now = wait(deadline, now)
             go_on = tick(k, now)
             end = clock()
 
@@ -188,6 +168,33 @@ class FixedRateLoop:
             if go_on is False or n == limit:
                 break
         return n
+
+    def _wait(self, deadline: int, now: int) -> int:
+        """Wait by the configured strategy until ``deadline`` (clock ns);
+        returns the clock reading at wake-up."""
+        clock, idle = self._clock, self._idle
+        mode = self._mode
+        if mode == _SPIN:
+            while now < deadline:
+                if idle is not None:
+                    idle()
+                now = clock()
+            return now
+        if mode == _HYBRID:
+            margin = self.spin_margin_ns
+            if deadline - now > margin:
+                self._sleep((deadline - margin - now) * 1e-9)
+                now = clock()
+            while now < deadline:
+                if idle is not None:
+                    idle()
+                now = clock()
+            return now
+        sleep = self._sleep
+        while now < deadline:
+            sleep((deadline - now) * 1e-9)
+            now = clock()
+        return now
 
     def sleep_until(self, t_ns: int) -> None:
         """Sleep until this loop's clock reads ``t_ns`` (no-op if it has)."""

@@ -213,7 +213,7 @@ def analyse_process(sc: Scenario, workdir: Path, run: dict, truth: dict, tsum: d
             out["watchdog_k"] = int(e["k"])
             out["device_k_of_last_setpoint"] = k_ls
             out["log_ticks_lost_at_kill"] = max(0, k_ls - s_last)
-            starts = bench.get("setpoint_sessions") or []
+            starts = bench.get("setpoint_starts") or []
             later = [s for s in starts if s["k"] > e["k"]]
             j_ls = int(np.searchsorted(k, k_ls))
             j_end = int(np.searchsorted(k, later[0]["k"])) if later else len(k)
