@@ -200,7 +200,7 @@ def load_identification_run(path: str | Path) -> dict[str, np.ndarray]:
     the file, column and line."""
     p = Path(path)
     try:
-        table = read_table(p, _RUN_COLUMNS)
+        table = read_table(p, _RUN_COLUMNS, torn_last_line_ok=True)  # a full disk or SIGKILL tears the last line
     except CsvError as exc:
         raise IdentificationError(str(exc)) from None
     if not table.columns:
