@@ -56,6 +56,7 @@ from typing import Any, Mapping
 from pymodbus.constants import ExcCodes
 
 from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample, Status, sleep_until_ns
+from mrctl.io.base import network_device_key, serial_device_key  # device ownership (hardening)
 from mrctl.io.registers import RegisterMap, default_register_map
 
 __all__ = [
@@ -759,7 +760,7 @@ class ModbusLink:
                 stopbits=self.stopbits,
                 timeout=min(max(self.timeout_s / 4, 100e-6), 20e-3),
                 write_timeout=max(self.timeout_s, 5e-3),
-                **self._serial_kwargs,
+                **{"exclusive": True, **self._serial_kwargs},  # flock: one owner (hardening)
             )
             port.reset_input_buffer()
         except (serial.SerialException, OSError, ValueError) as e:
@@ -836,6 +837,11 @@ class ModbusLink:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def device_key(self) -> str | None:  # device ownership (hardening)
+        if self.transport == "tcp":
+            return network_device_key("modbus-tcp", str(self.host), self.port, self.unit_id)
+        return serial_device_key(self.url)
 
     def describe(self) -> str:
         rm = self.register_map

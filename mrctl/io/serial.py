@@ -26,6 +26,7 @@ from typing import Any, Mapping
 import serial  # pyserial
 
 from mrctl.io.base import DeviceError, Disconnected, FrameError, LinkTimeout, Sample, sleep_until_ns
+from mrctl.io.base import serial_device_key  # device ownership (hardening)
 from mrctl.io.protocol import (
     DEFAULT_WATCHDOG_MS,
     EXCHANGE_BYTES,
@@ -214,7 +215,7 @@ class SerialLink:
                 baudrate=self.baudrate,
                 timeout=0 if self.spin_wait else self.poll_s,  # 0: read() never blocks
                 write_timeout=self.write_timeout_s,
-                **self._serial_kwargs,
+                **{"exclusive": True, **self._serial_kwargs},  # flock: one owner (hardening)
             )
             # Bytes from before we opened belong to nobody.
             port.reset_input_buffer()
@@ -248,6 +249,9 @@ class SerialLink:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def device_key(self) -> str | None:  # device ownership (hardening)
+        return serial_device_key(self.url)
 
     def describe(self) -> str:
         wire_us = exchange_wire_time_s(self.baudrate) * 1e6
