@@ -164,7 +164,7 @@ def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     ``settle`` overrides each run's settle window (default: its sidecar's,
     else :data:`DEFAULT_SETTLE_S`). Uses explicit Figure/canvas objects (no
     pyplot, no global backend state) so it works on a headless controller
-    and cannot disturb a caller's matplotlib session. ``title`` replaces
+    and cannot disturb a caller's matplotlib state. ``title`` replaces
     the default title (the run files' names).
     """
     paths = [Path(runs)] if isinstance(runs, (str, os.PathLike)) else [Path(r) for r in runs]
