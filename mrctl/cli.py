@@ -55,7 +55,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
                     "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
                     "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
-                    "settle_s": exp.excitation.settle_s}),
+                    "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
                 "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
                 "exit_code": 0, "summary": s}
         try:

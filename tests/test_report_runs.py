@@ -36,7 +36,8 @@ def test_report_and_identify_read_a_log_with_a_torn_last_line(tmp_path):
         fh.write("2.001,0.0099,-0.00")  # what a writer killed mid-line leaves
     assert main(["report", str(csv), "--out", str(tmp_path / "f.png")]) == 0
     run = load_identification_run(csv)
-    assert len(run["t"]) == rows
+    lag = json.loads(csv.with_suffix(".json").read_text())["load_cell_delay_ticks"]
+    assert len(run["t"]) == rows - lag  # every whole row, F moved back to its own tick
 
 
 # -- 12. the format is the name's --------------------------------------------------------

@@ -319,6 +319,8 @@ class Service:
             "config_file": str(Path(self.opts.config_path).resolve()), "config": jsonable(exp.config),
             "parameters": exp.params.as_dict(), "backend": link.describe(), "law": exp.config.inverse.law,
             "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz, "settle_s": exp.excitation.settle_s,
+            # the in-process bench's load cell reads the previous tick's force; hardware: taken as simultaneous
+            "load_cell_delay_ticks": 1 if exp.config.backend.type == "sim" else 0,
         }
 
     # -- status, live line, reload ------------------------------------------------

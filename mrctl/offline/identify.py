@@ -42,6 +42,7 @@ from typing import Any, Callable, Mapping, Sequence, TextIO
 import numpy as np
 
 from mrctl.errors import BadInput
+from mrctl.runlog.read import align_load_cell, try_sidecar
 from mrctl.util.csvtable import CsvError, read_table
 from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
 
@@ -203,6 +204,7 @@ def load_identification_run(path: str | Path) -> dict[str, np.ndarray]:
         table = read_table(p, _RUN_COLUMNS, torn_last_line_ok=True)  # a full disk or SIGKILL tears the last line
     except CsvError as exc:
         raise IdentificationError(str(exc)) from None
+    table = table._replace(columns=align_load_cell(table.columns, try_sidecar(p)))  # F at its own tick (runlog)
     if not table.columns:
         found = ", ".join(h for h in table.header if h) or "(none)"
         raise IdentificationError(f"{p}: none of the columns t, I, F_meas/F, v_meas/v found "

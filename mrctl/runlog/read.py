@@ -16,7 +16,7 @@ import numpy as np
 from mrctl.runlog.files import sidecar_path
 from mrctl.util.csvtable import Table, read_table
 
-__all__ = ["read_run", "read_run_table", "read_sidecar", "try_sidecar", "sidecar_path"]
+__all__ = ["read_run", "read_run_table", "read_sidecar", "try_sidecar", "sidecar_path", "align_load_cell"]
 
 
 def read_run_table(path: str | os.PathLike[str], columns: Sequence[str] | None = None, *,
@@ -52,3 +52,20 @@ def try_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
     except (OSError, ValueError):
         return {}
     return side if isinstance(side, dict) else {}
+
+
+def align_load_cell(cols: dict[str, np.ndarray], side: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The columns with ``F`` moved to the tick it measured, for analyses that
+    pair force with the same instant's x and v (identification).
+
+    ``F`` is the load cell as the controller received it; the sidecar's
+    ``load_cell_delay_ticks`` says how many ticks late that is (1 on the
+    simulated benches, whose load cell reads the previous tick's force; 0 on
+    hardware, where the DAQ samples x, v and F together). Every column loses
+    its last ``n`` rows. Unchanged when the sidecar says 0 or nothing."""
+    n = side.get("load_cell_delay_ticks")
+    if not isinstance(n, int) or isinstance(n, bool) or n <= 0 or "F" not in cols or len(cols["F"]) <= n:
+        return cols
+    out = {c: a[:-n] for c, a in cols.items()}
+    out["F"] = cols["F"][n:]
+    return out
