@@ -224,3 +224,94 @@ def test_second_daemon_on_a_device_in_use_is_refused_naming_the_owner(tmp_path, 
     assert r["b_names_owner_pid"] and r["b_names_device"], r["b_messages"]
     assert not r["b_wrote_log"]
     assert r["a_exit"] == 0, r["a_messages"]
+
+
+def _as_user(uid: int, fn) -> tuple[int, int, int]:
+    """Fork; the child becomes ``uid`` and runs ``fn(wait, say)``: ``wait()``
+    blocks until the parent writes to the go pipe, ``say(msg)`` reports a
+    line. Returns (child pid, the report pipe to read, the go pipe to write)."""
+    r, w = os.pipe()
+    r2, w2 = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            os.close(r)
+            os.close(w2)
+            os.setgid(uid)
+            os.setuid(uid)
+            res = fn(lambda: os.read(r2, 1), lambda msg: os.write(w, (msg + "\n").encode()))
+        except BaseException as exc:  # noqa: BLE001
+            res = f"{type(exc).__name__}: {exc}"
+        os.write(w, (str(res) + "\n").encode())
+        os._exit(0)
+    os.close(w)
+    os.close(r2)
+    return pid, r, w2
+
+
+def _line(fd: int) -> str:
+    out = b""
+    while not out.endswith(b"\n"):
+        b = os.read(fd, 1)
+        if not b:
+            break
+        out += b
+    return out.decode().strip()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as two users")
+def test_the_lock_is_seen_across_users(tmp_path):
+    """Root's daemon and another user's daemon see each other's locks in the
+    shared directory (1777), whoever created the lock file."""
+    import tempfile
+
+    from mrctl.daemon.ownership import DeviceBusy, acquire, lock_dir
+
+    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="mrctl-locktest-"))
+    try:
+        os.chmod(base, 0o755)
+        d, shared = lock_dir(base=base, env={})
+        assert shared
+        key = "serial /dev/ttyUSB9"
+
+        def try_once(wait, say):
+            try:
+                acquire(key, "nobody's daemon", lock_dir=d).release()
+                return "acquired"
+            except DeviceBusy as exc:
+                return f"busy: {exc}"
+
+        # 1. root holds it: the other user is refused, told root's pid
+        mine = acquire(key, "root's daemon", lock_dir=d)
+        pid, r, w = _as_user(65534, try_once)
+        got = _line(r)
+        os.waitpid(pid, 0)
+        assert got.startswith("busy:") and f"pid {os.getpid()}" in got, got
+        mine.release()
+
+        # 2. the other user holds it (its own file, or root's left behind): root is refused, told its pid
+        for leftover in (False, True):
+            if leftover:  # a file root created and left (a SIGKILLed owner): the other user can only read it
+                held = acquire(key, "root", lock_dir=d)
+                os.close(held._fd)  # killed: the lock goes, the file stays
+                held._fd = None
+
+            def hold(wait, say):
+                lock = acquire(key, "nobody's daemon", lock_dir=d)
+                say("held")
+                wait()
+                lock.release()
+                return "released"
+
+            pid, r, w = _as_user(65534, hold)
+            assert _line(r) == "held"
+            with pytest.raises(DeviceBusy, match=f"pid {pid}"):
+                acquire(key, "root again", lock_dir=d)
+            os.write(w, b"x")
+            assert _line(r) == "released"
+            os.waitpid(pid, 0)
+            acquire(key, "root", lock_dir=d).release()  # free again
+    finally:
+        import shutil
+
+        shutil.rmtree(base, ignore_errors=True)
