@@ -1,59 +1,43 @@
 """Lossless, non-blocking run log for the 1 kHz control loop.
 
-One CSV row per tick (header ``t,x,v,F_des,F,I,…``, SI units, the same core
-columns in the same order as ``mrctl simulate``) plus a JSON sidecar with the
-same stem (``run.csv`` → ``run.json``).
+One CSV row per tick plus a JSON sidecar with the same stem (``run.csv`` →
+``run.json``); the format is :mod:`mrctl.runlog.format` (docs/runlog.md).
 
 Design — the loop thread never waits on the disk:
 
 * The loop thread owns one **block**: a preallocated ``array('d')`` of
   ``block_ticks`` rows × C columns. :meth:`Recorder.record` packs the row
   into it with one ``struct.Struct.pack_into`` call and bumps a byte offset:
-  no allocation per tick (the ``*values`` tuple goes straight back to
-  CPython's tuple free-list), no lock, no clock call.
+  no allocation per tick, no lock, no clock call (cost and alternatives
+  measured: docs/design.md, *Run log*).
 * A full block goes to the writer thread through a ``queue.SimpleQueue``
   (``put`` never blocks); the loop takes the next block from a **free-list**
   (``deque.pop``, atomic under the GIL). All blocks are allocated up front
-  (``capacity_ticks`` rows in total), so at most that many rows are ever in
-  flight: the hand-over queue is bounded by construction.
+  (``capacity_ticks`` rows), so the hand-over is bounded by construction.
 * If the free-list is empty (writer stalled), the tick's row is **dropped**
-  and counted (``overflow_rows``, first/last dropped tick index); ``record``
-  still returns at once. Recording resumes as soon as a block comes back.
-* Blocks are at most ``rate_hz × flush_interval_s`` ticks long (default 256
-  rows), so a partial block is never older than one flush interval while the
-  loop runs — a tick count, not a clock read, bounds the data at risk.
-  :meth:`Recorder.flush` hands a partial block over on demand (e.g. before
-  pausing the loop).
-* The writer thread (:mod:`mrctl.daemon.logwriter`) formats a block as CSV
-  text (``'%r'`` = shortest exact repr by default, so values round-trip
-  bit-exactly), writes it with a **single** ``write()`` and ``fsync``\\ s at
-  least every ``flush_interval_s``. After a SIGKILL the CSV holds the header
-  and every row up to the last handed-over block: at most ``block_ticks``
-  ticks (≤ 1 s) plus the block being written are lost.
-  :func:`mrctl.runlog.read.read_run` drops a torn last line.
-* Writer errors (disk full, EIO, …) never reach the loop: the writer keeps
-  recycling blocks but discards them, counting their rows as ``lost_rows``;
-  :meth:`Recorder.stats` reports them while the run goes on (the daemon
-  warns on stderr and in ``mrctl status``), :meth:`Recorder.close` and the
-  sidecar at the end (the daemon then exits 4).
-* Files (:mod:`mrctl.runlog.files`): the CSV is created without following a
-  symlink; the sidecar is written atomically, and the start-up one reserves
-  room on disk so that the final one fits even when the disk is full.
-
-The per-tick cost (0.5–0.7 µs for 12 floats, measured against the
-alternatives) and why ``pack_into`` was chosen: docs/design.md, *Run log*.
+  and counted (``overflow_rows``, first/last tick); ``record`` still returns
+  at once, and recording resumes as soon as a block comes back.
+* Blocks are at most ``rate_hz × flush_interval_s`` ticks long, so a partial
+  block is never older than one flush interval while the loop runs (a tick
+  count, not a clock read, bounds the data at risk); :meth:`Recorder.flush`
+  hands one over on demand.
+* The writer thread (:mod:`mrctl.daemon.logwriter`) writes each block with a
+  single ``write()`` and fsyncs at least every ``flush_interval_s``: after a
+  SIGKILL at most ``block_ticks`` ticks (≤ 1 s) plus the block being written
+  are lost, and readers drop the torn last line. Its errors (disk full, EIO)
+  never reach the loop: rows are counted as lost, reported by
+  :meth:`Recorder.stats` while the run goes on and by the final sidecar.
+* The CSV is created without following a symlink; the start-up sidecar
+  reserves room on disk so the final one fits on a full disk
+  (:mod:`mrctl.runlog.files`).
 
 **Formatting in the loop's idle time** (``defer_format=True``, what
 ``mrctl run`` uses): a full block waits for :meth:`Recorder.format_pending`,
 which the loop calls after each tick until it must start waiting for the
-next deadline; the finished text goes to the writer thread, which then only
-``write()``\\ s and ``fsync``\\ s. If the loop gets no idle time, waiting
-blocks go to the writer thread to be formatted there, in order. Why (a
-second thread running Python costs the loop GIL hand-overs): docs/design.md,
-*Run log*.
-
-The writer is a SCHED_OTHER thread created *before*
-:func:`mrctl.daemon.rt.apply_rt` (GIL notes: :mod:`mrctl.daemon.logwriter`).
+next deadline; the writer thread then only writes and fsyncs. If the loop
+gets no idle time, waiting blocks go to the writer thread to be formatted
+there, in order. Why: docs/design.md, *Run log*. The writer thread is
+created before :func:`mrctl.daemon.rt.apply_rt` (:mod:`mrctl.daemon.logwriter`).
 """
 
 from __future__ import annotations
