@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from hil_sim.testing.harness import HilSim, hil_tracking, run_daemon  # noqa: E402
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.daemon.recorder import read_run, read_sidecar  # noqa: E402
+from mrctl.runlog.read import read_run, read_sidecar  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
 
 BENCH = str(ROOT / "config" / "hil_fig5_bench.yaml")

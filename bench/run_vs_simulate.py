@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.daemon.recorder import read_sidecar  # noqa: E402
+from mrctl.runlog.read import read_sidecar  # noqa: E402
 from mrctl.daemon.service import RunOptions, Service  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
 

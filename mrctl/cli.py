@@ -1,4 +1,4 @@
-"""``mrctl`` command line: run, status, simulate, report, identify, check.
+"""``mrctl`` command line: run, status, simulate, report, identify, check, examples.
 
 The one place that turns errors into exit codes: every user-facing error is
 a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mrctl import __version__
-from mrctl.errors import ExitCode, MrctlError
+from mrctl.errors import ExitCode, LogIncomplete, MrctlError
 from mrctl.util.jsonutil import jsonable
 
 EXIT_OK = ExitCode.OK
@@ -36,25 +36,34 @@ def _load(config_path: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from mrctl.runlog.metrics import format_summary
     from mrctl.offline.simulate import run_duration, simulate, write_csv
+    from mrctl.runlog import files
+    from mrctl.runlog.format import sidecar_header
+    from mrctl.runlog.metrics import format_summary
+    from mrctl.util.options import check_duration
 
+    override = check_duration(args.duration)
+    if args.out:
+        files.check_log_path(args.out, args.force)  # before a long simulation, not after
     exp = _load(args.config)
-    duration = run_duration(exp, args.duration)
+    duration = run_duration(exp, override)
     res = simulate(exp, duration)
     s = res.summary
-    meta = {
-        "mrctl_version": __version__,
-        "python": platform.python_version(),
-        "host": platform.node(),
-        "config_file": str(Path(args.config).resolve()),
-        "config": jsonable(exp.config),
-        "parameters": exp.params.as_dict(),
-        "summary": s,
-    }
     if args.out:
-        write_csv(res, args.out, comment=f"mrctl {__version__} simulate {args.config}")
-        Path(args.out).with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
+        side = {**sidecar_header("simulate", Path(args.out).name, {
+                    "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
+                    "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
+                    "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
+                    "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
+                    "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
+                "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
+                "exit_code": 0, "summary": s}
+        try:
+            write_csv(res, args.out, force=args.force)
+            files.write_json(files.sidecar_path(args.out), side)
+        except OSError as exc:
+            raise LogIncomplete(f"{exc.filename or args.out}: cannot write the run log: "
+                                f"{exc.strerror or exc}") from None
     law = exp.config.inverse.law
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
@@ -67,7 +76,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report
 
-    make_report(args.run, args.out, title=args.title)
+    make_report(args.runs, args.out, title=args.title)
     print(f"wrote {args.out}")
     return EXIT_OK
 
@@ -78,34 +87,30 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mrctl.daemon.service import RunOptions, run
 
     out = time.strftime(args.out) if args.out and "%" in args.out else args.out
-    return run(RunOptions(args.config, out=out, duration_s=args.duration,
+    return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
                           status_socket=args.status_socket, live=not args.quiet))
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from mrctl.daemon.status import default_status_socket, query_status
+    from mrctl.daemon.status import default_status_socket, format_status, query_status
 
     if args.instance:
         path = f"/run/mrctl/{args.instance}/status.sock"
     else:
-        path = args.socket or default_status_socket()
-    try:
-        st = query_status(path)
-    except OSError as exc:
-        _err(str(exc))
-        return EXIT_FAILURE
+        path = args.socket or default_status_socket(check=True)
+    st = query_status(path)  # StatusError (exit 1) with a clear message
     if args.json:
         print(json.dumps(st, indent=2))
         return EXIT_OK
-    t = st.get("timing") or {}
-    print(f"{st.get('experiment')} (pid {st.get('pid')}): up {st.get('uptime_s', 0):.1f} s, "
-          f"{st.get('rate_hz')} Hz, {st.get('ticks')} ticks, law {st.get('law')}")
-    print(f"current {st.get('current_A', 0.0):.4f} A, safety {st.get('safety_state')} "
-          f"(fault {st.get('fault')}), link errors {st.get('link_errors')}")
-    if t:
-        print(f"lateness p50/p99/max {t.get('lateness_p50_us')}/{t.get('lateness_p99_us')}/"
-              f"{t.get('lateness_max_us')} us, compute p99 {t.get('compute_p99_us')} us, "
-              f"overruns {t.get('overruns')}")
+    print(format_status(st))
+    return EXIT_OK
+
+
+def cmd_examples(args: argparse.Namespace) -> int:
+    from mrctl.examples import copy_examples
+
+    for rel in copy_examples(Path(args.dir), force=args.force):
+        print(f"wrote {Path(args.dir) / rel}")
     return EXIT_OK
 
 
@@ -157,12 +162,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("config", help="experiment YAML")
     sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
     sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
+    sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     sp.set_defaults(func=cmd_simulate)
 
-    rp = sub.add_parser("report", help="figure of a run: force and current over time, F-v and F-x loops")
-    rp.add_argument("run", help="run CSV from simulate or run")
-    rp.add_argument("--out", required=True, help="PNG to write")
-    rp.add_argument("--title", help="figure title (default: the run file name)")
+    rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops")
+    rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
+    rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
+    rp.add_argument("--title", help="figure title (default: the run file names)")
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
@@ -170,6 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it); "
                                   "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
     rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
+    rn.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")
     rn.add_argument("--quiet", action="store_true", help="no live progress line")
     rn.set_defaults(func=cmd_run)
@@ -191,6 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
     cp = sub.add_parser("check", help="validate an experiment config; lists every error")
     cp.add_argument("config")
     cp.set_defaults(func=cmd_check)
+
+    ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")
+    ex.add_argument("dir", nargs="?", default="mrctl-examples",
+                    help="directory to write config/, systemd/ and README.md into (default: mrctl-examples)")
+    ex.add_argument("--force", action="store_true", help="overwrite files that exist")
+    ex.set_defaults(func=cmd_examples)
     return ap
 
 
@@ -205,7 +218,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
     except OSError as exc:
-        _err(f"{exc.filename or ''}: {exc.strerror or exc}")
+        _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))
         return EXIT_FAILURE
     except Exception as exc:  # noqa: BLE001 - a lab user gets one line, not a traceback
         _err(f"internal error: {type(exc).__name__}: {exc}")

@@ -20,7 +20,7 @@ def test_simulate_writes_csv_sidecar_and_summary(tmp_path, capsys):
     lines = [l for l in out.read_text().splitlines() if not l.startswith("#")]
     header = lines[0].split(",")
     assert header[:6] == ["t", "x", "v", "F_des", "F", "I"]
-    data = np.loadtxt(out, delimiter=",", skiprows=2)
+    data = np.loadtxt(out, delimiter=",", skiprows=1)  # the header only: no comment line since 2026-11
     assert data.shape[0] == 4001
     assert np.allclose(np.diff(data[:, 0]), 0.001)
     meta = json.loads(out.with_suffix(".json").read_text())

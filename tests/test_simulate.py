@@ -9,7 +9,7 @@ import pytest
 
 from mrctl.config import load_experiment, load_yaml, validate_experiment
 from mrctl.experiment import build
-from mrctl.offline.simulate import CSV_COLUMNS, simulate
+from mrctl.offline.simulate import CSV_COLUMNS, SIM_COLUMNS, log_columns, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 EXP = ROOT / "config" / "experiments"
@@ -57,7 +57,11 @@ def test_smooth_law_has_no_spikes_and_tracks_no_worse_than_paper(c_des):
 def test_simulation_is_deterministic_and_csv_columns_complete():
     _, a = _run("fig5.yaml")
     _, b = _run("fig5.yaml")
+    # the CSV holds the run log's columns (log_columns; late_us, compute_us are NaN offline)
+    la, lb = log_columns(a), log_columns(b)
     for col in CSV_COLUMNS:
+        assert np.array_equal(la[col], lb[col], equal_nan=True)
+    for col in SIM_COLUMNS:
         assert np.array_equal(a.columns[col], b.columns[col])
     assert {"t", "x", "v", "F_des", "F", "I"} <= set(CSV_COLUMNS)
     c = a.columns

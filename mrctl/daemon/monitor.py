@@ -1,13 +1,16 @@
 """The monitor thread: everything slow that watches the loop from outside.
 
-It shows the live progress line, sends systemd ``STATUS=`` and
-``WATCHDOG=1`` (the watchdog only while the loop's tick counter advances,
-i.e. from a healthy loop), and runs config reloads off the loop (SIGHUP
-only sets an event). It never touches the link or the laws directly.
+It shows the live progress line (sized to the terminal, so it never
+wraps), sends systemd ``STATUS=`` and ``WATCHDOG=1`` (the watchdog only
+while the loop's tick counter advances, i.e. from a healthy loop), runs
+config reloads off the loop (SIGHUP only sets an event), and calls a
+``watch`` hook every poll (the service warns there when the run log starts
+losing rows). It never touches the link or the laws directly.
 """
 
 from __future__ import annotations
 
+import shutil
 import threading
 import time
 from typing import Callable, TextIO
@@ -19,13 +22,15 @@ class Monitor:
     """Polls the running service every 50 ms from its own thread."""
 
     def __init__(self, notifier: Notifier, ticks: Callable[[], int], live_line: Callable[[], str],
-                 reload: Callable[[], None], err: TextIO, live: bool) -> None:
+                 reload: Callable[[], None], err: TextIO, live: bool,
+                 watch: Callable[[], None] | None = None) -> None:
         self.notifier = notifier
         self.ticks = ticks
         self.live_line = live_line
         self.reload = reload
         self.err = err
         self.live = live
+        self.watch = watch
         self.reload_event = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="mrctl-monitor", daemon=True)
@@ -50,6 +55,11 @@ class Monitor:
             if self.reload_event.is_set():
                 self.reload_event.clear()
                 self.reload()
+            if self.watch is not None:
+                try:
+                    self.watch()
+                except Exception:  # noqa: BLE001 - a report must never stop the watchdog
+                    pass
             ticks = self.ticks()
             if wd is not None and now - last_wd >= wd / 2:
                 if ticks > last_ticks:  # the loop is alive: only then feed the watchdog
@@ -63,8 +73,26 @@ class Monitor:
                     n.send(f"STATUS={line}")
                 if self.live:
                     if is_tty:
-                        print("\r" + line[:160].ljust(160), end="", file=self.err, flush=True)
+                        # one column short of the width: a full line would wrap on some terminals
+                        width = max(20, shutil.get_terminal_size((80, 24)).columns - 1)
+                        print("\r" + line[:width].ljust(width), end="", file=self.err, flush=True)
                     else:
                         print(line, file=self.err, flush=True)
         if self.live and is_tty:
             print(file=self.err, flush=True)
+
+
+def live_line(ticks: int, total: int | None, rate_hz: float, I_A: float, state: str, link_errors: int,
+              log_losing: bool, timing: str) -> str:
+    """The live line, most important first (a narrow terminal cuts the end):
+    progress, elapsed and remaining time, current, safety state, link
+    errors, the log's trouble, timing."""
+    elapsed = ticks / rate_hz if rate_hz else 0.0
+    if total:
+        frac = min(1.0, ticks / total)
+        left = max(0.0, (total - ticks) / rate_hz) if rate_hz else 0.0
+        head = f"[{'#' * int(frac * 10):<10}] {100 * frac:3.0f}% elapsed {elapsed:.1f} s, {left:.1f} s left"
+    else:
+        head = f"elapsed {elapsed:.1f} s ({ticks} ticks)"
+    log = " LOG LOSING ROWS" if log_losing else ""
+    return f"{head} | I {I_A:.3f} A {state} link_err {link_errors}{log} | {timing}"

@@ -1,97 +1,53 @@
 """Lossless, non-blocking run log for the 1 kHz control loop.
 
-One CSV row per tick (header ``t,x,v,F_des,F,I,…``, SI units, the same core
-columns in the same order as ``mrctl simulate``) plus a JSON sidecar with the
-same stem (``run.csv`` → ``run.json``).
+One CSV row per tick plus a JSON sidecar with the same stem (``run.csv`` →
+``run.json``); the format is :mod:`mrctl.runlog.format` (docs/runlog.md).
 
 Design — the loop thread never waits on the disk:
 
 * The loop thread owns one **block**: a preallocated ``array('d')`` of
   ``block_ticks`` rows × C columns. :meth:`Recorder.record` packs the row
   into it with one ``struct.Struct.pack_into`` call and bumps a byte offset:
-  no allocation per tick (the ``*values`` tuple goes straight back to
-  CPython's tuple free-list), no lock, no clock call.
+  no allocation per tick, no lock, no clock call (cost and alternatives
+  measured: docs/design.md, *Run log*).
 * A full block goes to the writer thread through a ``queue.SimpleQueue``
   (``put`` never blocks); the loop takes the next block from a **free-list**
   (``deque.pop``, atomic under the GIL). All blocks are allocated up front
-  (``capacity_ticks`` rows in total), so at most that many rows are ever in
-  flight: the hand-over queue is bounded by construction.
+  (``capacity_ticks`` rows), so the hand-over is bounded by construction.
 * If the free-list is empty (writer stalled), the tick's row is **dropped**
-  and counted (``overflow_rows``, first/last dropped tick index); ``record``
-  still returns at once. Recording resumes as soon as a block comes back.
-* Blocks are at most ``rate_hz × flush_interval_s`` ticks long (default 256
-  rows), so a partial block is never older than one flush interval while the
-  loop runs — a tick count, not a clock read, bounds the data at risk.
-  :meth:`Recorder.flush` hands a partial block over on demand (e.g. before
-  pausing the loop).
-* The writer thread formats a block as CSV text (``'%r'`` = shortest exact
-  repr by default, so values round-trip bit-exactly), writes it with a
-  **single** ``write()`` (a SIGKILL can tear at most the file's last line),
-  and ``fsync``\\ s at least every ``flush_interval_s``. After a SIGKILL the
-  CSV holds the header and every row up to the last handed-over block: at
-  most ``block_ticks`` ticks (≤ 1 s) plus the block being written are lost.
-  :func:`read_run` drops a torn last line.
-* Writer errors (disk full, EIO, …) never reach the loop: the writer keeps
-  recycling blocks but discards them, counting their rows as ``lost_rows``;
-  :meth:`Recorder.stats` and :meth:`Recorder.close` report the error. The
-  caller decides what to do (the daemon keeps the damper safe and exits
-  non-zero).
-
-Measured cost of ``record(*12 floats)`` (CPython 3.11.7, timeit, median of
-9 × 100 000–200 000 calls on the shared, noisy 2-core dev box, medians of
-several runs; a no-op ``f(*args)`` call costs 0.18 µs there):
-
-==================================================  ==============
-``Recorder.record`` as shipped (pack_into)          0.52–0.73 µs
-  (same, box under load from other jobs)            1.1–1.4 µs
-bare ``struct.pack_into`` into ``array('d')``       0.77–0.89 µs
-tuple stored in a preallocated list slot            0.24–0.27 µs
-``buf[i:j] = array('d', values)``                   1.06–1.58 µs
-per-element ``buf[i] = v`` loop                     1.61–1.69 µs
-==================================================  ==============
-
-The list-slot variant is cheaper per call but keeps one tuple and 12 float
-objects alive per buffered row (≈ 0.4 kB/row, 3.6 MB at the default
-capacity) and adds one GC-tracked object per tick, which drives the
-generational collector from inside the loop; ``pack_into`` leaves the heap
-unchanged tick after tick, so it was chosen (0.5 µs/tick is 0.05 % of a
-1 ms period). The writer spends ~10–20 µs per 12-column row formatting
-(``'%.9g'`` about half that), i.e. 1–2 % of a core at 1 kHz, in chunks of
-``_CHUNK_ROWS`` rows so no single C call holds the GIL for long.
+  and counted (``overflow_rows``, first/last tick); ``record`` still returns
+  at once, and recording resumes as soon as a block comes back.
+* Blocks are at most ``rate_hz × flush_interval_s`` ticks long, so a partial
+  block is never older than one flush interval while the loop runs (a tick
+  count, not a clock read, bounds the data at risk); :meth:`Recorder.flush`
+  hands one over on demand.
+* The writer thread (:mod:`mrctl.daemon.logwriter`) writes each block with a
+  single ``write()`` and fsyncs at least every ``flush_interval_s``: after a
+  SIGKILL at most ``block_ticks`` ticks (≤ 1 s) plus the block being written
+  are lost, and readers drop the torn last line. Its errors (disk full, EIO)
+  never reach the loop: rows are counted as lost, reported by
+  :meth:`Recorder.stats` while the run goes on and by the final sidecar.
+* The CSV is created without following a symlink; the start-up sidecar
+  reserves room on disk so the final one fits on a full disk
+  (:mod:`mrctl.runlog.files`).
 
 **Formatting in the loop's idle time** (``defer_format=True``, what
-``mrctl run`` uses): a full block is not handed to the writer thread but
-kept for :meth:`Recorder.format_pending`, which the loop calls after each
-tick with the time by which it must start waiting for the next deadline; it
-formats ``_CHUNK_ROWS`` rows at a time while that time has not come, then
-hands the finished text to the writer thread, which only ``write()``\\ s and
-``fsync``\\ s (system calls that release the GIL). Why: a second thread
-running Python code takes the GIL away from the loop, and on this VM every
-hand-over of the GIL between the two threads can cost a cross-CPU wake-up of
-tens to hundreds of µs, landing inside a tick (bench/loop_timing.py: compute
-p99 ≈ 100–180 µs with the spinning strategies when the thread formatted).
-If the loop gets no idle time (a second block fills while one is still
-waiting), every waiting block goes to the writer thread to be formatted
-there, in order, so the data at risk stays within one flush interval.
-
-**GIL note for the daemon**: the writer is a SCHED_OTHER Python thread;
-while it holds the GIL the loop thread can wait up to
-``sys.getswitchinterval()`` (5 ms by default) for it. Set e.g.
-``sys.setswitchinterval(2e-4)`` in the daemon, and construct the Recorder
-(which starts its thread) *before* :func:`mrctl.daemon.rt.apply_rt`, so the writer
-does not inherit SCHED_FIFO / the loop's CPU pinning.
+``mrctl run`` uses): a full block waits for :meth:`Recorder.format_pending`,
+which the loop calls after each tick until it must start waiting for the
+next deadline; the writer thread then only writes and fsyncs. If the loop
+gets no idle time, waiting blocks go to the writer thread to be formatted
+there, in order. Why: docs/design.md, *Run log*. The writer thread is
+created before :func:`mrctl.daemon.rt.apply_rt` (:mod:`mrctl.daemon.logwriter`).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import os
 import queue
 import socket
 import struct
-import threading
 import time
 from array import array
 from collections import deque
@@ -99,124 +55,53 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
-import numpy as np
-
-from mrctl.util.jsonutil import jsonable
+import mrctl.runlog.files as files
+from mrctl.daemon.logwriter import STOP, LogWriter
+from mrctl.runlog.format import CORE_COLUMNS, SIDECAR_FORMAT, describe_columns, row_format
+from mrctl.runlog.read import read_run, read_sidecar, sidecar_path
 
 __all__ = ["CORE_COLUMNS", "Recorder", "read_run", "read_sidecar", "sidecar_path"]
 
-#: Core columns every run CSV starts with, in this order (SI: s, m, m/s, N, N, A).
-CORE_COLUMNS: tuple[str, ...] = ("t", "x", "v", "F_des", "F", "I")
-
-#: Sidecar format tag.
-SIDECAR_FORMAT = "mrctl-run/1"
-
-#: Rows formatted per ``%`` call in the writer (bounds one GIL-holding C call
-#: to ~0.1 ms for 12 columns).
+#: Rows formatted per ``%`` call (bounds one GIL-holding C call to ~0.1 ms for 12 columns).
 _CHUNK_ROWS = 8
-
-_STOP = object()
-
-
-def sidecar_path(path: str | os.PathLike[str]) -> Path:
-    """The JSON sidecar beside a run CSV: same stem, ``.json`` suffix."""
-    return Path(path).with_suffix(".json")
-
-
-def _write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
-    """Write JSON to a temp file in the same directory, fsync, ``os.replace``."""
-    text = json.dumps(jsonable(data), indent=2, allow_nan=False) + "\n"
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Best effort: make a directory entry (new/renamed file) durable."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
-def _err_text(exc: BaseException, path: Path) -> str:
-    return f"{type(exc).__name__}: {exc} (writing {path})"
-
-
 class Recorder:
     """Per-tick CSV run log; see the module docstring for the design.
 
-    Args:
-        path: the CSV to create (truncated if it exists); the sidecar is
-            ``sidecar_path(path)``.
-        columns: column names; by default the first six must be
-            :data:`CORE_COLUMNS`. Every value recorded is stored as a float
-            (ints are exact below 2**53).
-        meta: anything JSON-able describing the run (config, parameter set,
-            versions, RT settings applied …); stored in the sidecar as
-            ``"meta"``.
-        capacity_ticks: rows that can be buffered while the writer lags
-            (rounded up to whole blocks; at least two blocks).
-        flush_interval_s: the writer fsyncs at least this often, and no
-            block spans more than ``rate_hz × flush_interval_s`` ticks.
-        rate_hz: the loop's tick rate, to turn the interval into ticks.
-        block_ticks: rows per block (default ``min(256, interval ticks,
-            capacity / 2)``).
-        fmt: ``%``-format of every value (default ``'%r'``: shortest exact
-            repr), or a mapping ``{column: fmt}`` overriding it per column
-            (e.g. ``{"x": "%.9g", "seq": "%d"}``).
-        require_core: check that ``columns`` starts with :data:`CORE_COLUMNS`.
-        opener: ``opener(path) -> binary file`` with ``write`` (returning
-            the bytes written) and ``close`` — and ``fileno`` for fsync;
-            default: unbuffered ``open(path, "wb", buffering=0)``. For tests
-            (stalled or failing disks).
-        defer_format: full blocks wait for :meth:`format_pending` (called
-            by the loop in its idle time) instead of being formatted by the
-            writer thread; see the module docstring.
+    ``path``: the CSV (the sidecar is ``sidecar_path(path)``); the default
+    ``opener`` (:func:`mrctl.runlog.files.create_log`) replaces an existing
+    file without following a symlink, the CLI refuses one first unless
+    ``--force``. ``columns`` start with :data:`CORE_COLUMNS` unless not
+    ``require_core``; every value is stored as a float. ``meta`` goes to the
+    sidecar as ``"meta"``, ``header`` (:func:`mrctl.runlog.format.sidecar_header`)
+    to its top level. ``capacity_ticks`` rows can wait for the writer (whole
+    blocks, at least two, of ``block_ticks`` rows, default ``min(256,
+    rate_hz·flush_interval_s, capacity/2)``); the writer fsyncs at least every
+    ``flush_interval_s``. ``fmt``: one ``%``-format (default ``'%r'``, exact)
+    or ``{column: fmt}``. ``opener(path)`` returns a binary file with
+    ``write``, ``close``, ``fileno`` (the daemon's, created before the link
+    opened; tests' stalled or failing disks). ``defer_format``: blocks wait
+    for :meth:`format_pending`. ``sidecar_reserve``: bytes the start-up
+    sidecar takes on disk (room for the final one on a full disk).
 
     Raises at construction (before any tick) if the CSV or the sidecar cannot
     be created; after that, errors are only reported (:meth:`stats`).
-
-    Threads: :meth:`record` and :meth:`flush` belong to the loop thread;
-    :meth:`close` to the thread that owns the loop, once the loop has
-    stopped; :meth:`stats` may be called from any thread.
+    Threads: :meth:`record`, :meth:`flush` and :meth:`format_pending` belong
+    to the loop thread; :meth:`close` to the thread that owns the loop, once
+    it has stopped; :meth:`stats` to any thread.
     """
 
-    __slots__ = (
-        # hot path (loop thread)
+    __slots__ = (  # hot path first, then loop-thread state, then bookkeeping
         "_buf", "_off", "_end", "_rb", "_pack",
-        # loop-thread state
-        "_tick", "_ov_rows", "_ov_first", "_ov_last", "_after_close", "_free", "_q",
-        # writer-thread state
-        "_rows_written", "_lost_rows", "_lost_first", "_lost_last", "_error", "_exception",
-        "_fsyncs", "_max_write_s", "_max_fsync_s", "_writes",
-        # config / bookkeeping
-        "path", "sidecar", "columns", "meta", "rate_hz", "flush_interval_s",
-        "block_ticks", "n_blocks", "capacity_ticks", "flush_every_ticks",
-        "_ncols", "_row_fmt", "_chunk_fmt", "_fh", "_thread", "_closed", "_close_stats",
-        "defer_format", "_pending", "_unpack_chunk", "_tail_fmts",
-        "_sidecar_base", "_sidecar_error",
+        "_tick", "_ov_rows", "_ov_first", "_ov_last", "_after_close", "_free", "_q", "_pending",
+        "path", "sidecar", "columns", "meta", "rate_hz", "flush_interval_s", "block_ticks", "n_blocks",
+        "capacity_ticks", "flush_every_ticks", "defer_format", "_chunk_fmt", "_unpack_chunk", "_tail_fmts",
+        "_w", "_closed", "_close_stats", "_sidecar_base", "_sidecar_error",
     )
 
     def __init__(
@@ -233,18 +118,11 @@ class Recorder:
         require_core: bool = True,
         opener: Callable[[Path], BinaryIO] | None = None,
         defer_format: bool = False,
+        header: Mapping[str, Any] | None = None,
+        sidecar_reserve: int = files.SIDECAR_RESERVE_BYTES,
     ) -> None:
         cols = tuple(str(c) for c in columns)
-        if not cols:
-            raise ValueError("columns: need at least one column")
-        bad = [c for c in cols if not c or c != c.strip() or any(ch in c for ch in ',"\r\n#')]
-        if bad:
-            raise ValueError(f"columns: invalid name(s) {bad!r} (empty, spaces, or one of , \" # newline)")
-        dupes = sorted({c for c in cols if cols.count(c) > 1})
-        if dupes:
-            raise ValueError(f"columns: duplicate name(s) {dupes!r}")
-        if require_core and cols[: len(CORE_COLUMNS)] != CORE_COLUMNS:
-            raise ValueError(f"columns must start with {','.join(CORE_COLUMNS)}; got {','.join(cols)}")
+        row_fmt = row_format(cols, fmt, require_core)  # ValueError now, not in the writer later
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
         if not (flush_interval_s > 0 and math.isfinite(flush_interval_s)):
@@ -271,24 +149,7 @@ class Recorder:
         self.n_blocks = max(2, -(-int(capacity_ticks) // self.block_ticks))
         self.capacity_ticks = self.n_blocks * self.block_ticks
 
-        # Formats: validate on one row now, not in the writer thread later.
-        if isinstance(fmt, str):
-            fmts = [fmt] * len(cols)
-        else:
-            unknown = sorted(set(fmt) - set(cols))
-            if unknown:
-                raise ValueError(f"fmt: unknown column(s) {unknown!r}")
-            fmts = [fmt.get(c, "%r") for c in cols]
-        row_fmt = ",".join(fmts) + "\n"
-        try:
-            probe = row_fmt % tuple(0.5 for _ in cols)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"fmt: bad format {row_fmt!r}: {exc}") from None
-        if probe.count(",") != len(cols) - 1 or probe.count("\n") != 1:
-            raise ValueError(f"fmt: formats must not produce ',' or newlines: {row_fmt!r}")
-        self._row_fmt = row_fmt
         self._chunk_fmt = row_fmt * _CHUNK_ROWS
-        self._ncols = len(cols)
         self.defer_format = bool(defer_format)
         #: loop thread only: [block, rows, first tick, rows formatted, text parts]
         self._pending: deque[list] = deque()
@@ -311,17 +172,6 @@ class Recorder:
         self._ov_first: int | None = None
         self._ov_last: int | None = None
         self._after_close = 0
-
-        self._rows_written = 0
-        self._lost_rows = 0
-        self._lost_first: int | None = None
-        self._lost_last: int | None = None
-        self._error: str | None = None
-        self._exception: BaseException | None = None
-        self._fsyncs = 0
-        self._writes = 0
-        self._max_write_s = 0.0
-        self._max_fsync_s = 0.0
         self._closed = False
         self._close_stats: dict[str, Any] | None = None
         self._sidecar_error: str | None = None
@@ -329,33 +179,26 @@ class Recorder:
         # Create the CSV with its header and the "incomplete" sidecar now, so
         # a bad path fails before the first tick.
         p.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = (opener or (lambda q: open(q, "wb", buffering=0)))(p)
+        fh = (opener or (lambda q: files.create_log(q, force=True)))(p)
+        self._w = LogWriter(fh, p, self._q, self._free, row_fmt=row_fmt, chunk_rows=_CHUNK_ROWS,
+                            ncols=len(cols), flush_interval_s=self.flush_interval_s)
         try:
-            done, exc = self._write_all((",".join(cols) + "\n").encode("ascii"))
+            _, exc = self._w.write_all((",".join(cols) + "\n").encode("ascii"))
             if exc is not None:
                 raise exc
-            self._sync()
-            _fsync_dir(p.parent)
+            self._w.sync()
+            files.fsync_dir(p.parent)
             self._sidecar_base = {
-                "format": SIDECAR_FORMAT,
-                "csv": p.name,
-                "columns": list(cols),
-                "rate_hz": self.rate_hz,
-                "flush_interval_s": self.flush_interval_s,
-                "capacity_ticks": self.capacity_ticks,
-                "block_ticks": self.block_ticks,
-                "host": socket.gethostname(),
-                "pid": os.getpid(),
-                "started_utc": _utc_now(),
-                "meta": self.meta,
+                "format": SIDECAR_FORMAT, "csv": p.name, **describe_columns(cols), **dict(header or {}),
+                "rate_hz": self.rate_hz, "flush_interval_s": self.flush_interval_s,
+                "capacity_ticks": self.capacity_ticks, "block_ticks": self.block_ticks,
+                "host": socket.gethostname(), "pid": os.getpid(), "started_utc": _utc_now(), "meta": self.meta,
             }
-            _write_json_atomic(self.sidecar, {**self._sidecar_base, "complete": False})
+            files.write_json(self.sidecar, {**self._sidecar_base, "complete": False}, reserve=sidecar_reserve)
         except BaseException:
-            self._fh.close()
+            fh.close()
             raise
-
-        self._thread = threading.Thread(target=self._writer, name="mrctl-recorder", daemon=True)
-        self._thread.start()
+        self._w.thread.start()
 
     # -- loop thread ------------------------------------------------------
     def record(self, *values: float) -> None:
@@ -452,140 +295,16 @@ class Recorder:
             self._q.put(("".join(parts).encode("ascii"), n, job[2]))
             self._free.append(buf)
 
-    # -- writer thread ----------------------------------------------------
-    def _write_all(self, data: bytes) -> tuple[int, BaseException | None]:
-        """Write ``data`` (normally in one write call); (bytes written, error)."""
-        done = 0
-        size = len(data)
-        try:
-            view = memoryview(data)
-            while done < size:
-                k = self._fh.write(view[done:] if done else data)
-                if k is None:  # non-raw file object: assume it took everything
-                    k = size - done
-                if k <= 0:
-                    raise OSError(f"write() returned {k} with {size - done} bytes left")
-                done += k
-        except Exception as exc:  # noqa: BLE001 - reported, never raised in the loop
-            return done, exc
-        return done, None
-
-    def _sync(self) -> None:
-        flush = getattr(self._fh, "flush", None)
-        if flush is not None:
-            flush()
-        try:
-            fd = self._fh.fileno()
-        except (AttributeError, OSError, ValueError):
-            return  # injected file object without a descriptor
-        os.fsync(fd)
-
-    def _format(self, buf: array, n: int) -> bytes:
-        vals = buf[: n * self._ncols].tolist()
-        step = _CHUNK_ROWS * self._ncols
-        full = self._chunk_fmt
-        parts = []
-        yield_gil = time.sleep
-        for a in range(0, len(vals), step):
-            seg = vals[a : a + step]
-            fmt = full if len(seg) == step else self._row_fmt * (len(seg) // self._ncols)
-            parts.append(fmt % tuple(seg))
-            # one chunk is one uninterruptible C call: hand the GIL back to the
-            # control loop after each, instead of making it wait for the
-            # interpreter's switch interval
-            yield_gil(0)
-        return "".join(parts).encode("ascii")
-
-    def _lose(self, n: int, tick0: int) -> None:
-        if n <= 0:
-            return
-        if self._lost_first is None:
-            self._lost_first = tick0
-        self._lost_last = tick0 + n - 1
-        self._lost_rows += n
-
-    def _fail(self, exc: BaseException) -> None:
-        if self._error is None:
-            self._exception = exc
-            self._error = _err_text(exc, self.path)
-
-    def _writer(self) -> None:
-        get = self._q.get
-        free = self._free
-        interval = self.flush_interval_s
-        clock = time.monotonic
-        last_sync = clock()
-        dirty = False
-        while True:
-            if dirty and self._error is None:
-                try:
-                    item = get(timeout=max(0.0, last_sync + interval - clock()))
-                except queue.Empty:
-                    item = None
-            else:
-                item = get()
-            if item is _STOP:
-                break
-            if item is not None:
-                buf, n, tick0 = item
-                if self._error is not None:
-                    self._lose(n, tick0)
-                else:
-                    try:
-                        data = buf if isinstance(buf, bytes) else self._format(buf, n)
-                    except Exception as exc:  # noqa: BLE001
-                        self._fail(exc)
-                        self._lose(n, tick0)
-                    else:
-                        t0 = clock()
-                        done, exc = self._write_all(data)
-                        dt = clock() - t0
-                        self._writes += 1
-                        if dt > self._max_write_s:
-                            self._max_write_s = dt
-                        if exc is None:
-                            self._rows_written += n
-                            dirty = True
-                        else:  # a partial write keeps its complete lines
-                            ok = data.count(b"\n", 0, done)
-                            self._rows_written += ok
-                            self._lose(n - ok, tick0 + ok)
-                            self._fail(exc)
-                if not isinstance(buf, bytes):
-                    free.append(buf)  # recycle: the loop may fill it again
-            if dirty and self._error is None and clock() - last_sync >= interval:
-                dirty = not self._timed_sync()
-                last_sync = clock()
-        if dirty and self._error is None:
-            self._timed_sync()
-        try:
-            self._fh.close()
-        except Exception as exc:  # noqa: BLE001
-            self._fail(exc)
-
-    def _timed_sync(self) -> bool:
-        t0 = time.monotonic()
-        try:
-            self._sync()
-        except Exception as exc:  # noqa: BLE001
-            self._fail(exc)
-            return False
-        dt = time.monotonic() - t0
-        self._fsyncs += 1
-        if dt > self._max_fsync_s:
-            self._max_fsync_s = dt
-        return True
-
     # -- any thread ---------------------------------------------------------
     @property
     def error(self) -> str | None:
         """The writer's first error as text (``None`` while all is well)."""
-        return self._error
+        return self._w.error
 
     @property
     def ok(self) -> bool:
         """No writer error and no row dropped so far."""
-        return self._error is None and self._ov_rows == 0 and self._lost_rows == 0
+        return self._w.error is None and self._ov_rows == 0 and self._w.lost_rows == 0
 
     def stats(self) -> dict[str, Any]:
         """Counters so far (a snapshot; cheap, safe from any thread).
@@ -601,37 +320,26 @@ class Recorder:
         return self._stats()
 
     def _stats(self) -> dict[str, Any]:
-        buf = self._buf
-        ticks = self._tick + (self._off // self._rb if buf is not None else 0)
+        w = self._w
+        ticks = self._tick + (self._off // self._rb if self._buf is not None else 0)
         return {
-            "path": str(self.path),
-            "sidecar": str(self.sidecar),
-            "ticks": ticks,
-            "rows_written": self._rows_written,
-            "dropped_rows": self._ov_rows + self._lost_rows,
-            "overflow_rows": self._ov_rows,
-            "overflow_first_tick": self._ov_first,
+            "path": str(self.path), "sidecar": str(self.sidecar), "ticks": ticks,
+            "rows_written": w.rows_written, "dropped_rows": self._ov_rows + w.lost_rows,
+            "overflow_rows": self._ov_rows, "overflow_first_tick": self._ov_first,
             "overflow_last_tick": self._ov_last,
-            "lost_rows": self._lost_rows,
-            "lost_first_tick": self._lost_first,
-            "lost_last_tick": self._lost_last,
-            "error": self._error,
-            "sidecar_error": self._sidecar_error,
-            "rows_after_close": self._after_close,
-            "capacity_ticks": self.capacity_ticks,
-            "block_ticks": self.block_ticks,
-            "blocks_free": len(self._free),
-            "writes": self._writes,
-            "fsyncs": self._fsyncs,
-            "max_write_s": self._max_write_s,
-            "max_fsync_s": self._max_fsync_s,
-            "closed": self._closed,
+            "lost_rows": w.lost_rows, "lost_first_tick": w.lost_first, "lost_last_tick": w.lost_last,
+            "error": w.error, "sidecar_error": self._sidecar_error, "rows_after_close": self._after_close,
+            "capacity_ticks": self.capacity_ticks, "block_ticks": self.block_ticks,
+            "blocks_free": len(self._free), "writes": w.writes, "fsyncs": w.fsyncs,
+            "max_write_s": w.max_write_s, "max_fsync_s": w.max_fsync_s, "closed": self._closed,
         }
 
     # -- shutdown ---------------------------------------------------------
-    def close(self, summary: Mapping[str, Any] | None = None,
-              timeout: float | None = None) -> dict[str, Any]:
-        """Drain every buffered row, stop the writer, finalize the sidecar.
+    def close(self, summary: Mapping[str, Any] | None = None, timeout: float | None = None,
+              write_sidecar: bool = True) -> dict[str, Any]:
+        """Drain every buffered row, stop the writer, finalize the sidecar
+        (unless ``write_sidecar`` is false: the caller then calls
+        :meth:`write_sidecar` itself, once it knows more).
 
         Idempotent (later calls return the same stats and ignore their
         arguments). Never raises for I/O problems: check ``stats["error"]``
@@ -648,30 +356,44 @@ class Recorder:
             self._closed = True
             self._buf = None
             self._off = self._end = 0
-            self._q.put(_STOP)
-        self._thread.join(timeout)
-        finished = not self._thread.is_alive()
-        if not finished and self._error is None:
-            self._error = (f"TimeoutError: writer still busy after {timeout} s at close "
-                           f"(writing {self.path})")
+            self._q.put(STOP)
+        self._w.thread.join(timeout)
+        finished = not self._w.thread.is_alive()
+        if not finished and self._w.error is None:
+            self._w.error = (f"TimeoutError: writer still busy after {timeout} s at close "
+                             f"(writing {self.path})")
+        if write_sidecar:
+            self.write_sidecar(summary)
         st = self._stats()
         st["complete"] = finished
+        if finished:
+            self._close_stats = st
+        return dict(st)
+
+    def write_sidecar(self, summary: Mapping[str, Any] | None = None,
+                      extra: Mapping[str, Any] | None = None) -> str | None:
+        """Write the final sidecar: the start-up content, the counters,
+        ``summary`` and ``extra`` (top-level keys, e.g. ``exit_code``). On a
+        full disk it goes over the start-up sidecar's reservation. Never
+        raises: returns (and keeps, for :meth:`stats`) the error text."""
+        finished = not self._w.thread.is_alive()
+        st = self._stats()
         side = {
             **self._sidecar_base,
             "complete": finished,
             "closed_utc": _utc_now(),
-            **{k: v for k, v in st.items() if k not in ("path", "sidecar", "closed", "complete",
-                                                          "sidecar_error")},
+            **{k: v for k, v in st.items() if k not in ("path", "sidecar", "closed", "sidecar_error")},
             "summary": dict(summary or {}),
+            **dict(extra or {}),
         }
         try:
-            _write_json_atomic(self.sidecar, side)
+            files.write_json(self.sidecar, side)
+            self._sidecar_error = None
         except Exception as exc:  # noqa: BLE001
             self._sidecar_error = f"{type(exc).__name__}: {exc} (writing {self.sidecar})"
-        st["sidecar_error"] = self._sidecar_error
-        if finished:
-            self._close_stats = st
-        return dict(st)
+        if self._close_stats is not None:
+            self._close_stats["sidecar_error"] = self._sidecar_error
+        return self._sidecar_error
 
     def __enter__(self) -> Recorder:
         return self
@@ -681,26 +403,3 @@ class Recorder:
 
     def __repr__(self) -> str:
         return f"Recorder({str(self.path)!r}, {len(self.columns)} columns, closed={self._closed})"
-
-
-# -- reading back -------------------------------------------------------------
-def read_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
-    """Read a run CSV into ``{column: float array}`` (all columns, in order).
-
-    Tolerates what a killed recorder leaves: a last line without its
-    newline is dropped. ``#`` comment lines and blank lines are skipped (so
-    ``mrctl simulate`` output reads too). Any other malformed line raises
-    :class:`mrctl.util.csvtable.CsvError` (a ``ValueError``) naming the file and
-    1-based line number.
-    """
-    from mrctl.util.csvtable import read_table
-
-    return read_table(path, torn_last_line_ok=True).columns  # CsvError is a ValueError
-
-
-def read_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The JSON sidecar of a run CSV (pass the CSV or the .json path)."""
-    p = Path(path)
-    if p.suffix.lower() != ".json":
-        p = sidecar_path(p)
-    return json.loads(p.read_text(encoding="utf-8"))

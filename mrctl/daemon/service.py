@@ -12,19 +12,23 @@ What runs where:
 - the **status thread** (:mod:`mrctl.daemon.status`) answers ``mrctl status``;
 - the **recorder's writer thread** (:mod:`mrctl.daemon.recorder`).
 
-Start-up, in this order, once: build the experiment; open the link; command
-0 A (the first thing a start does on the wire, so a restart after a crash
-never resumes the old current); check that the link sustains the rate, and
-with ``link.on_infeasible: reduce_rate`` rebuild the experiment at the rate
-that fits; set up device pacing; only then build the safety supervisor and
-the controller, at the final rate. Every resource is entered on one
-``ExitStack`` whose first callback on the way out commands 0 A, so every
-exit (end of experiment, SIGINT, SIGTERM, driver lost, refusal, exception)
-passes there first.
+Start-up, in this order, once: check ``--duration``, the config and
+``--out`` (exit 2 before anything is touched); take the device's lock (a
+second daemon is refused here, exit 3, before it sends anything); create
+the run log; open the link; command 0 A (the first thing a start does on
+the wire, so a restart after a crash never resumes the old current); check
+that the link sustains the rate, and with ``link.on_infeasible:
+reduce_rate`` rebuild the experiment at the rate that fits; set up device
+pacing; only then build the safety supervisor and the controller, at the
+final rate. Every resource is entered on one ``ExitStack`` whose first
+callback on the way out commands 0 A, so every exit (end of experiment,
+SIGINT, SIGTERM, driver lost, refusal, exception) passes there first; the
+device's lock is released last.
 
 Exit codes are carried by the error that ends a start-up
-(:mod:`mrctl.errors`): 2 bad config, 3 link failure; a run ends 0, 3 when
-the driver was lost, 4 when the log is incomplete, 1 on an internal error.
+(:mod:`mrctl.errors`): 2 bad input, 3 link failure or device owned; a run
+ends 0, 3 when the driver was lost, 4 when the log is incomplete
+(:mod:`mrctl.daemon.logcheck`), 1 on an internal error.
 """
 
 from __future__ import annotations
@@ -43,20 +47,24 @@ from typing import Any, Callable, TextIO
 from mrctl import __version__
 from mrctl.config import ConfigError, Node, load_experiment
 from mrctl.daemon.controller import Controller, safe_zero
+from mrctl.daemon import ownership
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
+from mrctl.daemon.logcheck import LogWatch, close_log
 from mrctl.daemon.loop import FixedRateLoop
-from mrctl.daemon.monitor import Monitor
+from mrctl.daemon.monitor import Monitor, live_line
 from mrctl.daemon.notify import Notifier
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
 from mrctl.daemon.status import StatusServer, default_status_socket
 from mrctl.daemon.timing import format_summary as format_timing
-from mrctl.errors import BadInput, ExitCode, LinkFailure, MrctlError
+from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlError
 from mrctl.experiment import Experiment, build
 from mrctl.io.base import Link, LinkError
-from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, RUN_UNITS
-from mrctl.runlog.metrics import format_summary, tracked_force, tracking_summary
+from mrctl.runlog import files
+from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
+from mrctl.runlog.metrics import format_summary
 from mrctl.util.jsonutil import jsonable
+from mrctl.util.options import check_duration
 
 # kept as names: tests and hil_sim compare against them
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_LINK, EXIT_LOG = (
@@ -70,6 +78,7 @@ class RunOptions:
     duration_s: float | None = None
     status_socket: str | None = None
     live: bool = True  # progress / live line on stderr (foreground)
+    force: bool = False  # replace an existing run log (--force)
     clock_ns: Callable[[], int] = time.monotonic_ns  # injectable for deterministic tests
     sleep: Callable[[float], object] = time.sleep
     stream: TextIO = field(default_factory=lambda: sys.stdout)
@@ -99,6 +108,8 @@ class Service:
         self.exit_current_A = math.nan  # what the way out commanded (0.0 unless it failed)
         self._zero_error: str | None = "not attempted"
         self._total_ticks: int | None = None
+        self._log_fh: Any = None  # the run log, created before the link opens, until the recorder takes it
+        self.log_watch = LogWatch(bool(opts.out), self.warn, self.notifier.send)
 
     # -- output helpers ---------------------------------------------------
     def say(self, msg: str) -> None:
@@ -132,15 +143,23 @@ class Service:
 
     def _run(self, stack: contextlib.ExitStack) -> int:
         o = self.opts
+        # everything the user gave is checked before the device is touched
+        override = check_duration(o.duration_s, "--duration")
         exp = self.exp = build(load_experiment(o.config_path))
         self.loaded = exp.config
-        duration = o.duration_s if o.duration_s is not None else exp.config.duration_s
+        duration = override if override is not None else exp.config.duration_s
+        if o.out:
+            files.check_log_path(o.out, o.force)
         try:
             link = exp.make_link()
         except ValueError as exc:  # a combination the schema cannot see (e.g. a register map for RTU)
             raise BadInput(f"backend: {exc}") from None
         self.say(f"mrctl {__version__}: {exp.name}, law {exp.config.inverse.law}, {exp.config.rate_hz:g} Hz, "
                  f"{'%.3f s' % duration if duration else 'until stopped'}; backend {link.describe()}")
+        self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
+        if o.out:
+            self._log_fh = files.create_log(o.out, o.force)
+            stack.callback(self._drop_unused_log)
         try:
             link.open()
         except (LinkError, OSError) as exc:
@@ -182,6 +201,24 @@ class Service:
         err = ctl.safe_stop() if ctl is not None else safe_zero(link)
         self._zero_error = err
         self.exit_current_A = 0.0 if err is None else math.nan
+
+    def _own_device(self, stack: contextlib.ExitStack, link: Link) -> None:
+        """The device's lock, held until the very end: released after the 0 A
+        on the way out and the link's close (the stack unwinds in reverse)."""
+        lock = ownership.own(link, f"mrctl run {Path(self.opts.config_path).resolve()}", self.warn)
+        if lock is not None:
+            stack.callback(lock.release)
+
+    def _drop_unused_log(self) -> None:
+        """A start refused before the recorder took the run log: remove the
+        empty file this run created (never anything else)."""
+        fh, self._log_fh = self._log_fh, None
+        if fh is not None and self.opts.out:
+            fh.close()
+            try:
+                os.unlink(self.opts.out)
+            except OSError:
+                pass
 
     # -- start-up steps ----------------------------------------------------------
     def _check_link(self, exp: Experiment, link: Link) -> Experiment:
@@ -236,9 +273,17 @@ class Service:
             # pacing has no idle time between compute and send, but sleeps
             # in the exchange, when the writer thread can format
             host_paced = cfg.loop.pacing == "host"
-            self.rec = Recorder(o.out, RUN_COLUMNS, self._meta(), capacity_ticks=cfg.record.buffer_ticks,
-                                flush_interval_s=cfg.record.flush_interval_s, rate_hz=cfg.rate_hz,
-                                fmt=RUN_FORMATS, defer_format=host_paced)
+            fh, self._log_fh = self._log_fh, None
+            try:
+                self.rec = Recorder(o.out, RUN_COLUMNS, {"backend": self.link.describe() if self.link else None},
+                                    capacity_ticks=cfg.record.buffer_ticks,
+                                    flush_interval_s=cfg.record.flush_interval_s, rate_hz=cfg.rate_hz,
+                                    fmt=RUN_FORMATS, defer_format=host_paced, opener=lambda _p: fh,
+                                    header=sidecar_header("run", Path(o.out).name, self._provenance()))
+            except OSError as exc:
+                with contextlib.suppress(OSError):
+                    os.unlink(o.out)
+                raise LogIncomplete(f"{o.out}: cannot write the run log: {exc.strerror or exc}") from None
             ctl.record = self.rec.record
             if host_paced:
                 loop.background = self.rec.format_pending
@@ -248,7 +293,8 @@ class Service:
             stack.callback(status.close)
         except OSError as exc:
             self.warn(f"status socket unavailable ({exc}); running without it")
-        mon = self.monitor = Monitor(self.notifier, lambda: ctl.ticks, self._live_line, self._reload, o.err, o.live)
+        mon = self.monitor = Monitor(self.notifier, lambda: ctl.ticks, self._live_line, self._reload, o.err, o.live,
+                                     watch=lambda: self.log_watch.check(self.rec))
         mon.start()
         stack.callback(mon.stop)
         old_handlers = {sig: signal.signal(sig, lambda s, f: loop.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -264,14 +310,17 @@ class Service:
             self.say(f"rt: {r}")
         sys.setswitchinterval(2e-4)  # a writer thread must not hold the GIL for 5 ms
 
-    def _meta(self) -> dict[str, Any]:
+    def _provenance(self) -> dict[str, Any]:
+        """What ran, with what: the sidecar's provenance (docs/runlog.md)."""
         exp, link = self.exp, self.link
         assert exp is not None and link is not None
         return {
             "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
             "config_file": str(Path(self.opts.config_path).resolve()), "config": jsonable(exp.config),
-            "parameters": exp.params.as_dict(), "backend": link.describe(),
-            "columns_units": dict(RUN_UNITS),
+            "parameters": exp.params.as_dict(), "backend": link.describe(), "law": exp.config.inverse.law,
+            "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz, "settle_s": exp.excitation.settle_s,
+            # the in-process bench's load cell reads the previous tick's force; hardware: taken as simultaneous
+            "load_cell_delay_ticks": 1 if exp.config.backend.type == "sim" else 0,
         }
 
     # -- status, live line, reload ------------------------------------------------
@@ -295,23 +344,18 @@ class Service:
         if loop is not None:
             d["timing"] = loop.stats.summary(last_n=5000)
         if self.rec is not None:
+            self.log_watch.check(self.rec)
             d["recorder"] = self.rec.stats()
+        d["log"] = self.log_watch.state
+        d["warnings"] = self.messages[-5:]
         return d
 
     def _live_line(self) -> str:
-        ctl, sup, loop = self.ctl, self.sup, self.loop
-        ticks = ctl.ticks if ctl else 0
-        total = self._total_ticks
-        if total:
-            frac = min(1.0, ticks / total)
-            bar = "#" * int(frac * 20)
-            head = f"[{bar:<20}] {100 * frac:5.1f}% "
-        else:
-            head = f"{ticks} ticks "
-        timing = loop.stats.live_line() if loop else ""
-        fault = sup.state.name if sup else "?"
-        I = ctl.I_last if ctl else 0.0
-        return f"{head}I={I:.3f} A {fault} link_err={ctl.link_errors if ctl else 0} | {timing}"
+        ctl, loop = self.ctl, self.loop
+        return live_line(ctl.ticks if ctl else 0, self._total_ticks, loop.rate_hz if loop else 0.0,
+                         ctl.I_last if ctl else 0.0, self.sup.state.name if self.sup else "?",
+                         ctl.link_errors if ctl else 0, self.log_watch.warned,
+                         loop.stats.live_line() if loop else "")
 
     def _reload(self) -> None:
         """SIGHUP: validate the config file again (off the loop); if valid,
@@ -338,53 +382,26 @@ class Service:
 
     # -- the end -------------------------------------------------------------------
     def _finish(self, exit_code: int) -> int:
+        """Figures, the log's fate, the final sidecar (with the exit code).
+        Never raises: a run that ends here has already commanded 0 A."""
         assert self.loop is not None and self.ctl is not None and self.sup is not None and self.exp is not None
-        timing = self.loop.stats.summary()
+        try:
+            timing = self.loop.stats.summary()
+            self.say(format_timing(timing))
+        except Exception as exc:  # noqa: BLE001
+            timing = {"error": f"{type(exc).__name__}: {exc}"}
         summary: dict[str, Any] = {"timing": timing, "safety": self.sup.counters().as_dict(),
                                    "link_errors": self.ctl.link_errors, "ticks": self.ctl.ticks,
-                                   "rt": [str(r) for r in self.rt_results], "exit_code": exit_code,
-                                   "exit_current_A": self.exit_current_A,
-                                   "messages": self.messages}
-        self.say(format_timing(timing))
+                                   "rt": [str(r) for r in self.rt_results],
+                                   "exit_current_A": self.exit_current_A}
         if self.rec is not None:
-            stats = self.rec.close(summary=summary)
-            track = self._tracking(self.opts.out)
-            if track:
-                summary["tracking"] = track
-                self.say(format_summary(track, self.exp.I_max))
-                from mrctl.daemon.recorder import _write_json_atomic, read_sidecar, sidecar_path
-
-                side = read_sidecar(self.opts.out)
-                side.setdefault("summary", {})["tracking"] = track
-                _write_json_atomic(sidecar_path(self.opts.out), side)
-            lost = stats.get("dropped_rows", 0)
-            if stats.get("error") or lost:
-                self.warn(f"run log incomplete: {lost} rows dropped; {stats.get('error') or ''}".strip())
-                exit_code = exit_code or EXIT_LOG
-            else:
-                self.say(f"wrote {self.opts.out} ({stats.get('rows_written')} rows) and its .json sidecar")
+            exit_code = close_log(self.rec, self.opts.out or "", summary, exit_code, self.messages,
+                                  I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,
+                                  warn=self.warn, format_tracking=lambda t: format_summary(t, self.exp.I_max))
         s = self.sup
         self.say(f"safety: {s.state.name}, faults entered {s.counters().faults_entered}, "
                  f"link errors {self.ctl.link_errors}")
         return exit_code
-
-    def _tracking(self, path: str | None) -> dict[str, float] | None:
-        if not path:
-            return None
-        from mrctl.daemon.recorder import read_run
-
-        try:
-            cols = read_run(path)
-        except Exception:  # noqa: BLE001 - figures are a bonus; the log itself was reported
-            return None
-        if len(cols.get("t", ())) < 2:
-            return None
-        F, _ = tracked_force(cols)
-        try:
-            return tracking_summary(cols["t"], cols["F_des"], F, cols["I"], self.exp.I_max,  # type: ignore[union-attr]
-                                    self.exp.excitation.settle_s)  # type: ignore[union-attr]
-        except Exception:  # noqa: BLE001
-            return None
 
 
 def _as_plain(v: Any) -> Any:

@@ -4,26 +4,49 @@ Server side (a thread of the daemon): each connection gets one JSON line
 and is closed. Client side (``mrctl status``, hil_sim's harnesses): one
 connect, one read. The socket is created 0660 under a umask, so it is
 never briefly wider.
+
+Where: systemd's ``$RUNTIME_DIRECTORY``, else the per-user directory
+``$TMPDIR/mrctl-<uid>`` (:func:`mrctl.util.files.private_dir`): created
+0700, and neither the daemon nor ``mrctl status`` uses one that another
+user owns or can write to (a local user who creates it first could plant a
+socket there and show a spoofed state). A reply that is not a JSON object
+is refused, never a traceback.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import threading
 from pathlib import Path
 from typing import Any, Callable
 
+from mrctl.errors import MrctlError
+from mrctl.util.files import check_private_dir, per_user_dir, private_dir
 from mrctl.util.jsonutil import jsonable
 
 
-def default_status_socket() -> str:
-    """$RUNTIME_DIRECTORY (systemd RuntimeDirectory=) or a per-user temp path."""
+class StatusError(MrctlError, OSError):
+    """No usable answer on the status socket (exit 1); an OSError for callers
+    that poll (hil_sim's harnesses)."""
+
+
+def default_status_socket(check: bool = False) -> str:
+    """$RUNTIME_DIRECTORY (systemd RuntimeDirectory=) or the per-user
+    directory's socket; ``check``: refuse a per-user directory that is not
+    ours alone (the client's side; the server creates it)."""
     rd = os.environ.get("RUNTIME_DIRECTORY")
     if rd:
         return str(Path(rd.split(":")[0]) / "status.sock")
-    return f"/tmp/mrctl-{os.getuid()}/status.sock"
+    d = per_user_dir()
+    if check and os.path.lexists(d):
+        try:
+            check_private_dir(d)
+        except OSError as exc:
+            raise StatusError(f"not asking: {exc}") from None
+    return str(d / "status.sock")
 
 
 class StatusServer:
@@ -38,7 +61,10 @@ class StatusServer:
 
     def start(self) -> None:
         p = Path(self.path)
-        p.parent.mkdir(parents=True, exist_ok=True, mode=0o770)
+        if p.parent == per_user_dir():
+            private_dir(p.parent)  # OSError: not ours alone; the service runs on without it
+        else:
+            p.parent.mkdir(parents=True, exist_ok=True, mode=0o770)
         if p.is_socket() or p.exists():
             if not p.is_socket():
                 raise OSError(f"status socket path exists and is not a socket: {p}")
@@ -99,22 +125,71 @@ def _socket_alive(path: str) -> bool:
 
 
 def query_status(path: str, timeout_s: float = 2.0) -> dict[str, Any]:
-    """Client side of ``mrctl status``; raises OSError with a clear message."""
+    """Client side of ``mrctl status``: the daemon's state, a JSON object.
+    :class:`StatusError` with a clear message otherwise."""
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(timeout_s)
     try:
         try:
             s.connect(path)
         except FileNotFoundError:
-            raise OSError(f"no mrctl running (no status socket at {path})") from None
+            raise StatusError(f"no mrctl running (no status socket at {path})") from None
         except ConnectionRefusedError:
-            raise OSError(f"no mrctl running (stale status socket at {path})") from None
+            raise StatusError(f"no mrctl running (stale status socket at {path})") from None
+        except OSError as exc:
+            raise StatusError(f"{path}: cannot connect: {exc.strerror or exc}") from None
         chunks = []
-        while True:
-            b = s.recv(65536)
+        size = 0
+        while size <= 1 << 20:
+            try:
+                b = s.recv(65536)
+            except OSError as exc:
+                raise StatusError(f"{path}: no reply: {exc.strerror or exc}") from None
             if not b:
                 break
             chunks.append(b)
+            size += len(b)
     finally:
         s.close()
-    return json.loads(b"".join(chunks).decode())
+    raw = b"".join(chunks)
+    try:
+        st = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        st = None
+    if not isinstance(st, dict):
+        shown = raw[:60].decode("utf-8", "replace").strip() or "nothing"
+        raise StatusError(f"{path}: not a status reply from mrctl (got {shown!r})")
+    return st
+
+
+def _num(v: Any, fmt: str, scale: float = 1.0, unit: str = "") -> str:
+    """A number as ``fmt`` (scaled, with its unit); anything else as it is."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return format(v * scale, fmt) + (f" {unit}" if unit else "")
+    return "-" if v is None else str(v)
+
+
+def format_status(st: dict[str, Any]) -> str:
+    """``mrctl status``'s text: rounded to what the figures are worth, with units."""
+    g = st.get
+    t = g("timing") if isinstance(g("timing"), dict) else {}
+    lines = [
+        f"{g('experiment')} (pid {g('pid')}): up {_num(g('uptime_s'), '.1f', unit='s')}, "
+        f"{_num(g('rate_hz'), 'g', unit='Hz')}, {g('ticks')} ticks, law {g('law')}",
+        f"current {_num(g('current_A'), '.4f', unit='A')}, F_des {_num(g('F_des_N'), '.1f', unit='N')}, "
+        f"x {_num(g('x_m'), '.2f', 1e3, 'mm')}, v {_num(g('v_mps'), '.1f', 1e3, 'mm/s')}",
+        f"safety {g('safety_state')} (fault {g('fault')}), link errors {g('link_errors')}",
+    ]
+    if t:
+        late = "/".join(_num(t.get(k), ".0f") for k in ("lateness_p50_us", "lateness_p99_us", "lateness_max_us"))
+        lines.append(f"lateness p50/p99/max {late} µs, compute p99 {_num(t.get('compute_p99_us'), '.0f', unit='µs')}, "
+                     f"overruns {t.get('overruns')}")
+    rec = g("recorder")
+    if isinstance(rec, dict):
+        state = g("log") if isinstance(g("log"), str) else "ok"
+        lines.append(f"log: {rec.get('rows_written')} rows written, {rec.get('dropped_rows')} lost"
+                     + ("" if state == "ok" else f"; {state}"))
+    warnings = g("warnings")
+    if isinstance(warnings, list):
+        lines += [f"warning: {w}" for w in warnings[-3:]]
+    return "\n".join(lines)

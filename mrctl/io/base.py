@@ -19,6 +19,8 @@ from __future__ import annotations
 import abc
 import enum
 import math
+import os
+import socket
 import time
 from typing import Any, ClassVar, NamedTuple
 
@@ -35,6 +37,8 @@ __all__ = [
     "Link",
     "CounterUnwrap",
     "sleep_until_ns",
+    "serial_device_key",
+    "network_device_key",
 ]
 
 
@@ -115,6 +119,35 @@ class DeviceError(LinkError):
 
 class Disconnected(LinkError):
     """The port/connection is gone (unplugged, peer closed, not open). Reopen."""
+
+
+# ----------------------------------------------------------------------------
+# device identity, for the daemon's one-owner-per-device lock (mrctl/daemon/ownership.py)
+def network_device_key(kind: str, host: str, port: int, unit: int | None = None) -> str:
+    """``"KIND IP:PORT[ unit N]"``: the host resolved, so that ``localhost`` and
+    ``127.0.0.1`` are one device (the literal name if it does not resolve)."""
+    try:
+        ip = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][4][0]
+    except (OSError, UnicodeError):
+        ip = host.lower()
+    where = f"[{ip}]:{port}" if ":" in ip else f"{ip}:{port}"
+    return f"{kind} {where}" + (f" unit {unit}" if unit is not None else "")
+
+
+def serial_device_key(url: str | int | None) -> str | None:
+    """``"serial /real/path"`` for a port path (symlinks such as
+    /dev/serial/by-id/… resolved), ``"tcp IP:PORT"`` for pyserial's
+    ``socket://`` and ``rfc2217://`` URLs, None for anything else (an open
+    fd, ``loop://``)."""
+    if not isinstance(url, str) or not url:
+        return None
+    scheme, sep, rest = url.partition("://")
+    if sep:
+        if scheme not in ("socket", "rfc2217"):
+            return None
+        host, _, port = rest.split("/", 1)[0].split("?", 1)[0].rpartition(":")
+        return network_device_key("tcp", host.strip("[]"), int(port)) if port.isdigit() else None
+    return f"serial {os.path.realpath(url)}"
 
 
 # ----------------------------------------------------------------------------
@@ -273,6 +306,13 @@ class Link(abc.ABC):
     @abc.abstractmethod
     def describe(self) -> str:
         """One human-readable line for logs and start-up (port, rate, protocol)."""
+
+    def device_key(self) -> str | None:
+        """The device's identity for the daemon's ownership lock (two daemons
+        must never drive one device): stable across the names a user may
+        give it (:func:`serial_device_key`, :func:`network_device_key`); None
+        for a device no other process can reach (the in-process bench)."""
+        return None
 
     def __enter__(self) -> "Link":
         self.open()

@@ -35,6 +35,7 @@ from mrctl.io.base import (
     Link,
     LinkTimeout,
     Sample,
+    serial_device_key,
     sleep_until_ns,
 )
 from mrctl.io.protocol import (
@@ -180,7 +181,7 @@ class SerialLink(Link):
                 baudrate=self.baudrate,
                 timeout=0 if self.spin_wait else self.poll_s,  # 0: read() never blocks
                 write_timeout=self.write_timeout_s,
-                **self._serial_kwargs,
+                **{"exclusive": True, **self._serial_kwargs},  # flock: one owner per port
             )
             # Bytes from before we opened belong to nobody.
             port.reset_input_buffer()
@@ -202,6 +203,9 @@ class SerialLink(Link):
                 port.close()
             except Exception:  # noqa: BLE001 - closing must not fail on a dead port
                 pass
+
+    def device_key(self) -> str | None:
+        return serial_device_key(self.url)
 
     def describe(self) -> str:
         wire_us = exchange_wire_time_s(self.baudrate) * 1e6

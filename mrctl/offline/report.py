@@ -1,16 +1,16 @@
-"""Post-run report: the Fig 5 plot of Palka & Maślanka 2013 from a run CSV.
+"""Post-run report: the Fig 5 plot of Palka & Maślanka 2013 from run logs.
 
-``mrctl simulate`` and ``mrctl run`` log one row per 1 ms tick; this module
-turns such a log into one PNG an engineer can judge at a glance: desired vs
-actual force and the coil current over time, plus the force–velocity and
-force–displacement loops, with a one-line tracking summary in the title.
-:func:`make_identification_report` draws the paper's Figs 2 and 3 from an
-identification (:mod:`mrctl.offline.identify`; the dependency is one way:
-identification never imports this module).
-
-Nothing here runs on the control hot path. matplotlib is an optional
-dependency (``mrctl[plot]``) and is imported only inside the two figure
-functions, so the daemon itself never needs it.
+One or several run logs (docs/runlog.md) become one figure an engineer can
+judge at a glance: desired vs actual force and the coil current over time,
+the force–velocity and force–displacement loops, and one tracking summary
+line per run. Several runs are overlaid, each in its colour, labelled by
+file name and law (the paper law against the smooth one is the first thing
+a reader wants to see). The format is the output name's (png, pdf, svg).
+The figures are the daemon's (:func:`mrctl.runlog.metrics.tracking_summary`)
+with the run's ``I_max`` and settle window from its sidecar, so "I = I_max"
+means what ``mrctl run`` prints; a log without a sidecar counts "at the
+run's largest current" and says so. matplotlib (``mrctl[plot]``) is
+imported only inside the figure functions: the daemon never needs it.
 """
 
 from __future__ import annotations
@@ -18,35 +18,41 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import Any, Sequence
 
 import numpy as np
 
 from mrctl.errors import BadInput
-from mrctl.model.params import TABLE_I
-from mrctl.offline.identify import (
-    THETA_NAMES,
-    IdentificationError,
-    IdentificationResult,
-    identify,
-    load_identification_run,
-    theta_from_params,
-)
 from mrctl.runlog.metrics import tracked_force, tracking_summary
-from mrctl.util.csvtable import CsvError, read_table
+from mrctl.runlog.read import read_run_table, try_sidecar
+from mrctl.util.csvtable import CsvError
 
-__all__ = ["REQUIRED_COLUMNS", "ReportError", "load_run", "summarize", "make_report"]
+__all__ = ["REQUIRED_COLUMNS", "FORMATS", "ReportError", "load_run", "summarize", "make_report",
+           "figure_format"]
 
 #: Columns a run CSV must have (SI units: s, m, m/s, N, N, A). Others are ignored.
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "x", "v", "F_des", "F", "I")
 
-#: Default settling time (s) excluded from the metrics: the start-up transient
-#: (filter fill, LuGre bristle state from z = 0) is not tracking performance.
+#: Default settling time (s) excluded from the metrics when the log has no
+#: sidecar saying: the start-up transient (filter fill, LuGre bristle state
+#: from z = 0) is not tracking performance.
 DEFAULT_SETTLE_S = 1.0
+
+#: figure formats, by the output name's extension
+FORMATS = ("png", "pdf", "svg")
 
 
 class ReportError(BadInput):
-    """A run file cannot be reported on, or the figure cannot be made; the
-    message says why, for the CLI user (exit code 2)."""
+    """A run file cannot be reported on; the message says why, for the CLI user."""
+
+
+def figure_format(out_path: str | os.PathLike[str]) -> str:
+    """The format the output name asks for; ReportError for one we cannot write."""
+    ext = Path(out_path).suffix.lower().lstrip(".")
+    if ext not in FORMATS:
+        raise ReportError(f"{out_path}: cannot write a .{ext or '(no extension)'} figure; "
+                          f"name it .png, .pdf or .svg")
+    return ext
 
 
 # -- loading ----------------------------------------------------------------
@@ -58,16 +64,14 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     ``F_measured``): the same rule as the daemon's summary
     (:func:`mrctl.runlog.metrics.tracked_force`).
 
-    Columns are found by header name because the loggers add columns (``seq``,
-    ``z``, ``fault`` …) in whatever order suits them; those extra columns are
-    not parsed at all, so they may hold anything. Lines starting with ``#``
-    are comments and may precede the header. Every error is a
-    :class:`ReportError` naming the file and, where it helps, the column or
-    the 1-based line number, so a bad log is fixed without a debugger.
+    Columns are found by header name; the others are not parsed at all. A
+    torn last line (a full disk, a SIGKILL) is dropped, ``#`` lines are
+    comments. Every error is a :class:`ReportError` naming the file and,
+    where it helps, the column or the 1-based line number.
     """
     p = Path(path)
     try:
-        table = read_table(p, (*REQUIRED_COLUMNS, "F_true"), require=REQUIRED_COLUMNS)
+        table = read_run_table(p, (*REQUIRED_COLUMNS, "F_true"), require=REQUIRED_COLUMNS)
         for c in REQUIRED_COLUMNS:
             # NaN is "no value": a daemon log has it in x, v, F_des while the
             # safety supervisor holds the damper at 0 A, and in F without a
@@ -89,8 +93,23 @@ def load_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     return out
 
 
+def _run_facts(path: Path) -> dict[str, Any]:
+    """What the sidecar says about a run (empty where it has none): law, I_max, settle."""
+    side = try_sidecar(path)
+    cfg = side.get("config") if isinstance(side.get("config"), dict) else {}
+    if not cfg and isinstance(side.get("meta"), dict) and isinstance(side["meta"].get("config"), dict):
+        cfg = side["meta"]["config"]  # a sidecar of mrctl before 2026-11
+    law = side.get("law") or (cfg.get("inverse") or {}).get("law")
+    I_max = side.get("I_max_A", (cfg.get("safety") or {}).get("I_max"))
+    settle = side.get("settle_s")
+    return {"law": law if isinstance(law, str) else None,
+            "I_max": float(I_max) if isinstance(I_max, (int, float)) and not isinstance(I_max, bool) else None,
+            "settle": float(settle) if isinstance(settle, (int, float)) and not isinstance(settle, bool) else None}
+
+
 # -- metrics ----------------------------------------------------------------
-def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S) -> dict[str, float]:
+def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S,
+              I_max: float | None = None) -> dict[str, float]:
     """Tracking metrics of a run, over ``t >= t[0] + settle``.
 
     The figures are :func:`mrctl.runlog.metrics.tracking_summary`'s (the daemon and
@@ -103,10 +122,12 @@ def summarize(cols: dict[str, np.ndarray], settle: float = DEFAULT_SETTLE_S) -> 
         nrmse: RMS(F - F_des) / peak-to-peak(F_des); ``nan`` if F_des is flat.
         max_dI: largest |I[k+1] - I[k]| (A) between consecutive rows.
         share_zero: fraction of rows with I <= 1 nA (driver switched off).
-        share_max: fraction of rows at the run's maximum current (saturation).
+        share_max: fraction of rows at ``I_max`` (the run's configured limit,
+            as the daemon counts), or at the run's largest current if
+            ``I_max`` is None (unknown).
         t_start: first time (s) in the window; n: rows in the window.
     """
-    m = tracking_summary(cols["t"], cols["F_des"], cols["F"], cols["I"], None, settle)
+    m = tracking_summary(cols["t"], cols["F_des"], cols["F"], cols["I"], I_max, settle)
     return {
         "nrmse": m["force_nrmse"],
         "max_dI": m["max_current_step_A"],
@@ -121,85 +142,117 @@ def _window_text(m: dict[str, float], settle_used: bool) -> str:
     return f"t ≥ {m['t_start']:.3g} s" if settle_used else "whole run"
 
 
-def _summary_line(m: dict[str, float], settle_used: bool) -> str:
+def _summary_line(m: dict[str, Any], settle_used: bool) -> str:
     window = _window_text(m, settle_used)
     nrmse = "n/a (flat F_des)" if math.isnan(m["nrmse"]) else f"{100.0 * m['nrmse']:.2f} %"
+    top = f"I = I_max ({m['I_max']:g} A)" if m.get("I_max") is not None else "I = run's max (I_max unknown)"
     return (f"force NRMSE {nrmse}   ·   max |ΔI| {m['max_dI']:.3f} A   ·   "
-            f"I = 0: {100.0 * m['share_zero']:.1f} %   ·   I = max: {100.0 * m['share_max']:.1f} %"
+            f"I = 0: {100.0 * m['share_zero']:.1f} %   ·   {top}: {100.0 * m['share_max']:.1f} %"
             f"   ({window})")
 
 
 # -- figure -----------------------------------------------------------------
-def make_report(csv_path: str | os.PathLike[str], out_path: str | os.PathLike[str],
-                title: str | None = None, settle: float = DEFAULT_SETTLE_S) -> None:
-    """Write the Fig-5-style PNG of one run to ``out_path``.
+_COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")
 
-    Uses an explicit Agg canvas (no pyplot, no global backend state) so it
-    works on a headless controller and cannot disturb a caller's own matplotlib
-    figures. ``title`` replaces the default title (the run file's name).
+
+def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], out_path: str | os.PathLike[str],
+                title: str | None = None, settle: float | None = None) -> list[dict[str, Any]]:
+    """Write the Fig-5-style figure of one or several runs to ``out_path``
+    (format by its extension: png, pdf, svg); returns each run's label and
+    figures (:func:`summarize`'s, with ``I_max``, ``label``, ``path``).
+
+    ``settle`` overrides each run's settle window (default: its sidecar's,
+    else :data:`DEFAULT_SETTLE_S`). Uses explicit Figure/canvas objects (no
+    pyplot, no global backend state) so it works on a headless controller
+    and cannot disturb a caller's matplotlib state. ``title`` replaces
+    the default title (the run files' names).
     """
-    cols = load_run(csv_path)
+    paths = [Path(runs)] if isinstance(runs, (str, os.PathLike)) else [Path(r) for r in runs]
+    if not paths:
+        raise ReportError("no run to report on")
+    fmt = figure_format(out_path)
+    loaded = []
+    for p in paths:
+        cols = load_run(p)
+        facts = _run_facts(p)
+        st = settle if settle is not None else (facts["settle"] if facts["settle"] is not None else DEFAULT_SETTLE_S)
+        m: dict[str, Any] = summarize(cols, st, facts["I_max"])
+        m.update(I_max=facts["I_max"], path=str(p),
+                 label=f"{p.name} ({facts['law']})" if facts["law"] else p.name)
+        loaded.append((cols, m))
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError:
         raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
 
-    m = summarize(cols, settle)
-    t = cols["t"]
-    settle_used = m["t_start"] > t[0]
-    x_mm, v_mms = 1e3 * cols["x"], 1e3 * cols["v"]
-    F_des, F, I = cols["F_des"], cols["F"], cols["I"]
-
-    # Actual first and lighter, desired on top and dark-dashed: when tracking
-    # is good the two coincide, and the reference must stay visible.
-    act = dict(color="tab:red", lw=0.9, alpha=0.7, zorder=2,
-               label="true $F$ (simulated plant)" if "F_measured" in cols else "actual $F$")
-    des = dict(color="black", lw=1.3, ls=(0, (4, 2)), zorder=3, label="desired $F_{des}$")
-
-    fig = Figure(figsize=(12, 8.5), dpi=200, layout="constrained")
+    fig = Figure(figsize=(12, 8.5 + 0.25 * (len(loaded) - 1)), dpi=200, layout="constrained")
     FigureCanvasAgg(fig)
     (ax_f, ax_i), (ax_fv, ax_fx) = fig.subplots(2, 2)
+    single = len(loaded) == 1
+    t_lo = min(float(c["t"][0]) for c, _ in loaded)
+    t_hi = max(float(c["t"][-1]) for c, _ in loaded)
+    lines = []
+    for n, (cols, m) in enumerate(loaded):
+        t = cols["t"]
+        settle_used = m["t_start"] > t[0]
+        F_des, F, I = cols["F_des"], cols["F"], cols["I"]
+        x_mm, v_mms = 1e3 * cols["x"], 1e3 * cols["v"]
+        colour = _COLOURS[n % len(_COLOURS)]
+        if single:  # actual first and lighter, desired on top and dark-dashed: when tracking
+            # is good the two coincide, and the reference must stay visible
+            act = dict(color=colour, lw=0.9, alpha=0.7, zorder=2,
+                       label="true $F$ (simulated plant)" if "F_measured" in cols else "actual $F$")
+            des = dict(color="black", lw=1.3, ls=(0, (4, 2)), zorder=3, label="desired $F_{des}$")
+        else:  # each run in its colour; a demand that differs from the first run's gets its own line
+            act = dict(color=colour, lw=0.9, alpha=0.75, zorder=2 + n, label=m["label"])
+            des = None if n and _same_demand(loaded, n) else dict(
+                color="black" if n == 0 else colour, lw=1.1, ls=(0, (4, 2)), zorder=20,
+                label="desired $F_{des}$" if n == 0 else f"desired $F_{{des}}$, {m['label']}")
+        ax_f.plot(t, F, **act)
+        ax_i.plot(t, I, color="tab:green" if single else colour, lw=1.0, alpha=1.0 if single else 0.8)
+        w = t >= m["t_start"]  # loops over the metrics window only (no stray start-up cycle)
+        ax_fv.plot(v_mms[w], F[w], **act)
+        ax_fx.plot(x_mm[w], F[w], **act)
+        if des is not None:
+            ax_f.plot(t, F_des, **des)
+            ax_fv.plot(v_mms[w], F_des[w], **des)
+            ax_fx.plot(x_mm[w], F_des[w], **des)
+        if single and settle_used:  # grey out what the metrics ignore
+            for ax in (ax_f, ax_i):
+                ax.axvspan(t[0], m["t_start"], color="0.88", zorder=0, lw=0, label="settling (not in metrics)")
+        lines.append(_summary_line(m, settle_used) if single else f"{m['label']}: {_summary_line(m, settle_used)}")
 
-    ax_f.plot(t, F, **act)
-    ax_f.plot(t, F_des, **des)
+    window = f" ({_window_text(loaded[0][1], loaded[0][1]['t_start'] > loaded[0][0]['t'][0])})" if single else \
+        " (metrics windows)"
     ax_f.set(xlabel="time (s)", ylabel="force (N)", title="(a) damper force")
-
-    ax_i.plot(t, I, color="tab:green", lw=1.0)
     ax_i.set(xlabel="time (s)", ylabel="coil current (A)", title="(b) coil current")
-
+    ax_fv.set(xlabel="velocity (mm/s)", ylabel="force (N)", title="(c) force–velocity" + window)
+    ax_fx.set(xlabel="displacement (mm)", ylabel="force (N)", title="(d) force–displacement" + window)
     for ax in (ax_f, ax_i):
-        ax.set_xlim(t[0], t[-1])
-        if settle_used:  # grey out what the metrics ignore
-            ax.axvspan(t[0], m["t_start"], color="0.88", zorder=0, lw=0,
-                       label="settling (not in metrics)")
-
-    # Loops over the metrics window only: the start-up transient would draw
-    # a stray first cycle over the steady-state loop the paper's Fig 5 shows.
-    w = t >= m["t_start"]
-    loops = f" ({_window_text(m, settle_used)})"
-    ax_fv.plot(v_mms[w], F[w], **act)
-    ax_fv.plot(v_mms[w], F_des[w], **des)
-    ax_fv.set(xlabel="velocity (mm/s)", ylabel="force (N)", title="(c) force–velocity" + loops)
-
-    ax_fx.plot(x_mm[w], F[w], **act)
-    ax_fx.plot(x_mm[w], F_des[w], **des)
-    ax_fx.set(xlabel="displacement (mm)", ylabel="force (N)",
-              title="(d) force–displacement" + loops)
-
+        ax.set_xlim(t_lo, t_hi)
     for ax in (ax_f, ax_i, ax_fv, ax_fx):
         ax.grid(True, lw=0.5, alpha=0.5)
-
-    # One shared legend below the panels, so no legend ever covers data
-    # (above would collide with the two-line suptitle).
+    # One shared legend below the panels, so no legend ever covers data.
     handles, labels = ax_f.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=len(handles),
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(handles), 3 if not single else 4),
                frameon=False, fontsize="medium")
-    fig.suptitle(f"{title if title is not None else Path(csv_path).name}\n"
-                 f"{_summary_line(m, settle_used)}", fontsize="large")
+    head = title if title is not None else ", ".join(Path(m["path"]).name for _, m in loaded)
+    fig.suptitle(head + "\n" + "\n".join(lines), fontsize="large" if single else "medium")
+    _save(fig, out_path, fmt)
+    return [m for _, m in loaded]
 
+
+def _same_demand(loaded: list, n: int) -> bool:
+    """Run n asks for the force run 0 asks for (the same demand on the same
+    time base): its dashed reference would only repeat run 0's."""
+    a, b = loaded[0][0], loaded[n][0]
+    return len(a["t"]) == len(b["t"]) and np.allclose(a["F_des"], b["F_des"], rtol=1e-6, atol=1e-6, equal_nan=True)
+
+
+def _save(fig: Any, out_path: str | os.PathLike[str], fmt: str) -> None:
     try:
-        fig.savefig(out_path, format="png")
+        fig.savefig(out_path, format=fmt)
     except OSError as exc:
         raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
 
@@ -224,6 +277,8 @@ _THETA_PANELS = (
 
 def _as_identification_result(runs_or_result, **identify_kwargs):
     """An IdentificationResult, identifying first if given runs (paths or column dicts)."""
+    from mrctl.offline.identify import IdentificationError, IdentificationResult, identify, load_identification_run
+
     if isinstance(runs_or_result, IdentificationResult):
         return runs_or_result
     items = runs_or_result
@@ -259,6 +314,7 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     poorly determined) and the fitted approximating law; Table I of the paper
     (``reference``, default) as a thin grey line for comparison.
     """
+    fmt = figure_format(out_path)  # before the fit, not after it
     res = _as_identification_result(runs_or_result, **identify_kwargs)
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -266,6 +322,9 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
         from matplotlib.lines import Line2D
     except ImportError:
         raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
+    from mrctl.offline.identify import theta_from_params
+    from mrctl.model.params import TABLE_I
+
     if reference is None and show_reference:
         reference = TABLE_I
     fits = res.fits
@@ -314,6 +373,8 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     Ig = np.linspace(0.0, max(float(I.max()), 1e-3), 200)
     law = np.array([theta_from_params(res.params, float(i)) for i in Ig])
     ref = np.array([theta_from_params(reference, float(i)) for i in Ig]) if reference is not None else None
+    from mrctl.offline.identify import THETA_NAMES
+
     for n, (name, label, scale, unit) in enumerate(_THETA_PANELS):
         ax = fig.add_subplot(gs[1 + n // 3, n % 3])
         j = THETA_NAMES.index(name)
@@ -354,7 +415,4 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     fig.suptitle(f"{head}\n{len(fits)} currents {I.min():.2f}–{I.max():.2f} A · optimiser {res.method} · "
                  f"fit NRMSE {100 * min(nr):.2f}–{100 * max(nr):.2f} % · Fc law rms {res.laws['Fc'].rms:.3g} N"
                  + (f" · poorly determined: {', '.join(poor)}" if poor else ""), fontsize="large")
-    try:
-        fig.savefig(out_path, format="png")
-    except OSError as exc:
-        raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+    _save(fig, out_path, fmt)

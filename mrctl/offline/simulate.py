@@ -4,11 +4,18 @@ No pacing, no threads: excitation → (sensors) → demand → inverse law →
 clamp → plant, once per tick, with the same objects the daemon uses. The
 tick order is the daemon's: sample at t_k, command I_k, the plant's force
 at t_k is with I_k applied (a driver lag, if configured, delays that).
+
+:attr:`SimResult.columns` are the simulation's own arrays (the plant's true
+x, v, F and the sensors' readings apart); the run log it writes
+(:func:`write_csv`, :func:`log_columns`) is ``mrctl run``'s, column for
+column (docs/runlog.md).
 """
 
 from __future__ import annotations
 
+import io
 import math
+import os
 import time
 from array import array
 from dataclasses import dataclass, field
@@ -18,11 +25,19 @@ import numpy as np
 
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
-from mrctl.runlog.metrics import tracking_summary
 from mrctl.laws.base import Measurement, clamp_current
+from mrctl.runlog import files
+from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, RUN_UNITS
+from mrctl.runlog.metrics import tracking_summary
 
-CSV_COLUMNS = ("t", "x", "v", "F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")
-CSV_UNITS = ("s", "m", "m/s", "N", "N", "A", "A", "m", "m", "m/s", "N")
+#: The simulation's own arrays (:attr:`SimResult.columns`): the plant's x, v,
+#: F and the sensors' readings apart; ``F_meas[k]`` is the reading of F[k]
+#: (which the controller receives at tick k + 1), ``F_rx[k]`` the reading
+#: received at tick k.
+SIM_COLUMNS = ("t", "x", "v", "F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas", "F_rx")
+#: What the run log holds: the daemon's columns (mrctl/runlog/format.py).
+CSV_COLUMNS = RUN_COLUMNS
+CSV_UNITS = tuple(RUN_UNITS[c] for c in RUN_COLUMNS)
 
 
 @dataclass
@@ -30,6 +45,8 @@ class SimResult:
     columns: dict[str, np.ndarray]
     wall_s: float
     summary: dict[str, float] = field(default_factory=dict)
+    #: the driver's applied current before the first tick (what tick 0's sample reports)
+    I_applied0: float = 0.0
 
     @property
     def ticks(self) -> int:
@@ -65,9 +82,9 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     t_arr = np.arange(n) * exp.dt
     x_arr, v_arr = exp.excitation.trajectory(t_arr)
     ts, xs, vs = t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist()
-    cols = {c: array("d", bytes(8 * n)) for c in ("F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")}
+    cols = {c: array("d", bytes(8 * n)) for c in SIM_COLUMNS[3:]}
     cfd, cf, ci, cia, cz = cols["F_des"], cols["F"], cols["I"], cols["I_applied"], cols["z"]
-    cxm, cvm, cfm = cols["x_meas"], cols["v_meas"], cols["F_meas"]
+    cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
     # local bindings: attribute lookups cost as much as the physics here
     demand = exp.demand.force if exp.demand is not None else None
     current, applied = law.current, law.applied
@@ -75,6 +92,7 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
     I = 0.0
+    I_applied0 = plant.I_applied
     t0 = time.perf_counter()
     for k in range(n):
         x, v = xs[k], vs[k]
@@ -84,6 +102,7 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
             xm, vm, Fm = sensors.x(x), sensors.v(v), sensors.F(F_prev)
         if k:
             cfm[k - 1] = Fm
+        cfr[k] = Fm
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
         Fd = demand(m) if demand is not None else math.nan
         I = current(m, Fd)
@@ -106,18 +125,36 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     summary["simulated_s"] = (n - 1) * exp.dt
     summary["wall_s"] = wall
     summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary)
+    return SimResult(out, wall, summary, I_applied0)
 
 
-def write_csv(result: SimResult, path: str | Path, comment: str | None = None) -> None:
-    """CSV with a header row; optional leading '# ' comment lines (metadata)."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    data = np.column_stack([result.columns[c] for c in CSV_COLUMNS])
-    header = ",".join(CSV_COLUMNS)
-    with p.open("w") as fh:
-        if comment:
-            for line in comment.splitlines():
-                fh.write(f"# {line}\n")
-        fh.write(header + "\n")
-        np.savetxt(fh, data, delimiter=",", fmt="%.10g")
+def log_columns(result: SimResult) -> dict[str, np.ndarray]:
+    """The run log of a simulation: :data:`RUN_COLUMNS` with ``mrctl run``'s
+    meaning per column (docs/runlog.md): x, v, F as the controller received
+    them (F: the reading of the previous tick's force), F_true the plant's
+    force of the tick, I_applied what the driver reported at the sample; no
+    clock, supervisor or link offline (late_us, compute_us NaN; fault,
+    link_errors 0)."""
+    c = result.columns
+    n = len(c["t"])
+    k = np.arange(n, dtype=float)
+    nan = np.full(n, math.nan)
+    zero = np.zeros(n)
+    I_seen = np.concatenate(([result.I_applied0], np.asarray(c["I_applied"])[:-1])) if n else zero
+    return {"t": c["t"], "x": c["x_meas"], "v": c["v_meas"], "F_des": c["F_des"], "F": c["F_rx"], "I": c["I"],
+            "k": k, "seq": k, "t_dev": c["t"], "I_applied": I_seen, "F_true": c["F"], "late_us": nan,
+            "compute_us": nan, "fault": zero, "link_errors": zero}
+
+
+def write_csv(result: SimResult, path: str | Path, force: bool = False) -> None:
+    """The run log's CSV (plain: the header first; provenance goes in the
+    sidecar). Created without following a symlink; an existing file is
+    refused unless ``force`` (:func:`mrctl.runlog.files.create_log`)."""
+    cols = log_columns(result)
+    data = np.column_stack([np.asarray(cols[c], float) for c in CSV_COLUMNS])
+    text = io.StringIO()
+    text.write(",".join(CSV_COLUMNS) + "\n")
+    np.savetxt(text, data, delimiter=",", fmt=[RUN_FORMATS[c] for c in CSV_COLUMNS])
+    with files.create_log(path, force) as fh:
+        fh.write(text.getvalue().encode("ascii"))
+        os.fsync(fh.fileno())

@@ -23,8 +23,14 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from mrctl.errors import BadInput
+from mrctl.util.files import FileProblem, MiB, read_regular_file
 
-__all__ = ["CsvError", "Table", "read_table", "load_series"]
+__all__ = ["CsvError", "Table", "read_table", "load_series", "MAX_CSV_BYTES", "MAX_SERIES_BYTES"]
+
+#: the largest CSV read: a run log of ~4 h at 1 kHz (~150 B per row)
+MAX_CSV_BYTES = 2048 * MiB
+#: the largest series a config points at (excitation, demand): ~1 h of 1 kHz samples is ~30 MiB
+MAX_SERIES_BYTES = 256 * MiB
 
 
 class CsvError(BadInput, ValueError):
@@ -59,24 +65,24 @@ def read_table(
     *,
     require: Sequence[str] = (),
     torn_last_line_ok: bool = False,
+    max_bytes: int = MAX_CSV_BYTES,
 ) -> Table:
     """Read ``columns`` (None = all) of the CSV at ``path``.
 
     ``require``: columns that must be in the header. ``torn_last_line_ok``:
     drop a last line without its newline (what a killed writer leaves)
-    instead of parsing it. Raises :class:`CsvError` only.
+    instead of parsing it. Only a regular file of at most ``max_bytes`` is
+    read (a device such as ``/dev/zero`` is refused at once). Raises
+    :class:`CsvError` only.
     """
     p = Path(path)
     try:
-        text = p.read_bytes().decode("utf-8")
-    except FileNotFoundError:
-        raise CsvError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise CsvError(f"{p}: is a directory, not a CSV file") from None
+        text = read_regular_file(p, max_bytes).decode("utf-8")
+    except FileProblem as exc:
+        what = "is a directory, not a CSV file" if "directory" in str(exc) else str(exc)
+        raise CsvError(f"{p}: {what}") from None
     except UnicodeDecodeError:
         raise CsvError(f"{p}: not a text (UTF-8) CSV file") from None
-    except OSError as exc:
-        raise CsvError(f"{p}: cannot read: {exc.strerror or exc}") from None
     physical = text.split("\n")
     if physical[-1] == "" or torn_last_line_ok:
         physical.pop()  # the empty string after the final newline, or a torn last line
@@ -139,7 +145,7 @@ def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[fl
     :class:`CsvError` naming the file, line and column, for the config layer
     to report with its key path."""
     p = Path(path)
-    table = read_table(p, require=columns)
+    table = read_table(p, require=columns, max_bytes=MAX_SERIES_BYTES)
     for c in table.columns:
         table.check_finite(c)
     out = {c: col.tolist() for c, col in table.columns.items()}

@@ -23,6 +23,7 @@ from typing import Any, Callable, Iterator, Mapping
 import yaml
 
 from mrctl.errors import BadInput
+from mrctl.util.files import FileProblem, MiB, read_regular_file
 
 _REQUIRED = object()
 
@@ -68,13 +69,22 @@ _StrictLoader.add_implicit_resolver(
 )
 
 
+#: the largest YAML file read (experiments, parameter sets, bench configs are a few kB)
+MAX_YAML_BYTES = 4 * MiB
+
+
 def load_yaml(path: str | Path) -> Any:
-    """Parse a YAML file strictly; errors become ConfigError with line numbers."""
+    """Parse a YAML file strictly; errors become ConfigError with line numbers.
+    Only a regular UTF-8 text file of at most :data:`MAX_YAML_BYTES` is read
+    (``/dev/zero`` would be read without end)."""
     p = Path(path)
     try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ConfigError([f"cannot read: {exc.strerror}"], str(p)) from None
+        text = read_regular_file(p, MAX_YAML_BYTES).decode("utf-8")
+    except FileProblem as exc:
+        raise ConfigError([f"cannot read: {exc}" if exc.missing else str(exc)], str(p)) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError([f"not a text (UTF-8) file: byte {exc.start} is {exc.object[exc.start]:#04x}"],
+                          str(p)) from None
     try:
         return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - strict SafeLoader subclass
     except yaml.YAMLError as exc:
@@ -304,8 +314,11 @@ def file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
             return None, [f"{path}: must be a file path, got {value!r}"]
         p = Path(value)
         full = p if p.is_absolute() else base_dir / p
-        if not full.is_file():
+        if not full.exists():
             return None, [f"{path}: no such file: {full}"]
+        if not full.is_file():
+            kind = "a directory" if full.is_dir() else "a device, FIFO or socket"
+            return None, [f"{path}: {full}: not a regular file ({kind})"]
         return str(full), []
 
     return check

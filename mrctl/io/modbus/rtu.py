@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from mrctl.io.base import DeviceError, FrameError, LinkTimeout
+from mrctl.io.base import DeviceError, FrameError, LinkTimeout, serial_device_key
 from mrctl.io.modbus.codec import (
     Tx,
     crc16_modbus,
@@ -73,9 +73,12 @@ class ModbusRtuLink(ModbusLink):
             return float(self._timeout_arg)
         return default_rtu_timeout_s(self.register_map, self.baudrate, fc23, self.bits_per_char)
 
+    def device_key(self) -> str | None:
+        return serial_device_key(self.url)
+
     def _connect(self) -> Any:
         return open_rtu(self.url, baudrate=self.baudrate, parity=self.parity, stopbits=self.stopbits,  # type: ignore[arg-type]
-                        timeout_s=self.timeout_s, spin=self.spin_wait, serial_kwargs=self._serial_kwargs)
+                        timeout_s=self.timeout_s, spin=self.spin_wait, serial_kwargs={"exclusive": True, **self._serial_kwargs})  # flock: one owner
 
     def _wrap(self, sock: Any, io: Any) -> Any:
         return io

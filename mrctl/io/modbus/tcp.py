@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from mrctl.io.base import FrameError, LinkTimeout
+from mrctl.io.base import FrameError, LinkTimeout, network_device_key
 from mrctl.io.modbus.codec import FC_WRITE_MULTIPLE, MAX_ADU_TCP, Tx, decode_tcp_response
 from mrctl.io.modbus.link import DEFAULT_TCP_TIMEOUT_S, ModbusLink
 from mrctl.io.modbus.transport import TcpIO
@@ -40,6 +40,9 @@ class ModbusTcpLink(ModbusLink):
     @classmethod
     def _options(cls, cfg: Any) -> dict[str, Any]:
         return {"host": cfg.host, "port": cfg.port}
+
+    def device_key(self) -> str | None:
+        return network_device_key("modbus-tcp", str(self.host), self.port, self.unit_id)
 
     def _default_timeout(self, fc23: bool) -> float:
         return float(self._timeout_arg) if self._timeout_arg is not None else DEFAULT_TCP_TIMEOUT_S

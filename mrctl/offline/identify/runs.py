@@ -18,6 +18,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from mrctl.offline.identify.errors import IdentificationError
+from mrctl.runlog.read import align_load_cell, try_sidecar
 from mrctl.util.csvtable import CsvError, read_table
 
 __all__ = ["load_identification_run", "estimate_period"]
@@ -43,13 +44,14 @@ def load_identification_run(path: str | Path) -> dict[str, np.ndarray]:
     the file, column and line."""
     p = Path(path)
     try:
-        table = read_table(p, _RUN_COLUMNS)
+        table = read_table(p, _RUN_COLUMNS, torn_last_line_ok=True)  # a full disk or SIGKILL tears the last line
     except CsvError as exc:
         raise IdentificationError(str(exc)) from None
     if not table.columns:
         found = ", ".join(h for h in table.header if h) or "(none)"
         raise IdentificationError(f"{p}: none of the columns t, I, F_meas/F, v_meas/v found "
                                   f"(is this a run CSV?); header: {found[:80]}{'…' if len(found) > 80 else ''}")
+    table = table._replace(columns=align_load_cell(table.columns, try_sidecar(p)))  # F at its own tick (runlog)
     return table.columns
 
 

@@ -1,0 +1,113 @@
+"""Reading the files a user points mrctl at, and the per-user runtime directory.
+
+* :func:`read_regular_file`: a config, parameter set or series is read only
+  if it is a regular file (``/dev/zero``, a FIFO or a terminal would be read
+  without end or block forever) and at most ``max_bytes`` long.
+* :func:`private_dir`: the per-user directory used without systemd
+  (status socket, device locks when the shared lock directory cannot be
+  used), created 0700 and trusted only if it is ours and nobody else can
+  write to it: another local user who creates it first must not be able to
+  plant a socket there.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+from mrctl.errors import BadInput
+
+__all__ = ["FileProblem", "read_regular_file", "per_user_dir", "private_dir", "MiB"]
+
+MiB = 1 << 20
+
+
+class FileProblem(BadInput):
+    """A file cannot be read as input; the message says why, without the path
+    (callers add it with their own context: a key path, a line).
+    ``missing``: there is no such file."""
+
+    def __init__(self, message: str, missing: bool = False) -> None:
+        super().__init__(message)
+        self.missing = missing
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return name
+    return "not a plain file"
+
+
+def read_regular_file(path: str | os.PathLike[str], max_bytes: int) -> bytes:
+    """The bytes of the regular file at ``path`` (symlinks followed), at most
+    ``max_bytes``. :class:`FileProblem` if it is missing, not a regular file
+    (a device, FIFO, directory …), larger, or unreadable."""
+    flags = os.O_RDONLY | os.O_CLOEXEC | getattr(os, "O_NONBLOCK", 0)  # a FIFO must not block the open
+    try:
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise FileProblem("no such file", missing=True) from None
+    except OSError as exc:
+        raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileProblem(f"not a regular file ({_kind(st.st_mode)})")
+        if st.st_size > max_bytes:
+            raise FileProblem(f"too large ({st.st_size / MiB:.1f} MiB; at most {max_bytes / MiB:g} MiB)")
+        chunks: list[bytes] = []
+        left = max_bytes + 1
+        while left > 0:
+            b = os.read(fd, min(left, MiB))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+        data = b"".join(chunks)
+        if len(data) > max_bytes:  # grew while being read
+            raise FileProblem(f"too large (more than {max_bytes / MiB:g} MiB)")
+        return data
+    except OSError as exc:
+        raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+
+
+def per_user_dir() -> Path:
+    """``$TMPDIR/mrctl-<uid>`` (``/tmp/mrctl-<uid>``): the fallback runtime
+    directory without systemd. Not created here: see :func:`private_dir`."""
+    return Path(tempfile.gettempdir()) / f"mrctl-{os.getuid()}"
+
+
+def check_private_dir(path: Path) -> None:
+    """``OSError`` naming the problem unless ``path`` is a directory (not a
+    symlink) owned by us that nobody else can write to; one of ours that
+    others could only read or enter is tightened to 0700."""
+    st = os.lstat(path)
+    if not stat.S_ISDIR(st.st_mode):
+        raise OSError(f"{path}: exists and is {'a symlink' if stat.S_ISLNK(st.st_mode) else _kind(st.st_mode)}, "
+                      f"not a directory of this user's; refusing to use it")
+    if st.st_uid != os.getuid():
+        raise OSError(f"{path}: owned by uid {st.st_uid}, not by this user (uid {os.getuid()}): "
+                      f"someone else created it; refusing to trust it (remove it)")
+    if st.st_mode & 0o022:
+        raise OSError(f"{path}: writable by others (mode {stat.S_IMODE(st.st_mode):04o}): what is in it "
+                      f"cannot be trusted; refusing it (remove it)")
+    if stat.S_IMODE(st.st_mode) != 0o700:
+        os.chmod(path, 0o700)
+
+
+def private_dir(path: Path | None = None) -> Path:
+    """Create (0700) or check the per-user directory; ``OSError`` if it is not
+    ours alone (see :func:`check_private_dir`)."""
+    p = Path(path) if path is not None else per_user_dir()
+    try:
+        os.mkdir(p, 0o700)
+    except FileExistsError:
+        pass
+    check_private_dir(p)
+    return p

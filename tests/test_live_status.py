@@ -1,0 +1,84 @@
+"""What a user reads while a run goes on: the live line and ``mrctl status``."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import socket
+import threading
+from pathlib import Path
+
+from mrctl.cli import main
+from mrctl.daemon.service import RunOptions, Service
+
+ROOT = Path(__file__).resolve().parents[1]
+FIG5 = ROOT / "config" / "experiments" / "fig5.yaml"
+
+
+class FakeTTY(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_live_line_fits_the_terminal_and_shows_elapsed_and_remaining(tmp_path, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")
+    err = FakeTTY()
+    code = Service(RunOptions(str(FIG5), out=None, duration_s=1.6, live=True, err=err, stream=io.StringIO(),
+                              status_socket=str(tmp_path / "s.sock"))).run()
+    assert code == 0
+    lines = [seg for seg in err.getvalue().replace("\n", "\r").split("\r") if seg.strip()]
+    live = [ln for ln in lines if "elapsed" in ln]
+    assert live, err.getvalue()[:500]
+    for ln in lines:
+        assert len(ln) < 80, repr(ln)  # never wraps on an 80-column terminal
+    assert all(re.search(r"elapsed \d+\.\d s", ln) and re.search(r"\d+\.\d s left", ln) for ln in live)
+
+
+def test_live_line_until_stopped_has_no_remaining_time(tmp_path, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "120")
+    svc = Service(RunOptions(str(FIG5), out=None, duration_s=None, live=False, err=io.StringIO(),
+                             stream=io.StringIO(), status_socket=str(tmp_path / "s.sock")))
+    svc._total_ticks = None
+    line = svc._live_line()
+    assert "elapsed" in line and "left" not in line
+
+
+SNAPSHOT = {
+    "mrctl_version": "0.1.0", "pid": 4242, "experiment": "fig5", "uptime_s": 12.345678912,
+    "rate_hz": 1000.0, "ticks": 12345, "law": "smooth", "current_A": 0.123456789012,
+    "x_m": 0.0012345678, "v_mps": -0.0456789123, "F_des_N": -22.839456123,
+    "safety_state": "OK", "fault": "NONE", "link_errors": 3,
+    "timing": {"lateness_p50_us": 12.3456789, "lateness_p99_us": 87.654321098, "lateness_max_us": 1234.56789,
+               "compute_p99_us": 45.678901234, "overruns": 2},
+    "recorder": {"rows_written": 12000, "dropped_rows": 0, "error": None},
+}
+
+
+def _serve(path: Path, payload: bytes) -> threading.Thread:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(str(path))
+    s.listen(1)
+
+    def one():
+        c, _ = s.accept()
+        with c:
+            c.sendall(payload)
+        s.close()
+
+    th = threading.Thread(target=one, daemon=True)
+    th.start()
+    return th
+
+
+def test_status_prints_rounded_values_with_their_units(tmp_path, capsys):
+    p = tmp_path / "s.sock"
+    th = _serve(p, (json.dumps(SNAPSHOT) + "\n").encode())
+    assert main(["status", "--socket", str(p)]) == 0
+    th.join(2)
+    out = capsys.readouterr().out
+    assert not re.search(r"\d\.\d{5,}", out), out  # no unrounded floats
+    assert "0.1235 A" in out and "12.3 s" in out and "1000 Hz" in out
+    assert re.search(r"p50/p99/max 12/88/1235 µs", out), out
+    assert "F_des -22.8 N" in out and "x 1.23 mm" in out and "v -45.7 mm/s" in out
+    assert "log: 12000 rows written" in out

@@ -1,0 +1,102 @@
+"""What ``pip install mrctl`` gives a user outside the source tree: the example
+experiments and unit files (``mrctl examples``), a LICENSE, a unit whose
+``Documentation=`` exists once the install steps are followed."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from mrctl.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ["config/experiments/fig5.yaml", "config/experiments/fig5_paper.yaml", "config/experiments/identify.yaml",
+            "config/experiments/hil_serial.yaml", "config/experiments/hil_modbus_tcp.yaml",
+            "config/experiments/hil_modbus_rtu.yaml", "config/hil_fig5_bench.yaml", "config/hil_bench.yaml",
+            "systemd/mrctl.service", "systemd/mrctl@.service", "systemd/mrctl-tmpfiles.conf"]
+
+
+def test_examples_command_copies_experiments_units_and_readme(tmp_path, capsys):
+    dest = tmp_path / "ex"
+    assert main(["examples", str(dest)]) == 0
+    out = capsys.readouterr().out
+    for rel in EXAMPLES:
+        assert (dest / rel).read_bytes() == (ROOT / rel).read_bytes(), rel
+        assert rel in out
+    assert (dest / "README.md").read_text().startswith("# mrctl")
+    # never over a user's edits without --force
+    (dest / "config/experiments/fig5.yaml").write_text("# mine\n")
+    assert main(["examples", str(dest)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (dest / "config/experiments/fig5.yaml").read_text() == "# mine\n"
+    assert main(["examples", str(dest), "--force"]) == 0
+    assert (dest / "config/experiments/fig5.yaml").read_bytes() == (ROOT / "config/experiments/fig5.yaml").read_bytes()
+
+
+def test_license_file_matches_pyproject():
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert meta["license"] == {"text": "MIT"}
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("MIT License") and "WITHOUT WARRANTY OF ANY KIND" in text
+
+
+@pytest.mark.parametrize("unit", ["mrctl.service", "mrctl@.service"])
+def test_unit_documentation_is_a_file_the_install_steps_put_there(unit):
+    text = (ROOT / "systemd" / unit).read_text()
+    docs = re.findall(r"^Documentation=(.*)$", text, flags=re.M)
+    assert docs
+    install = (ROOT / "docs" / "install.md").read_text()
+    m = re.search(r"mrctl examples (/\S+)", install)
+    assert m, "docs/install.md must copy the examples (and README) to a fixed place"
+    shared = m.group(1).rstrip("/")
+    for uri in docs[0].split():
+        assert uri.startswith("file:"), uri
+        path = uri[len("file:"):]
+        assert path.startswith(shared + "/"), (path, shared)
+        rel = path[len(shared) + 1:]
+        assert rel == "README.md" or rel in EXAMPLES, rel
+
+
+@pytest.mark.slow
+def test_installed_wheel_runs_the_example_outside_the_source_tree(tmp_path):
+    """Build the wheel, install it into an empty directory, and from a directory
+    with nothing in it: copy the examples out, run one, report the license."""
+    wheels = tmp_path / "wheels"
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+                        "-w", str(wheels), str(ROOT)], capture_output=True, text=True, timeout=300,
+                       cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (whl,) = wheels.glob("mrctl-*.whl")
+    names = zipfile.ZipFile(whl).namelist()
+    assert any(n.endswith("/LICENSE") for n in names), [n for n in names if "dist-info" in n]
+    for rel in EXAMPLES:
+        assert f"mrctl/data/{rel}" in names, rel
+    site = tmp_path / "site"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(whl)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env["PYTHONPATH"] = str(site)
+
+    def mrctl(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "mrctl", *args], cwd=work, env=env, capture_output=True,
+                              text=True, timeout=120)
+
+    where = subprocess.run([sys.executable, "-c", "import mrctl; print(mrctl.__file__)"], cwd=work, env=env,
+                           capture_output=True, text=True)
+    assert where.stdout.startswith(str(site)), where.stdout + where.stderr  # the installed copy, not the tree
+    r = mrctl("examples", ".")
+    assert r.returncode == 0, r.stderr
+    r = mrctl("run", "config/experiments/fig5.yaml", "--duration", "0.3", "--out", "runs/fig5.csv", "--quiet",
+              "--status-socket", str(tmp_path / "s.sock"))
+    assert r.returncode == 0, r.stderr
+    assert (work / "runs" / "fig5.csv").exists() and (work / "systemd" / "mrctl.service").exists()
