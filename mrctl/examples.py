@@ -3,7 +3,8 @@
 The example experiments (``config/experiments/*.yaml``), hil_sim's bench
 configs (``config/hil_*.yaml``), the systemd units and the tmpfiles.d entry
 for the device-lock directory (``systemd/``) live in the package
-(``mrctl/data/``; in the source tree ``config`` and ``systemd`` point there),
+(``mrctl/data/``, whose ``config`` and ``systemd`` are symlinks to the source
+tree's top-level directories, copied into the wheel when it is built),
 so they exist wherever mrctl is installed. This copies them out, with the
 same layout as the source tree, so README's commands (``mrctl run
 config/experiments/fig5.yaml``) work in DIR; and README.md itself, from the
@@ -20,7 +21,7 @@ from mrctl.errors import BadInput
 
 __all__ = ["example_files", "copy_examples"]
 
-_PATTERNS = ("config/experiments/*.yaml", "config/*.yaml", "systemd/*.service", "systemd/*.conf")
+_PATTERNS = ("config/**/*.yaml", "systemd/*.service", "systemd/*.conf")
 
 
 def _data() -> Path:
