@@ -51,6 +51,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "config": jsonable(exp.config),
         "parameters": exp.params.as_dict(),
         "summary": s,
+        "law_fault": str(res.fault) if res.fault is not None else None,
     }
     if args.out:
         write_csv(res, args.out, comment=f"mrctl {__version__} simulate {args.config}")
@@ -59,8 +60,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
     print(format_summary(s, exp.I_max))
+    if "rms_a_sprung_mps2" in s:
+        from mrctl.runlog.ride import format_ride
+
+        print(format_ride(s))
     if args.out:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+    if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
+        _err(str(res.fault))
+        return EXIT_FAILURE
     return EXIT_OK
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
 from mrctl.runlog.metrics import tracking_summary
-from mrctl.laws.base import Measurement, clamp_current
+from mrctl.laws.base import LawFault, Measurement, clamp_current
 
 CSV_COLUMNS = ("t", "x", "v", "F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")
 CSV_UNITS = ("s", "m", "m/s", "N", "N", "A", "A", "m", "m", "m/s", "N")
@@ -30,6 +30,8 @@ class SimResult:
     columns: dict[str, np.ndarray]
     wall_s: float
     summary: dict[str, float] = field(default_factory=dict)
+    #: a law that raised or returned NaN/inf: the run ended at that tick, at 0 A
+    fault: LawFault | None = None
 
     @property
     def ticks(self) -> int:
@@ -55,13 +57,24 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     whole run up front (numpy); the loop itself is the per-tick plain-float
     code the daemon runs. The laws see what the daemon's sim link gives
     them: x and v at tick k, the load cell's reading of the force of tick
-    k − 1, sensor noise drawn in the same order (x, v, F per tick)."""
+    k − 1, sensor noise drawn in the same order (x, v, F per tick).
+
+    A bench whose motion depends on the damper (``plant.bench:
+    quarter_car``) is stepped tick by tick instead (:mod:`.bench_sim`). A law
+    that raises or returns NaN/inf ends the run at that tick with 0 A
+    (``SimResult.fault``)."""
+    if exp.config.plant.get("bench", "shaker") != "shaker":
+        from mrctl.offline.bench_sim import simulate_bench
+
+        return simulate_bench(exp, duration_s)
     n = int(round(duration_s / exp.dt)) + 1
     I_max = exp.I_max
     plant = exp.make_plant()
     sensors = exp.make_sensors()
     law = exp.law
     law.reset()
+    if exp.demand is not None:
+        exp.demand.reset()
     t_arr = np.arange(n) * exp.dt
     x_arr, v_arr = exp.excitation.trajectory(t_arr)
     ts, xs, vs = t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist()
@@ -75,6 +88,10 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
     I = 0.0
+    Fd = math.nan
+    fault: LawFault | None = None
+    dname = exp.config.demand.type if exp.demand is not None else ""
+    lname = exp.config.inverse.law
     t0 = time.perf_counter()
     for k in range(n):
         x, v = xs[k], vs[k]
@@ -85,36 +102,51 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
         if k:
             cfm[k - 1] = Fm
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
-        Fd = demand(m) if demand is not None else math.nan
-        I = current(m, Fd)
-        Ic = clamp_current(I, I_max)
-        if Ic != I:  # tell the law only when the guard changed its output
-            I = Ic
-            applied(I)
+        who = dname
+        try:
+            Fd = demand(m) if demand is not None else math.nan
+            who = lname
+            I = current(m, Fd)
+            if I - I != 0.0 or (demand is not None and Fd - Fd != 0.0):  # NaN or inf
+                who = lname if I - I != 0.0 else dname
+                fault = LawFault("non-finite", who, k, ts[k], f"F_des = {Fd!r}, I = {I!r}")
+        except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
+            fault = LawFault("raised", who, k, ts[k], f"{type(exc).__name__}: {exc}")
+        if fault is not None:
+            I = 0.0  # the run ends at this tick, at 0 A
+        else:
+            Ic = clamp_current(I, I_max)
+            if Ic != I:  # tell the law only when the guard changed its output
+                I = Ic
+                applied(I)
         F_prev = cf[k] = ptick(v, I, x)
         cxm[k], cvm[k] = xm, vm
         cfd[k] = Fd
         ci[k] = I
         cia[k] = plant.I_applied
         cz[k] = model.z
+        if fault is not None:
+            n = k + 1
+            break
     cfm[n - 1] = F_prev if sensors is None else sensors.F(F_prev)
     wall = time.perf_counter() - t0
-    out = {"t": t_arr, "x": np.asarray(x_arr, float), "v": np.asarray(v_arr, float)}
-    out.update({c: np.frombuffer(a, dtype=float) for c, a in cols.items()})
+    out = {"t": t_arr[:n], "x": np.asarray(x_arr, float)[:n], "v": np.asarray(v_arr, float)[:n]}
+    out.update({c: np.frombuffer(a, dtype=float)[:n] for c, a in cols.items()})
     summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], I_max, exp.excitation.settle_s)
     summary["ticks"] = float(n)
     summary["simulated_s"] = (n - 1) * exp.dt
     summary["wall_s"] = wall
     summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary)
+    return SimResult(out, wall, summary, fault)
 
 
 def write_csv(result: SimResult, path: str | Path, comment: str | None = None) -> None:
     """CSV with a header row; optional leading '# ' comment lines (metadata)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    data = np.column_stack([result.columns[c] for c in CSV_COLUMNS])
-    header = ",".join(CSV_COLUMNS)
+    names = CSV_COLUMNS + tuple(c for c in result.columns if c not in CSV_COLUMNS)  # + a bench's channels
+    data = np.column_stack([result.columns[c] for c in names])
+    header = ",".join(names)
     with p.open("w") as fh:
         if comment:
             for line in comment.splitlines():
