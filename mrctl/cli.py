@@ -138,8 +138,15 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from mrctl.config.laws import laws_markdown, laws_report
     from mrctl.daemon.feasibility import assess, wire_time_s
 
+    if args.laws:
+        print(laws_markdown())
+    if not args.config:
+        if not args.laws:
+            _err("check: give an experiment YAML (or --laws)")
+        return EXIT_OK if args.laws else EXIT_BAD_INPUT
     exp = _load(args.config)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
@@ -152,6 +159,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 return EXIT_BAD_INPUT
         else:
             print(f.message)
+    print("\n".join(laws_report(cfg)))
     print(f"{args.config}: OK")
     return EXIT_OK
 
@@ -196,8 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--report", help="also draw Figs 2 and 3 of the paper to this PNG")
     ip.set_defaults(func=cmd_identify)
 
-    cp = sub.add_parser("check", help="validate an experiment config; lists every error")
-    cp.add_argument("config")
+    cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
+    cp.add_argument("config", nargs="?")
+    cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
     cp.set_defaults(func=cmd_check)
     return ap
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from mrctl.config.bench import bench_fields, road_excitations
-from mrctl.config.laws import law_checks, law_unions
+from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
 from mrctl.config.params import params_check
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import (
@@ -126,6 +126,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                                doc="exchange links: no good exchange for this long = driver lost, exit 3"),
             "reconnect_interval_s": Num(default=0.05, min=0.001, max=60.0,
                                         doc="exchange links: reopen a disconnected link at most this often"),
+            **LAW_GUARD_FIELDS,
         }),
         "latency": Section({
             "lead_s": Custom(_lead_check, default=0.0,

@@ -17,9 +17,17 @@ from mrctl.config.bench import BENCH_CHANNELS, quarter_car_params
 from mrctl.laws.base import LawContext
 from mrctl.laws.registry import BUILTIN, all_laws, find_law
 from mrctl.model.params import LuGreParams
-from mrctl.util.schema import Node, Union, bind_paths, schema_markdown
+from mrctl.util.schema import Node, Num, Section, Union, bind_paths, schema_markdown
 
 SECTIONS = (("demand", "demand", "type"), ("inverse", "current", "law"))  # (section, kind, key)
+
+#: ``safety`` keys of the law guard (docs/laws.md)
+LAW_GUARD_FIELDS = {
+    "law_budget_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0,
+                        doc="a tick whose law calls take longer is slow; null = one tick period"),
+    "law_overrun_ticks": Num(default=3, integer=True, min=1, max=100000,
+                             doc="this many slow ticks in a row are a law fault: 0 A, the run ends (exit 1)"),
+}
 
 
 def _resolver(kind: str, base_dir: Path) -> Callable[[str], tuple[Mapping[str, Any] | None, str | None]]:
@@ -112,10 +120,18 @@ def laws_report(cfg: Node | None = None) -> list[str]:
     return lines
 
 
-def law_markdown(kind: str, name: str) -> str:
-    """One law's keys as docs/config.md's tables (``mrctl check --law NAME``)."""
-    info = find_law(kind, name)
-    if info.cls is None:
-        raise KeyError(info.error)
-    section, key = ("demand", "type") if kind == "demand" else ("inverse", "law")
-    return schema_markdown({section: Union(key, {name: dict(info.cls.params)}, doc=info.cls.summary)})
+def laws_markdown() -> str:
+    """Every installed law's keys as docs/config.md's tables, with its
+    source (``mrctl check --laws``): a plugin's reference, made like the built-ins'."""
+    lines: list[str] = []
+    for section, kind, key in SECTIONS:
+        for i in all_laws(kind):
+            lines.append(f"#### `{section}.{key}: {i.name}` ({i.source})")
+            lines.append("")
+            if i.cls is None:
+                lines += [f"Refused: {i.error}", ""]
+                continue
+            lines += [i.cls.summary or "(no summary)", ""]
+            table = schema_markdown({section: Section(dict(i.cls.params))}).split("\n")[2:]
+            lines += table if i.cls.params else ["(no keys)", ""]
+    return "\n".join(lines)

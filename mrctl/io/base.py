@@ -203,6 +203,10 @@ class Link(abc.ABC):
         self.safe_on_close = safe_on_close
         #: False → setpoints go out with the output disabled (device holds 0 A)
         self.enabled = True
+        #: extra named channels (SI units) beside x, v, F: one dict the link
+        #: updates in place each tick (the laws' ``Measurement.channels``);
+        #: its keys are fixed once the link is open (docs/laws.md)
+        self.channels: dict[str, float] = {}
         cls = type(self)
         for name in self.COUNTERS:
             if not isinstance(getattr(cls, name, None), property):

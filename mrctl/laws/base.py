@@ -40,6 +40,7 @@ __all__ = [
     "CurrentLaw",
     "InverseLaw",
     "LawFault",
+    "NonFiniteOutput",
     "clamp_current",
 ]
 
@@ -150,6 +151,10 @@ class InverseLaw(CurrentLaw):
     """A current law that makes the damper produce the demanded force."""
 
     needs_demand = True
+
+
+class NonFiniteOutput(ArithmeticError):
+    """A law returned NaN or inf: raised and caught by the law guard within a tick."""
 
 
 @dataclass(frozen=True)
