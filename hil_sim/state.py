@@ -119,11 +119,12 @@ class DeviceState:
             self.requests_served += 1
             return self._sample
 
-    def latest_channels(self) -> tuple[float, ...]:
-        """The channel values published with the latest sample (same order as
-        :attr:`channel_names`)."""
+    def latest_sample_ex(self) -> tuple[Sample, tuple[float, ...]]:
+        """The latest sample and the channel values published with it (same
+        order as :attr:`channel_names`), in one step."""
         with self._lock:
-            return self._channels
+            self.requests_served += 1
+            return self._sample, self._channels
 
     def set_setpoint(
         self, current_A: float, enable: bool = True, watchdog_ms: int = 0, clear_faults: bool = False,

@@ -16,10 +16,10 @@ from typing import Any, Callable
 from mrctl.config import ConfigError, Node
 from mrctl.config.bench import quarter_car_params
 from mrctl.config.laws import law_context as _law_context
-from mrctl.errors import MrctlError
+from mrctl.errors import LinkFailure, MrctlError
 from mrctl.estimation import VelocityLead
 from mrctl.io import link_class
-from mrctl.io.base import Link
+from mrctl.io.base import Link, LinkError
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawContext
 from mrctl.laws.registry import law_class
 from mrctl.model import excitation as excitation_mod
@@ -169,6 +169,19 @@ def check_channels(laws: tuple[Law | None, ...], provided: Any, what: str) -> No
         if law is not None and missing:
             raise ConfigError([f"{section}: the law {law.name or type(law).__name__!r} needs channel(s) "
                                f"{', '.join(missing)}; {what} provides {', '.join(sorted(have)) or 'none'}"])
+
+
+def link_channels(exp: Experiment, link: Link) -> None:
+    """At start-up, with the link open: ask the device for its extra channels
+    when a law reads any (only then: an older device is not asked), and
+    refuse the start (ConfigError, exit 2) if one is missing."""
+    laws = (exp.demand, exp.law)
+    if any(getattr(law, "channels", ()) for law in laws):
+        try:
+            link.request_channels()
+        except (LinkError, OSError) as exc:
+            raise LinkFailure(f"cannot ask the device for its channels: {exc}") from None
+    check_channels(laws, getattr(link, "channels", {}), link.describe())
 
 
 def build(config: Node) -> Experiment:

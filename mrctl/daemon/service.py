@@ -52,7 +52,7 @@ from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
 from mrctl.daemon.status import StatusServer, default_status_socket
 from mrctl.daemon.timing import format_summary as format_timing
 from mrctl.errors import BadInput, ExitCode, LinkFailure, MrctlError
-from mrctl.experiment import Experiment, build, check_channels
+from mrctl.experiment import Experiment, build, check_channels, link_channels
 from mrctl.io.base import Link, LinkError
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, RUN_UNITS
 from mrctl.runlog.metrics import format_summary, tracked_force, tracking_summary
@@ -156,7 +156,7 @@ class Service:
             exp = self.exp = self._check_link(exp, link)
         if exp.config.loop.pacing == "device":
             self._set_device_pacing(exp, link)
-        check_channels((exp.demand, exp.law), getattr(link, "channels", {}), link.describe())
+        link_channels(exp, link)  # the laws' extra channels: asked for, checked (exit 2)
         self._build(exp, link, duration)
         self._enter_run(stack)
         ctl, loop = self.ctl, self.loop

@@ -342,6 +342,12 @@ class Link(abc.ABC):
     def begin_tick(self, k: int) -> None:
         """Host-clocked links: the loop's tick index. Others ignore it."""
 
+    def request_channels(self) -> tuple[str, ...]:
+        """Find out which extra channels the device provides and fill
+        :attr:`channels` (start-up, only when a law reads channels; links
+        whose channels are known from the start just report them)."""
+        return tuple(self.channels)
+
     @property
     def true_force_N(self) -> float:
         """The plant's ground-truth force at this tick (simulated benches), else NaN."""

@@ -37,7 +37,7 @@ from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
 
 #: the channels the quarter-car bench provides (SI units)
-CHANNELS = ("x_sprung", "v_sprung", "a_sprung", "x_unsprung", "v_unsprung", "tyre_defl", "x_road")
+CHANNELS = ("x_sprung", "v_sprung", "a_sprung", "x_unsprung", "v_unsprung", "tyre_defl")
 
 
 @dataclass(frozen=True)
@@ -163,7 +163,6 @@ class QuarterCarBench:
         ch["x_unsprung"] = xu
         ch["v_unsprung"] = vu
         ch["tyre_defl"] = xu - xr
-        ch["x_road"] = xr
 
     def command(self, I_A: float) -> None:
         """Apply the driver input (A) at the present tick; non-finite or negative read as 0 A."""
