@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mrctl.io.base import FrameError
 from mrctl.io.protocol import (
     ChannelListFrame,
     ChannelQueryFrame,
@@ -23,7 +24,6 @@ from mrctl.io.protocol import (
     encode_frame,
     encode_sample,
 )
-from mrctl.io.base import FrameError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -129,6 +129,7 @@ def test_skyhook_over_serial_reads_the_quarter_cars_channels(tmp_path):
     """hil_sim's quarter car over the serial protocol: the on-off skyhook gets
     v_sprung in SAMPLE_X frames (with NaN it would never switch on)."""
     from hil_util import HilSim, run_daemon
+
     from mrctl.daemon.recorder import read_run, read_sidecar
 
     for attempt in range(3):

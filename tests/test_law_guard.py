@@ -85,9 +85,9 @@ def test_run_a_slow_law_faults_after_three_overruns(tmp_path):
 
 def test_one_slow_tick_is_not_a_fault(tmp_path):
     """A single overrun (a preempted tick) does not stop the run."""
+    from mrctl.config import load_experiment
     from mrctl.daemon.controller import Controller
     from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
-    from mrctl.config import load_experiment
     from mrctl.experiment import build
 
     exp = build(load_experiment(_cfg(tmp_path, "{law: smooth}")))
