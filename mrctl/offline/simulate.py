@@ -68,31 +68,41 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
 
         return simulate_bench(exp, duration_s)
     n = int(round(duration_s / exp.dt)) + 1
-    I_max = exp.I_max
-    plant = exp.make_plant()
-    sensors = exp.make_sensors()
-    law = exp.law
-    law.reset()
+    exp.law.reset()
     if exp.demand is not None:
         exp.demand.reset()
     t_arr = np.arange(n) * exp.dt
     x_arr, v_arr = exp.excitation.trajectory(t_arr)
-    ts, xs, vs = t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist()
     cols = {c: array("d", bytes(8 * n)) for c in ("F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas")}
+    t0 = time.perf_counter()
+    n, fault = _loop(exp, t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist(), cols)
+    wall = time.perf_counter() - t0
+    out = {"t": t_arr[:n], "x": np.asarray(x_arr, float)[:n], "v": np.asarray(v_arr, float)[:n]}
+    out.update({c: np.frombuffer(a, dtype=float)[:n] for c, a in cols.items()})
+    summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], exp.I_max, exp.excitation.settle_s)
+    summary["ticks"] = float(n)
+    summary["simulated_s"] = (n - 1) * exp.dt
+    summary["wall_s"] = wall
+    summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
+    return SimResult(out, wall, summary, fault)
+
+
+def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], cols: dict[str, array]
+          ) -> tuple[int, LawFault | None]:
+    """The per-tick loop on the shaker; (ticks done, law fault or None)."""
+    n, I_max = len(ts), exp.I_max
+    plant, sensors = exp.make_plant(), exp.make_sensors()
     cfd, cf, ci, cia, cz = cols["F_des"], cols["F"], cols["I"], cols["I_applied"], cols["z"]
     cxm, cvm, cfm = cols["x_meas"], cols["v_meas"], cols["F_meas"]
     # local bindings: attribute lookups cost as much as the physics here
     demand = exp.demand.force if exp.demand is not None else None
-    current, applied = law.current, law.applied
+    current, applied = exp.law.current, exp.law.applied
     ptick, model = plant.tick, plant.model
+    dname, lname = (exp.config.demand.type if demand is not None else ""), exp.config.inverse.law
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
-    I = 0.0
-    Fd = math.nan
+    I, Fd = 0.0, math.nan
     fault: LawFault | None = None
-    dname = exp.config.demand.type if exp.demand is not None else ""
-    lname = exp.config.inverse.law
-    t0 = time.perf_counter()
     for k in range(n):
         x, v = xs[k], vs[k]
         if sensors is None:
@@ -103,13 +113,12 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
             cfm[k - 1] = Fm
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
         who = dname
-        try:
+        try:  # the law guard (docs/laws.md): zero cost on the good path
             Fd = demand(m) if demand is not None else math.nan
             who = lname
             I = current(m, Fd)
             if I - I != 0.0 or (demand is not None and Fd - Fd != 0.0):  # NaN or inf
-                who = lname if I - I != 0.0 else dname
-                fault = LawFault("non-finite", who, k, ts[k], f"F_des = {Fd!r}, I = {I!r}")
+                fault = LawFault("non-finite", lname if I - I != 0.0 else dname, k, ts[k], f"F_des = {Fd!r}, I = {I!r}")
         except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
             fault = LawFault("raised", who, k, ts[k], f"{type(exc).__name__}: {exc}")
         if fault is not None:
@@ -120,24 +129,12 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
                 I = Ic
                 applied(I)
         F_prev = cf[k] = ptick(v, I, x)
-        cxm[k], cvm[k] = xm, vm
-        cfd[k] = Fd
-        ci[k] = I
-        cia[k] = plant.I_applied
-        cz[k] = model.z
+        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, Fd, I, plant.I_applied, model.z
         if fault is not None:
             n = k + 1
             break
     cfm[n - 1] = F_prev if sensors is None else sensors.F(F_prev)
-    wall = time.perf_counter() - t0
-    out = {"t": t_arr[:n], "x": np.asarray(x_arr, float)[:n], "v": np.asarray(v_arr, float)[:n]}
-    out.update({c: np.frombuffer(a, dtype=float)[:n] for c, a in cols.items()})
-    summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], I_max, exp.excitation.settle_s)
-    summary["ticks"] = float(n)
-    summary["simulated_s"] = (n - 1) * exp.dt
-    summary["wall_s"] = wall
-    summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary, fault)
+    return n, fault
 
 
 def write_csv(result: SimResult, path: str | Path, comment: str | None = None) -> None:
