@@ -3,6 +3,12 @@ bench, with the safety supervisor and the recorder (writing to a temp file),
 exactly as ``mrctl run`` builds it.
 
     python bench/loop_timing.py --tick controller_tick:make_tick
+    python bench/loop_timing.py --tick controller_tick:make_plugin_tick    # the example plugin's laws
+    python bench/loop_timing.py --tick controller_tick:make_skyhook_tick   # skyhook on the quarter car
+
+``make_plugin_tick`` runs the example plugin (examples/mrctl-law-example:
+``sine_force`` demand, ``force_pi`` inverse law) named as module:Class,
+the same classes its entry points name, on fig5's shaker.
 """
 
 from __future__ import annotations
@@ -26,11 +32,15 @@ from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: E402
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
 
 
-def make_tick(period_s: float, defer_format: bool = True) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+PLUGIN_SRC = ROOT / "examples" / "mrctl-law-example" / "src"
+
+
+def make_tick(period_s: float, defer_format: bool = True, config: Path = CONFIG
+              ) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
     """(tick, background): as ``mrctl run`` builds them; with ``defer_format``
     the loop formats the log in its idle time (the background hook)."""
     sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
-    exp = build(load_experiment(CONFIG))
+    exp = build(load_experiment(config))
     backend = exp.make_link()
     backend.open()
     sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
@@ -46,3 +56,26 @@ def make_tick_thread_format(period_s: float) -> tuple[Callable[[int, int], objec
     """The same, with the log formatted by the writer thread (the old design),
     for comparison: ``--tick controller_tick:make_tick_thread_format``."""
     return make_tick(period_s, defer_format=False)  # type: ignore[return-value]
+
+
+def _edited(text: str) -> Path:
+    p = Path(tempfile.mkdtemp(prefix="mrctl-bench-")) / "exp.yaml"
+    p.write_text(text)
+    return p
+
+
+def make_plugin_tick(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """fig5 with the example plugin's two laws in the 1 kHz path."""
+    sys.path.insert(0, str(PLUGIN_SRC))
+    text = CONFIG.read_text().replace("demand: {type: viscous, c_des: 500.0}",
+                                      "demand: {type: 'mrctl_law_example.laws:SineForce', amplitude_N: 30.0, "
+                                      "frequency_hz: 1.0, phase_rad: 1.5708}")
+    head, _, tail = text.partition("inverse:\n")
+    tail = tail.split("safety:", 1)[1]
+    text = head + "inverse: {law: 'mrctl_law_example.laws:ForcePI'}\nsafety:" + tail
+    return make_tick(period_s, config=_edited(text))
+
+
+def make_skyhook_tick(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """Skyhook + smooth on the quarter car (config/experiments/quarter_car.yaml)."""
+    return make_tick(period_s, config=ROOT / "config" / "experiments" / "quarter_car.yaml")

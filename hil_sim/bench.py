@@ -42,7 +42,7 @@ import threading
 
 from mrctl.io.base import Sample, Status
 from mrctl.daemon.loop import FixedRateLoop
-from mrctl.model.bench import SimBench
+from mrctl.experiment import make_sim_bench
 
 from hil_sim.config import BenchConfig
 from hil_sim.faults import FaultBit, FaultSchedule, bit_names
@@ -74,15 +74,19 @@ def clamp_setpoint(I: float, I_max: float) -> tuple[float, bool]:
 
 
 class BenchDevice:
-    """SimBench + device logic (setpoint, watchdog, status) on a fixed-rate clock."""
+    """The simulated bench (shaker or quarter car) + device logic (setpoint, watchdog, status) on a fixed-rate clock."""
 
     def __init__(self, cfg: BenchConfig, state: DeviceState, truth: TruthLog | None = None,
                  wait: str = "hybrid", spin_margin_s: float = 2e-4, idle=None) -> None:
         self.cfg = cfg
         self.state = state
         self.truth = truth
-        self.bench = SimBench(cfg.params, cfg.excitation, cfg.dt, cfg.driver_tau_s,
-                              cfg.make_sensors(), cfg.load_cell)
+        # the same bench as the in-process sim link, built the same way (plant.bench)
+        self.bench = make_sim_bench(cfg.params, cfg.excitation, cfg.dt, cfg.driver_tau_s,
+                                    cfg.make_sensors(), cfg.load_cell, quarter_car=cfg.quarter_car)
+        #: the bench's extra channels (a dict it updates in place), published with each sample
+        self._channels = getattr(self.bench, "channels", {})
+        state.channel_names = tuple(self._channels)
         self._sensors = self.bench.sensors
         self.loop = FixedRateLoop(cfg.rate_hz, wait=wait, spin_margin_s=spin_margin_s, idle=idle)
         self.I_max = cfg.I_max_A
@@ -180,7 +184,8 @@ class BenchDevice:
         b.command(I)
         t = b.t
         I_app = b.I_applied
-        state.publish(Sample(seq, t, x_m, v_m, F_m, status, I_app))
+        state.publish(Sample(seq, t, x_m, v_m, F_m, status, I_app),
+                      tuple(self._channels.values()) if self._channels else ())
         if state.owed_now:  # device pacing: answer SYNC requests with this sample
             state.run_owed()
         if self.truth is not None:

@@ -28,9 +28,11 @@ from mrctl.util.schema import (
     load_yaml,
 )
 from mrctl.config import experiment_schema
+from mrctl.config.bench import quarter_car_params
 from mrctl.experiment import EXCITATIONS
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import Sensors
+from mrctl.model.quarter_car import QuarterCarParams
 
 from hil_sim.faults import FaultSpec, check_fault_list, parse_fault_arg
 
@@ -59,6 +61,8 @@ def bench_schema(base_dir: Path) -> dict[str, Any]:
         "excitation": exp["excitation"],
         "plant": Section({
             "driver_tau_s": exp["plant"].fields["driver_tau_s"],
+            "bench": exp["plant"].fields["bench"],
+            "quarter_car": exp["plant"].fields["quarter_car"],
             "sensors": Section(sensors),
         }),
         "load_cell": Bool(default=True, doc="false: F is NaN and NO_LOAD_CELL is set"),
@@ -88,6 +92,8 @@ class BenchConfig:
     watchdog_ms: int
     I_max_A: float
     faults: list[FaultSpec] = field(default_factory=list)
+    #: the quarter car the damper sits in (plant.bench: quarter_car), or None: the shaker
+    quarter_car: QuarterCarParams | None = None
 
     @property
     def dt(self) -> float:
@@ -156,6 +162,7 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         watchdog_ms=int(node.watchdog_ms),
         I_max_A=float(node.I_max_A),
         faults=fault_specs,
+        quarter_car=quarter_car_params(node.plant),
     )
 
 

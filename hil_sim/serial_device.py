@@ -40,6 +40,8 @@ from collections import deque
 from mrctl.io.base import Sample, Status
 from mrctl.io.protocol import (
     PROTOCOL_VERSION,
+    ChannelListFrame,
+    ChannelQueryFrame,
     ErrorCode,
     ErrorFrame,
     ForeignFrame,
@@ -47,6 +49,7 @@ from mrctl.io.protocol import (
     SampleFrame,
     SetpointFlag,
     SetpointFrame,
+    encode_channel_list,
     encode_error,
     encode_sample,
 )
@@ -62,6 +65,7 @@ _U32 = 0xFFFFFFFF
 _ENABLE = int(SetpointFlag.ENABLE)
 _CLEAR = int(SetpointFlag.CLEAR_FAULTS)
 _SYNC = int(SetpointFlag.SYNC)
+_CHANNELS = int(SetpointFlag.CHANNELS)
 _RX_ERROR = int(Status.RX_ERROR)
 _CLAMPED = int(Status.CURRENT_CLAMPED)
 _WATCHDOG_TRIPPED = int(Status.WATCHDOG_TRIPPED)
@@ -261,7 +265,9 @@ class SerialDevice:
                 self.bad_version += 1
                 self._rx_error = True
                 self._error(f.seq, ErrorCode.BAD_VERSION, PROTOCOL_VERSION)
-            elif isinstance(f, (SampleFrame, ErrorFrame)):
+            elif isinstance(f, ChannelQueryFrame):  # docs/protocol.md §2.5
+                self._channel_list(f)
+            elif isinstance(f, (SampleFrame, ErrorFrame, ChannelListFrame)):
                 self.unknown_type += 1
                 self._rx_error = True
                 self._error(f.seq, ErrorCode.UNKNOWN_TYPE)
@@ -279,15 +285,16 @@ class SerialDevice:
                                 owe=(lambda: self._reply(f, None)) if sync else None)
         if sync:
             return
-        s = self.state.latest_sample()
+        s, ch = self.state.latest_sample_ex()
         if clear:
             self._clear_seq = s.seq
-        self._reply(f, s)
+        self._reply(f, s, ch)
 
-    def _reply(self, f: SetpointFrame, s: Sample | None) -> None:
-        """SAMPLE answering ``f``: with ``s``, or the latest sample (SYNC)."""
+    def _reply(self, f: SetpointFrame, s: Sample | None, ch: tuple[float, ...] = ()) -> None:
+        """SAMPLE answering ``f``: with ``s``, or the latest sample (SYNC);
+        SAMPLE_X with the channels when ``f`` asks for them (CHANNELS)."""
         if s is None:
-            s = self.state.latest_sample()
+            s, ch = self.state.latest_sample_ex()
         status = s.status & ~_CLAMPED
         if clamp_setpoint(f.current_A, self.I_max)[1]:
             status |= _CLAMPED
@@ -296,8 +303,18 @@ class SerialDevice:
         if self._clear_seq == s.seq:
             status &= ~_WATCHDOG_TRIPPED  # cleared before this reply; the clock catches up next tick
         reply = encode_sample(s.seq, f.seq, round(s.t_dev_s * 1e6) & _U32, s.x_m, s.v_mps, s.F_N,
-                              s.current_A, status)
+                              s.current_A, status, ch if f.flags & _CHANNELS else ())
         if self._send(reply):
+            self.replies += 1
+
+    def _channel_list(self, f: ChannelQueryFrame) -> None:
+        """CHANNEL_LIST answering a CHANNEL_QUERY (names that do not fit one frame: INTERNAL)."""
+        try:
+            frame = encode_channel_list(self.state.latest_sample().seq, f.seq, self.state.channel_names)
+        except ValueError:
+            self._error(f.seq, ErrorCode.INTERNAL)
+            return
+        if self._send(frame):
             self.replies += 1
 
     def _error(self, echo_seq: int, code: int, detail: int = 0) -> None:

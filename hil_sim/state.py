@@ -57,6 +57,10 @@ class DeviceState:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._sample = Sample(seq=0, t_dev_s=0.0, x_m=0.0, v_mps=0.0, F_N=float("nan"), status=0)
+        #: the bench's extra channels (names fixed at start) and their values,
+        #: published with each sample (docs/protocol.md §2.5, docs/registers.md)
+        self.channel_names: tuple[str, ...] = ()
+        self._channels: tuple[float, ...] = ()
         self._setpoint_A = 0.0
         self._enable = False
         self._setpoint_ns = 0  # monotonic time of the last setpoint (0 = never)
@@ -79,9 +83,10 @@ class DeviceState:
         self.starts: list[tuple[int, float, bool]] = []
 
     # -- clock side -------------------------------------------------------
-    def publish(self, sample: Sample) -> None:
+    def publish(self, sample: Sample, channels: tuple[float, ...] = ()) -> None:
         with self._lock:
             self._sample = sample
+            self._channels = channels
 
     def setpoint(self) -> tuple[float, bool, int]:
         """(current A, enable, monotonic ns of arrival or 0 if none yet)."""
@@ -113,6 +118,13 @@ class DeviceState:
         with self._lock:
             self.requests_served += 1
             return self._sample
+
+    def latest_sample_ex(self) -> tuple[Sample, tuple[float, ...]]:
+        """The latest sample and the channel values published with it (same
+        order as :attr:`channel_names`), in one step."""
+        with self._lock:
+            self.requests_served += 1
+            return self._sample, self._channels
 
     def set_setpoint(
         self, current_A: float, enable: bool = True, watchdog_ms: int = 0, clear_faults: bool = False,

@@ -57,7 +57,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
                     "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
                 "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
-                "exit_code": 0, "summary": s}
+                "exit_code": 1 if res.fault is not None else 0, "summary": s,
+                "law_fault": str(res.fault) if res.fault is not None else None}
         try:
             write_csv(res, args.out, force=args.force)
             files.write_json(files.sidecar_path(args.out), side)
@@ -68,8 +69,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
     print(format_summary(s, exp.I_max))
+    if "rms_a_sprung_mps2" in s:
+        from mrctl.runlog.ride import format_ride
+
+        print(format_ride(s))
     if args.out:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+    if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
+        _err(str(res.fault))
+        return EXIT_FAILURE
     return EXIT_OK
 
 
@@ -135,8 +143,15 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from mrctl.config.laws import laws_markdown, laws_report
     from mrctl.daemon.feasibility import assess, wire_time_s
 
+    if args.laws:
+        print(laws_markdown())
+    if not args.config:
+        if not args.laws:
+            _err("check: give an experiment YAML (or --laws)")
+        return EXIT_OK if args.laws else EXIT_BAD_INPUT
     exp = _load(args.config)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
@@ -149,6 +164,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 return EXIT_BAD_INPUT
         else:
             print(f.message)
+    print("\n".join(laws_report(cfg)))
     print(f"{args.config}: OK")
     return EXIT_OK
 
@@ -195,8 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--report", help="also draw Figs 2 and 3 of the paper to this PNG")
     ip.set_defaults(func=cmd_identify)
 
-    cp = sub.add_parser("check", help="validate an experiment config; lists every error")
-    cp.add_argument("config")
+    cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
+    cp.add_argument("config", nargs="?")
+    cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
     cp.set_defaults(func=cmd_check)
 
     ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")

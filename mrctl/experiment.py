@@ -14,13 +14,18 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from mrctl.config import ConfigError, Node
+from mrctl.config.bench import quarter_car_params
+from mrctl.config.laws import law_context as _law_context
+from mrctl.errors import LinkFailure, MrctlError
 from mrctl.estimation import VelocityLead
 from mrctl.io import link_class
-from mrctl.io.base import Link
-from mrctl.laws.base import CurrentLaw, DemandLaw, LawContext
-from mrctl.laws.registry import current_laws, demand_laws
+from mrctl.io.base import Link, LinkError
+from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawContext
+from mrctl.laws.registry import law_class
 from mrctl.model import excitation as excitation_mod
+from mrctl.model import road
 from mrctl.model.bench import SimBench
+from mrctl.model.quarter_car import QuarterCarBench, QuarterCarParams
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
 from mrctl.util.csvtable import CsvError, load_series
@@ -36,6 +41,8 @@ EXCITATIONS: dict[str, Callable[[Node], Any]] = {
     "sine": lambda c: excitation_mod.Sine(c.amplitude_m, c.frequency_hz, c.phase_rad),
     "chirp": lambda c: excitation_mod.Chirp(c.amplitude_m, c.f0_hz, c.f1_hz, c.sweep_s),
     "file": _excitation_file,
+    "bump": lambda c: road.Bump(c.height_m, c.length_m, c.speed_mps, c.at_s),
+    "iso8608": lambda c: road.ISO8608Road(c.road_class, c.speed_mps, c.seed, c.length_m, c.scale),
 }
 
 
@@ -57,9 +64,13 @@ def make_sensors(s: Node, seed: int | None = None) -> Sensors | None:
 
 
 def make_sim_bench(params: LuGreParams, excitation: Any, dt: float, driver_tau_s: float | None = None,
-                   sensors: Sensors | None = None, has_load_cell: bool = True) -> SimBench:
+                   sensors: Sensors | None = None, has_load_cell: bool = True,
+                   quarter_car: QuarterCarParams | None = None) -> SimBench | QuarterCarBench:
     """The simulated bench (shaker + damper + driver + sensors) both the
-    in-process link and ``hil_sim`` run."""
+    in-process link and ``hil_sim`` run; with ``quarter_car`` the damper sits
+    in a quarter car and the excitation is the road (``plant.bench``)."""
+    if quarter_car is not None:
+        return QuarterCarBench(params, excitation, dt, quarter_car, driver_tau_s, sensors, has_load_cell)
     return SimBench(params, excitation, dt, driver_tau_s, sensors, has_load_cell)
 
 
@@ -72,7 +83,7 @@ class Experiment:
     dt: float
     I_max: float
     excitation: Any
-    demand: DemandLaw
+    demand: DemandLaw | None
     law: CurrentLaw
 
     @property
@@ -91,10 +102,10 @@ class Experiment:
         """Sensor model, or None when it would be the identity (fast path)."""
         return make_sensors(self.config.plant.sensors)
 
-    def make_bench(self) -> SimBench:
+    def make_bench(self) -> SimBench | QuarterCarBench:
         """The in-process simulated bench (backend sim)."""
         return make_sim_bench(self.plant_params, self.excitation, self.dt, self.config.plant.driver_tau_s,
-                              self.make_sensors())
+                              self.make_sensors(), quarter_car=quarter_car_params(self.config.plant))
 
     def make_link(self) -> Link:
         """The link named by ``backend.type`` (the BACKENDS table)."""
@@ -120,19 +131,57 @@ class Experiment:
 def law_context(config: Node) -> LawContext:
     """What laws are built with (file paths in their sections are already
     resolved against the config's directory by the schema)."""
-    return LawContext(config.parameters, config.safety.I_max, 1.0 / config.rate_hz)
+    return _law_context(config)
 
 
-def make_laws(config: Node) -> tuple[DemandLaw, CurrentLaw]:
-    """The demand and current laws a config names; a file that cannot be
-    read is a ConfigError naming the key."""
-    ctx = law_context(config)
+def make_laws(config: Node) -> tuple[DemandLaw | None, CurrentLaw]:
+    """The demand (None when the file has none) and current laws a config
+    names (built-ins and plugins, :mod:`mrctl.laws.registry`); a law that
+    cannot be built is a ConfigError naming its section."""
+    return (build_law("demand", config.demand, config) if config.get("demand") is not None else None,
+            build_law("current", config.inverse, config))  # type: ignore[return-value]
+
+
+def build_law(kind: str, node: Node, config: Node) -> Law:
+    """One law from its validated section; whatever its constructor raises
+    (a plugin's too) is a ConfigError naming the section, never a traceback."""
+    section, key = ("demand", "type") if kind == "demand" else ("inverse", "law")
+    name = node.get(key)
     try:
-        dem = demand_laws()[config.demand.type].from_config(config.demand, ctx)
-    except (CsvError, ValueError) as e:
-        raise ConfigError([f"demand.path: {e}"]) from None
-    law = current_laws()[config.inverse.law].from_config(config.inverse, ctx)
-    return dem, law  # type: ignore[return-value]
+        law = law_class(kind, name).from_config(node, law_context(config))
+    except (CsvError, KeyError, ValueError, TypeError, ArithmeticError, LookupError, OSError) as e:
+        where = f"{section}.path" if isinstance(e, CsvError) else f"{section}.{key}"
+        raise ConfigError([f"{where}: {name!r} cannot be built: {e}"]) from None
+    except MrctlError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a plugin's constructor may raise anything
+        raise ConfigError([f"{section}.{key}: {name!r} cannot be built: {type(e).__name__}: {e}"]) from None
+    if not isinstance(law, (DemandLaw if kind == "demand" else CurrentLaw)):
+        raise ConfigError([f"{section}.{key}: {name!r}.from_config returned {type(law).__name__}, not a law"])
+    return law
+
+
+def check_channels(laws: tuple[Law | None, ...], provided: Any, what: str) -> None:
+    """Refuse to start when a law reads a channel the link does not provide."""
+    have = set(provided)
+    for law, section in zip(laws, ("demand", "inverse")):
+        missing = [c for c in getattr(law, "channels", ()) if c not in have]
+        if law is not None and missing:
+            raise ConfigError([f"{section}: the law {law.name or type(law).__name__!r} needs channel(s) "
+                               f"{', '.join(missing)}; {what} provides {', '.join(sorted(have)) or 'none'}"])
+
+
+def link_channels(exp: Experiment, link: Link) -> None:
+    """At start-up, with the link open: ask the device for its extra channels
+    when a law reads any (only then: an older device is not asked), and
+    refuse the start (ConfigError, exit 2) if one is missing."""
+    laws = (exp.demand, exp.law)
+    if any(getattr(law, "channels", ()) for law in laws):
+        try:
+            link.request_channels()
+        except (LinkError, OSError) as exc:
+            raise LinkFailure(f"cannot ask the device for its channels: {exc}") from None
+    check_channels(laws, getattr(link, "channels", {}), link.describe())
 
 
 def build(config: Node) -> Experiment:

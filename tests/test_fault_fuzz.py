@@ -153,6 +153,8 @@ def _conforms(spec: Any, value: Any, path: str) -> list[str]:
             bad += _conforms(s, value.get(k), f"{path}.{k}" if path else k)
         return bad
     if isinstance(spec, Union):
+        if value is None and spec.optional:  # an optional section left out (demand, for a direct current law)
+            return []
         if not isinstance(value, Node) or value.get(spec.key) not in spec.variants:
             return [f"{path}: bad union"]
         for k, s in spec.variants[value.get(spec.key)].items():

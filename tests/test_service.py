@@ -140,7 +140,7 @@ def test_signal_ends_with_zero_amps_and_a_complete_log(tmp_path, spy_backend, si
 @pytest.mark.parametrize("hold", [0, 3])
 def test_each_sample_fault_gives_zero_amps_within_the_hold(tmp_path, spy_backend, fault, hold):
     h = spy_backend(fault=fault, fault_at=300, fault_len=200)
-    cfg = _config(tmp_path, extra=f"", **{"safety: {I_max: 0.6}":
+    cfg = _config(tmp_path, extra="", **{"safety: {I_max: 0.6}":
                   f"safety: {{I_max: 0.6, hold_ticks: {hold}, x_range_m: [-0.05, 0.05], auto_resume: true}}"})
     svc, code, out = _run(cfg, tmp_path, duration=1.0)
     assert code == 0

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mrctl.config import load_experiment, load_yaml, validate_experiment
+from mrctl.config import load_yaml, validate_experiment
 from mrctl.experiment import build
 from mrctl.offline.simulate import CSV_COLUMNS, SIM_COLUMNS, log_columns, simulate
 

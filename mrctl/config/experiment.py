@@ -11,9 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from mrctl.config.bench import bench_fields, road_excitations
+from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
 from mrctl.config.params import params_check
-from mrctl.laws.base import LawContext
-from mrctl.laws.registry import current_laws, demand_laws
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import (
     Bool,
@@ -24,7 +24,6 @@ from mrctl.util.schema import (
     Section,
     Str,
     Union,
-    bind_paths,
     check_num,
     file_check,
     load_yaml,
@@ -102,11 +101,9 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                       "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
             "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
-        }, doc="shaker motion on the simulated bench"),
-        "demand": Union("type", {name: bind_paths(cls.params, base_dir) for name, cls in demand_laws().items()},
-                        doc="desired-force law (mrctl.laws: built-ins and plugins)"),
-        "inverse": Union("law", {name: bind_paths(cls.params, base_dir) for name, cls in current_laws().items()},
-                         doc="current law: an inverse law for demand's force, or a law that decides the current"),
+            **road_excitations(),
+        }, doc="shaker motion on the simulated bench (plant.bench: quarter_car: the road)"),
+        **law_unions(base_dir),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
             "max_slew_A_per_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
@@ -128,6 +125,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                                doc="exchange links: no good exchange for this long = driver lost, exit 3"),
             "reconnect_interval_s": Num(default=0.05, min=0.001, max=60.0,
                                         doc="exchange links: reopen a disconnected link at most this often"),
+            **LAW_GUARD_FIELDS,
         }),
         "latency": Section({
             "lead_s": Custom(_lead_check, default=0.0,
@@ -166,6 +164,7 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "driver_tau_s": Num(default=None, optional=True, min=0.0, max=1.0,
                                 doc="input lag of the simulated damper (s), 0 = ideal; null = the plant "
                                     "parameter set's tau_input"),
+            **bench_fields(),
             "sensors": Section({
                 "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),
                 "x_noise_m": Num(default=0.0, min=0.0, doc="std dev of displacement noise (m)"),
@@ -222,12 +221,7 @@ def _cross_checks(cfg: Node, base_dir: Path) -> list[str]:
     plant_params = cfg.plant.get("parameters") if "plant" in cfg else None
     if isinstance(plant_params, LuGreParams) and isinstance(I_max, float):
         errors += [f"plant.parameters: {e}" for e in plant_params.check_range(I_max)]
-    if isinstance(params, LuGreParams) and isinstance(I_max, float):
-        ctx = LawContext(params, I_max, 1.0 / cfg.rate_hz, base_dir)
-        for section, table, key in (("demand", demand_laws(), "type"), ("inverse", current_laws(), "law")):
-            node = cfg.get(section)
-            if node is not None and node.get(key) in table:
-                errors += [f"{section}.{e}" for e in table[node.get(key)].check(node, ctx)]
+    errors += law_checks(cfg, base_dir)
     loop, backend = cfg.get("loop"), cfg.get("backend")
     if loop is not None and loop.get("pacing") == "device" and backend is not None and backend.get("type") == "sim":
         errors.append("loop.pacing: 'device' needs a device with its own clock (a serial or Modbus backend); "

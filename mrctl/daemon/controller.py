@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Callable
 from mrctl.daemon.safety import SafetySupervisor
 from mrctl.estimation import VelocityLead
 from mrctl.io.base import Disconnected, Link, LinkError, Sample
-from mrctl.laws.base import CurrentLaw, DemandLaw, Measurement
+from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawFault, Measurement, NonFiniteOutput
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: F401 - re-exported for callers
 
 if TYPE_CHECKING:
@@ -57,6 +57,8 @@ class Controller:
         link_loss_ticks: int = 100,
         reconnect_every_ticks: int = 50,
         lead: VelocityLead | None = None,
+        law_budget_s: float | None = None,
+        law_overrun_ticks: int = 3,
     ) -> None:
         self.backend = backend
         self.law = law
@@ -75,8 +77,16 @@ class Controller:
         self._k_prev = -1
         self.split = backend.split
         self._begin = backend.begin_tick if backend.host_clocked else None
-        #: what the laws see, rewritten in place every tick
-        self.meas = Measurement()
+        #: what the laws see, rewritten in place every tick; the link's
+        #: extra channels are its own dict, updated in place by the link
+        self.meas = Measurement(channels=getattr(backend, "channels", None))
+        #: the law guard (docs/laws.md): a law whose calls take longer than
+        #: the budget (default one period) on this many ticks in a row is a fault
+        self.law_budget_ns = round((dt if law_budget_s is None else law_budget_s) * 1e9)
+        self.law_overrun_ticks = max(1, law_overrun_ticks)
+        self._law_slow = 0
+        #: the law fault that ended the run (reported after it), or None
+        self.law_fault: LawFault | None = None
         self.I_next = 0.0  # exchange shape: the current to send on the next tick
         self.I_last = 0.0  # last current actually commanded (A)
         self.link_errors = 0
@@ -110,6 +120,8 @@ class Controller:
         """Take new laws at a tick boundary (SIGHUP reload). The new inverse
         law starts from the current actually commanded, so no step appears."""
         law.reset(I0=self.I_last)
+        if demand is not None:
+            demand.reset()
         self.law = law
         self.demand = demand
 
@@ -118,7 +130,11 @@ class Controller:
         if self.pending is not None:
             law, demand = self.pending
             self.pending = None
-            self.swap_laws(law, demand)
+            try:
+                self.swap_laws(law, demand)
+            except Exception as exc:  # noqa: BLE001 - a plugin's reset may raise
+                self.law = law  # the new law failed: it is the one to blame, 0 A follows
+                self._law_failed("raised", law.name, self.ticks, NAN, f"in reset(): {type(exc).__name__}: {exc}")
 
     def tick(self, k: int, now_ns: int) -> bool:
         """One control period; returns False to end the run (driver lost)."""
@@ -127,10 +143,10 @@ class Controller:
             self._begin(k)
         t0 = self.clock_ns()
         sample, go_on = self._acquire()
-        age_s = (self.clock_ns() - t0) * 1e-9
+        t1 = self.clock_ns()
         lp = self.loop  # lateness: wake-up minus deadline
         late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
-        return self._finish(k, now_ns, sample, age_s, go_on, late_us)
+        return self._finish(k, now_ns, sample, (t1 - t0) * 1e-9, go_on, late_us, t1)
 
     # -- device pacing (FixedRateLoop.run_device_paced) -------------------------
     def acquire(self) -> Controller:
@@ -163,7 +179,7 @@ class Controller:
         prev, self._prev_now = self._prev_now, now_ns
         late_us = (now_ns - prev - self._period_ns) * 1e-3 if n else 0.0
         self._k_paced = k
-        return self._finish(k, now_ns, sample, 0.0, go_on, late_us)
+        return self._finish(k, now_ns, sample, 0.0, go_on, late_us, self.clock_ns())
 
     def _acquire(self) -> tuple[Sample | None, bool]:
         """Read (split) or exchange; (sample or None, go on)."""
@@ -193,8 +209,10 @@ class Controller:
             go_on = False
         return sample, go_on
 
-    def _finish(self, k: int, now_ns: int, sample: Sample | None, age_s: float, go_on: bool, late_us: float) -> bool:
-        """Safety check, laws, command, record: the non-blocking part of a tick."""
+    def _finish(self, k: int, now_ns: int, sample: Sample | None, age_s: float, go_on: bool, late_us: float,
+                t1: int) -> bool:
+        """Safety check, laws, command, record: the non-blocking part of a tick.
+        ``t1`` is the clock when the sample was in hand (the law's budget runs from it)."""
         sup = self.sup
         s = sup.check_sample(sample, age_s)
         t = k * self.dt
@@ -214,15 +232,19 @@ class Controller:
             m.I_applied = s.current_A
             m.I_cmd = self.I_last
             m.status = s.status
-            demand = self.demand
-            F_des = demand.force(m) if demand is not None else NAN
-            I_law = self.law.current(m, F_des)
+            I_law = self._laws(m, k, t, t1)
+            F_des = self.last_F_des
         else:
             x = v = F_des = NAN
             I_law = 0.0
         I = sup.limit(I_law)
-        if I != I_law:
-            self.law.applied(I)  # the law's state follows what is commanded
+        if I != I_law and self.law_fault is None:
+            try:
+                self.law.applied(I)  # the law's state follows what is commanded
+            except Exception as exc:  # noqa: BLE001
+                I = I_law = self._law_raised(exc, self.law, k, t)
+        if self.law_fault is not None:
+            go_on = False
         if not go_on:
             I = 0.0  # the run ends: the service's way out commands 0 A
         elif self.split:
@@ -244,6 +266,54 @@ class Controller:
             rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self.backend.true_force_N, late_us,
                 (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
         return go_on  # even the tick that ends the run is logged
+
+    def _laws(self, m: Measurement, k: int, t: float, t1: int) -> float:
+        """The demand and current laws on this tick's measurement, guarded:
+        an exception, a NaN/inf, or ``law_overrun_ticks`` ticks in a row over
+        the budget is a law fault (docs/laws.md). Sets ``last_F_des``."""
+        F_des = NAN
+        who: Law | None = self.demand
+        try:  # zero cost on the good path (3.11); a law's failure is a fault, never a crash
+            if who is not None:
+                F_des = who.force(m)  # type: ignore[union-attr]
+                if F_des - F_des != 0.0:  # NaN or inf
+                    raise NonFiniteOutput(f"F_des = {F_des!r}")
+            who = law = self.law
+            I_law = law.current(m, F_des)
+            if I_law - I_law != 0.0:
+                raise NonFiniteOutput(f"I = {I_law!r}")
+        except Exception as exc:  # noqa: BLE001
+            I_law = self._law_raised(exc, who, k, t)
+        else:
+            if self.clock_ns() - t1 > self.law_budget_ns:
+                self._law_slow_tick(k, t, t1)  # the fault sets the supervisor's 0 A
+            elif self._law_slow:
+                self._law_slow = 0
+        self.last_F_des = F_des
+        return I_law
+
+    # -- the law guard: the fault path only ----------------------------------------
+    def _law_raised(self, exc: Exception, who: Law | None, k: int, t: float) -> float:
+        name = (who.name or type(who).__name__) if who is not None else ""
+        if isinstance(exc, NonFiniteOutput):
+            self._law_failed("non-finite", name, k, t, str(exc))
+        else:
+            self._law_failed("raised", name, k, t, f"{type(exc).__name__}: {exc}")
+        return 0.0
+
+    def _law_slow_tick(self, k: int, t: float, t1: int) -> None:
+        """One more tick over the budget; the fault (0 A) after ``law_overrun_ticks``."""
+        self._law_slow += 1
+        if self._law_slow >= self.law_overrun_ticks:
+            us = (self.clock_ns() - t1) * 1e-3
+            self._law_failed("slow", self.law.name, k, t, f"its calls took {us:.0f} us, over the budget of "
+                             f"{self.law_budget_ns * 1e-3:.0f} us, on {self._law_slow} ticks in a row")
+
+    def _law_failed(self, kind: str, name: str, k: int, t: float, detail: str) -> None:
+        if self.law_fault is None:
+            self.law_fault = LawFault(kind, name or type(self.law).__name__, k, t, detail)
+            self.stopped_reason = str(self.law_fault)
+            self.sup.law_failed(f"{self.law_fault.law} {kind}")
 
     def _write(self, I: float) -> bool:
         for _ in range(self.driver_retries + 1):

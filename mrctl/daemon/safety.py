@@ -87,6 +87,7 @@ _NON_FINITE = int(Fault.NON_FINITE)
 _OUT_OF_RANGE = int(Fault.OUT_OF_RANGE)
 _DEVICE_STATUS = int(Fault.DEVICE_STATUS)
 _DRIVER = int(Fault.DRIVER)
+_LAW = int(Fault.LAW)
 
 _STARTING = SafetyState.STARTING
 _OK = SafetyState.OK
@@ -111,7 +112,7 @@ class SafetySupervisor:
         "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n",
         # state
         "_state", "_last_good", "_last_seq", "_bad_run", "_bad_bits", "_good_run",
-        "_fault", "_latched", "_reason", "_out_ok", "_last_out",
+        "_fault", "_latched", "_reason", "_out_ok", "_last_out", "_law_reason",
         # counters
         "_n_good", "_n_missing", "_n_late", "_n_stale", "_n_non_finite",
         "_n_out_of_range", "_n_status", "_n_holds", "_longest_bad",
@@ -152,6 +153,7 @@ class SafetySupervisor:
         self._fault = 0
         self._latched = False
         self._reason = ""
+        self._law_reason = ""
         self._out_ok = False
         self._last_out = 0.0
 
@@ -307,6 +309,8 @@ class SafetySupervisor:
         msgs = []
         if self._fault & _DRIVER:
             msgs.append("current driver failed")
+        if self._fault & _LAW:
+            msgs.append(f"control law failed ({self._law_reason})")
         if parts:
             msgs.append(
                 f"{'/'.join(parts)} sample(s) for {self._bad_run} consecutive tick(s)"
@@ -323,6 +327,12 @@ class SafetySupervisor:
         actuator, so only ``reset()`` (after the link is back) clears it.
         """
         self._enter_fault(_DRIVER, True)
+
+    def law_failed(self, why: str) -> None:
+        """A law raised, returned NaN/inf or overran its budget: FAULT, 0 A,
+        latched (its state can no longer be trusted; docs/laws.md)."""
+        self._law_reason = why
+        self._enter_fault(_LAW, True)
 
     def reset(self) -> None:
         """Clear any fault and re-arm (back to STARTING; counters are kept).

@@ -34,8 +34,9 @@ class Fault(enum.IntFlag):
     OUT_OF_RANGE = 1 << 4  #: x, v or F outside the configured range
     DEVICE_STATUS = 1 << 5  #: sample.status has a bit of ``status_fault_mask``
     DRIVER = 1 << 6  #: the loop reported a current-driver failure (latched)
+    LAW = 1 << 7  #: a control law raised, returned NaN/inf or was too slow (latched; docs/laws.md)
 
-    #: the bad-sample kinds (everything but DRIVER)
+    #: the bad-sample kinds (everything but DRIVER and LAW)
     SAMPLE = MISSING | LATE | STALE | NON_FINITE | OUT_OF_RANGE | DEVICE_STATUS
 
 

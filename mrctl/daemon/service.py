@@ -58,7 +58,7 @@ from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
 from mrctl.daemon.status import StatusServer, default_status_socket
 from mrctl.daemon.timing import format_summary as format_timing
 from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlError
-from mrctl.experiment import Experiment, build
+from mrctl.experiment import Experiment, build, check_channels, link_channels
 from mrctl.io.base import Link, LinkError
 from mrctl.runlog import files
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
@@ -175,6 +175,7 @@ class Service:
             exp = self.exp = self._check_link(exp, link)
         if exp.config.loop.pacing == "device":
             self._set_device_pacing(exp, link)
+        link_channels(exp, link)  # the laws' extra channels: asked for, checked (exit 2)
         self._build(exp, link, duration)
         self._enter_run(stack)
         ctl, loop = self.ctl, self.loop
@@ -187,7 +188,7 @@ class Service:
             loop.run(ctl.tick, duration_s=duration)
         if ctl.stopped_reason:
             self.warn(ctl.stopped_reason)
-            return EXIT_LINK
+            return EXIT_FAILURE if ctl.law_fault is not None else EXIT_LINK  # a law is software: exit 1
         return EXIT_OK
 
     def _zero_on_exit(self) -> None:
@@ -255,9 +256,12 @@ class Service:
             driver_retries=cfg.safety.driver_retries,
             link_loss_ticks=max(1, round(cfg.safety.link_loss_s * cfg.rate_hz)),
             reconnect_every_ticks=max(1, round(cfg.safety.reconnect_interval_s * cfg.rate_hz)),
-            lead=exp.make_lead(link))
+            lead=exp.make_lead(link), law_budget_s=cfg.safety.law_budget_s,
+            law_overrun_ticks=cfg.safety.law_overrun_ticks)
         ctl.I_last = ctl.I_next = 0.0  # the start-up 0 A went out
         exp.law.reset()
+        if exp.demand is not None:
+            exp.demand.reset()
         self.loop = ctl.loop = FixedRateLoop(cfg.rate_hz, wait=cfg.loop.wait, spin_margin_s=cfg.loop.spin_margin_s,
                                              clock=self.opts.clock_ns, sleep=self.opts.sleep)
 
@@ -368,6 +372,11 @@ class Service:
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
             if new.config.rate_hz != self.exp.config.rate_hz:
                 new = new.at_rate(self.exp.config.rate_hz)
+            assert self.link is not None
+            check_channels((new.demand, new.law), getattr(self.link, "channels", {}), self.link.describe())
+            new.law.reset(I0=self.ctl.I_last)  # a plugin whose reset raises is rejected here, off the loop
+            if new.demand is not None:
+                new.demand.reset()
             self.ctl.pending = (new.law, new.demand)
             self.reloads_ok += 1
             msg = "reload: new demand, inverse taken at the next tick"
@@ -393,7 +402,8 @@ class Service:
         summary: dict[str, Any] = {"timing": timing, "safety": self.sup.counters().as_dict(),
                                    "link_errors": self.ctl.link_errors, "ticks": self.ctl.ticks,
                                    "rt": [str(r) for r in self.rt_results],
-                                   "exit_current_A": self.exit_current_A}
+                                   "exit_current_A": self.exit_current_A,
+                                   "law_fault": str(self.ctl.law_fault) if self.ctl.law_fault else None}
         if self.rec is not None:
             exit_code = close_log(self.rec, self.opts.out or "", summary, exit_code, self.messages,
                                   I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,

@@ -208,6 +208,10 @@ class Link(abc.ABC):
         self.safe_on_close = safe_on_close
         #: False → setpoints go out with the output disabled (device holds 0 A)
         self.enabled = True
+        #: extra named channels (SI units) beside x, v, F: one dict the link
+        #: updates in place each tick (the laws' ``Measurement.channels``);
+        #: its keys are fixed once the link is open (docs/laws.md)
+        self.channels: dict[str, float] = {}
         cls = type(self)
         for name in self.COUNTERS:
             if not isinstance(getattr(cls, name, None), property):
@@ -349,6 +353,12 @@ class Link(abc.ABC):
 
     def begin_tick(self, k: int) -> None:
         """Host-clocked links: the loop's tick index. Others ignore it."""
+
+    def request_channels(self) -> tuple[str, ...]:
+        """Find out which extra channels the device provides and fill
+        :attr:`channels` (start-up, only when a law reads channels; links
+        whose channels are known from the start just report them)."""
+        return tuple(self.channels)
 
     @property
     def true_force_N(self) -> float:

@@ -39,6 +39,8 @@ from mrctl.io.base import (
     sleep_until_ns,
 )
 from mrctl.io.protocol import (
+    ChannelListFrame,
+    encode_channel_query,
     DEFAULT_WATCHDOG_MS,
     EXCHANGE_BYTES,
     PROTOCOL_VERSION,
@@ -67,6 +69,7 @@ MIN_REPLY_TIMEOUT_S = 0.5e-3
 _U32 = 0xFFFFFFFF
 _ENABLE = int(SetpointFlag.ENABLE)
 _SYNC = int(SetpointFlag.SYNC)
+_CHANNELS = int(SetpointFlag.CHANNELS)
 
 
 def default_reply_timeout_s(baud: float) -> float:
@@ -145,6 +148,8 @@ class SerialLink(Link):
         self._serial_kwargs = dict(serial_kwargs or {})
         self.spin_wait = spin_wait
         self._sync_flag = 0  # SYNC while device-paced
+        self._chan_flag = 0  # CHANNELS once the device has listed its channels
+        self._chan_names: tuple[str, ...] = ()
         self._port: Any = None
         self._seq = 0
         self._enc = SetpointEncoder()
@@ -225,7 +230,7 @@ class SerialLink(Link):
         port = self._port
         seq = self._seq = (self._seq + 1) & _U32
         frame = self._enc.encode(
-            seq, current_A, (_ENABLE if self.enabled else 0) | self._sync_flag, self.watchdog_ms
+            seq, current_A, (_ENABLE if self.enabled else 0) | self._sync_flag | self._chan_flag, self.watchdog_ms
         )
         dec = self._dec
         crc0 = dec.crc_errors
@@ -240,6 +245,10 @@ class SerialLink(Link):
         except (serial.SerialException, OSError) as e:
             raise Disconnected(f"{self.url}: {e}") from e
         if reply is not None:
+            if reply.channels:  # SAMPLE_X: the extra channels, into the laws' dict in place
+                ch = self.channels
+                for name, value in zip(self._chan_names, reply.channels):
+                    ch[name] = value
             return Sample(reply.seq, self._clock(reply.t_dev_us) * 1e-6, reply.x_m, reply.v_mps,
                           reply.F_N, reply.status, reply.current_A)
         ms = (self.timeout_s + self._pace_extra_s) * 1e3
@@ -249,6 +258,34 @@ class SerialLink(Link):
                 f"discarded {dec.bytes_discarded - disc0} bytes, {dec.crc_errors - crc0} CRC errors"
             )
         raise LinkTimeout(f"{self.url}: no reply to seq {seq} within {ms:.3g} ms")
+
+    def request_channels(self, timeout_s: float = 0.1) -> tuple[str, ...]:
+        """Ask the device for its extra channels (CHANNEL_QUERY, docs/protocol.md
+        §2.5); from then on every SETPOINT asks for them (the CHANNELS flag)
+        and :attr:`channels` follows each SAMPLE_X. A device without channels
+        (an ERROR, or no answer) leaves them empty. Start-up only, not per tick."""
+        port, dec = self._port, self._dec
+        if port is None:
+            raise Disconnected(f"{self.url}: not open")
+        seq = self._seq = (self._seq + 1) & _U32
+        names: tuple[str, ...] = ()
+        try:
+            port.write(encode_channel_query(seq))
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline and not names:
+                for f in dec.feed(port.read(dec.bytes_needed(SAMPLE_FRAME_SIZE)) or b""):
+                    if isinstance(f, ChannelListFrame) and f.echo_seq == seq:
+                        names = f.names
+                    elif isinstance(f, ErrorFrame) and f.echo_seq == seq:
+                        deadline = 0.0  # UNKNOWN_TYPE: an older device
+                if self.spin_wait:  # read() does not block: do not spin for 100 ms
+                    time.sleep(1e-4)
+        except (serial.SerialException, OSError) as e:
+            raise Disconnected(f"{self.url}: {e}") from e
+        self._chan_names = names
+        self._chan_flag = _CHANNELS if names else 0
+        self.channels = dict.fromkeys(names, float("nan"))
+        return names
 
     def _await_reply(self, port: Any, seq: int, deadline: float) -> SampleFrame | None:
         """Read until the SAMPLE answering ``seq`` (None at the deadline)."""

@@ -48,6 +48,8 @@ class SimLink(Link):
     def __init__(self, bench: Bench) -> None:
         super().__init__(timeout_s=1.0)
         self.bench = bench
+        # the bench's own dict, updated in place at every begin_tick: no copy per tick
+        self.channels = getattr(bench, "channels", {})
         self._open = False
         self._status = int(Status.OUTPUT_ENABLED)
         if not bench.has_load_cell:

@@ -18,7 +18,8 @@ and is built by :meth:`Law.from_config`.
 
 In the 1 kHz path a law must not block, sleep, do I/O or log, allocate
 what it can avoid, or use numpy scalars (plain floats are ~10x faster per
-call). A law that raises or returns NaN is a safety fault: 0 A.
+call). A law that raises or returns NaN is a safety fault: 0 A. The rules
+and what happens then are in docs/laws.md.
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ __all__ = [
     "DemandLaw",
     "CurrentLaw",
     "InverseLaw",
+    "LawFault",
+    "NonFiniteOutput",
     "clamp_current",
 ]
 
@@ -99,6 +102,9 @@ class Law(abc.ABC):
     params: ClassVar[Mapping[str, Any]] = {}
     #: one line for the reference docs
     summary: ClassVar[str] = ""
+    #: extra channels (``Measurement.channels`` keys) the law reads; a link
+    #: that does not provide them is refused at start-up (may be set per instance)
+    channels: tuple[str, ...] = ()
 
     @classmethod
     def from_config(cls, cfg: Any, ctx: LawContext) -> "Law":
@@ -145,3 +151,24 @@ class InverseLaw(CurrentLaw):
     """A current law that makes the damper produce the demanded force."""
 
     needs_demand = True
+
+
+class NonFiniteOutput(ArithmeticError):
+    """A law returned NaN or inf: raised and caught by the law guard within a tick."""
+
+
+@dataclass(frozen=True)
+class LawFault:
+    """What went wrong with a law, recorded at the tick it happened (the
+    controller and ``mrctl simulate`` report it after the run)."""
+
+    kind: str  #: "raised", "non-finite" or "slow"
+    law: str  #: the law's YAML name
+    k: int  #: tick index
+    t: float  #: time (s)
+    detail: str  #: the exception, the value, or the time taken
+
+    def __str__(self) -> str:
+        what = {"raised": "raised", "non-finite": "returned a non-finite value",
+                "slow": "was too slow"}.get(self.kind, self.kind)
+        return f"law fault: {self.law} {what} at tick {self.k} (t = {self.t:.3f} s): {self.detail}; 0 A"

@@ -25,7 +25,7 @@ import numpy as np
 
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
-from mrctl.laws.base import Measurement, clamp_current
+from mrctl.laws.base import LawFault, Measurement, clamp_current
 from mrctl.runlog import files
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, RUN_UNITS
 from mrctl.runlog.metrics import tracking_summary
@@ -45,6 +45,8 @@ class SimResult:
     columns: dict[str, np.ndarray]
     wall_s: float
     summary: dict[str, float] = field(default_factory=dict)
+    #: a law that raised or returned NaN/inf: the run ended at that tick, at 0 A
+    fault: LawFault | None = None
     #: the driver's applied current before the first tick (what tick 0's sample reports)
     I_applied0: float = 0.0
 
@@ -72,28 +74,52 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     whole run up front (numpy); the loop itself is the per-tick plain-float
     code the daemon runs. The laws see what the daemon's sim link gives
     them: x and v at tick k, the load cell's reading of the force of tick
-    k − 1, sensor noise drawn in the same order (x, v, F per tick)."""
+    k − 1, sensor noise drawn in the same order (x, v, F per tick).
+
+    A bench whose motion depends on the damper (``plant.bench:
+    quarter_car``) is stepped tick by tick instead (:mod:`.bench_sim`). A law
+    that raises or returns NaN/inf ends the run at that tick with 0 A
+    (``SimResult.fault``)."""
+    if exp.config.plant.get("bench", "shaker") != "shaker":
+        from mrctl.offline.bench_sim import simulate_bench
+
+        return simulate_bench(exp, duration_s)
     n = int(round(duration_s / exp.dt)) + 1
-    I_max = exp.I_max
-    plant = exp.make_plant()
-    sensors = exp.make_sensors()
-    law = exp.law
-    law.reset()
+    exp.law.reset()
+    if exp.demand is not None:
+        exp.demand.reset()
     t_arr = np.arange(n) * exp.dt
     x_arr, v_arr = exp.excitation.trajectory(t_arr)
-    ts, xs, vs = t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist()
     cols = {c: array("d", bytes(8 * n)) for c in SIM_COLUMNS[3:]}
+    t0 = time.perf_counter()
+    n, fault = _loop(exp, t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist(), cols)
+    wall = time.perf_counter() - t0
+    out = {"t": t_arr[:n], "x": np.asarray(x_arr, float)[:n], "v": np.asarray(v_arr, float)[:n]}
+    out.update({c: np.frombuffer(a, dtype=float)[:n] for c, a in cols.items()})
+    summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], exp.I_max, exp.excitation.settle_s)
+    summary["ticks"] = float(n)
+    summary["simulated_s"] = (n - 1) * exp.dt
+    summary["wall_s"] = wall
+    summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
+    return SimResult(out, wall, summary, fault)
+
+
+def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], cols: dict[str, array]
+          ) -> tuple[int, LawFault | None]:
+    """The per-tick loop on the shaker; (ticks done, law fault or None)."""
+    n, I_max = len(ts), exp.I_max
+    plant, sensors = exp.make_plant(), exp.make_sensors()
     cfd, cf, ci, cia, cz = cols["F_des"], cols["F"], cols["I"], cols["I_applied"], cols["z"]
     cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
     # local bindings: attribute lookups cost as much as the physics here
     demand = exp.demand.force if exp.demand is not None else None
-    current, applied = law.current, law.applied
+    current, applied = exp.law.current, exp.law.applied
     ptick, model = plant.tick, plant.model
+    dname, lname = (exp.config.demand.type if demand is not None else ""), exp.config.inverse.law
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
-    I = 0.0
-    I_applied0 = plant.I_applied
-    t0 = time.perf_counter()
+    I, Fd = 0.0, math.nan
+    fault: LawFault | None = None
     for k in range(n):
         x, v = xs[k], vs[k]
         if sensors is None:
@@ -104,28 +130,29 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
             cfm[k - 1] = Fm
         cfr[k] = Fm
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
-        Fd = demand(m) if demand is not None else math.nan
-        I = current(m, Fd)
-        Ic = clamp_current(I, I_max)
-        if Ic != I:  # tell the law only when the guard changed its output
-            I = Ic
-            applied(I)
+        who = dname
+        try:  # the law guard (docs/laws.md): zero cost on the good path
+            Fd = demand(m) if demand is not None else math.nan
+            who = lname
+            I = current(m, Fd)
+            if I - I != 0.0 or (demand is not None and Fd - Fd != 0.0):  # NaN or inf
+                fault = LawFault("non-finite", lname if I - I != 0.0 else dname, k, ts[k], f"F_des = {Fd!r}, I = {I!r}")
+        except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
+            fault = LawFault("raised", who, k, ts[k], f"{type(exc).__name__}: {exc}")
+        if fault is not None:
+            I = 0.0  # the run ends at this tick, at 0 A
+        else:
+            Ic = clamp_current(I, I_max)
+            if Ic != I:  # tell the law only when the guard changed its output
+                I = Ic
+                applied(I)
         F_prev = cf[k] = ptick(v, I, x)
-        cxm[k], cvm[k] = xm, vm
-        cfd[k] = Fd
-        ci[k] = I
-        cia[k] = plant.I_applied
-        cz[k] = model.z
+        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, Fd, I, plant.I_applied, model.z
+        if fault is not None:
+            n = k + 1
+            break
     cfm[n - 1] = F_prev if sensors is None else sensors.F(F_prev)
-    wall = time.perf_counter() - t0
-    out = {"t": t_arr, "x": np.asarray(x_arr, float), "v": np.asarray(v_arr, float)}
-    out.update({c: np.frombuffer(a, dtype=float) for c, a in cols.items()})
-    summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], I_max, exp.excitation.settle_s)
-    summary["ticks"] = float(n)
-    summary["simulated_s"] = (n - 1) * exp.dt
-    summary["wall_s"] = wall
-    summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary, I_applied0)
+    return n, fault
 
 
 def log_columns(result: SimResult) -> dict[str, np.ndarray]:
@@ -151,10 +178,12 @@ def write_csv(result: SimResult, path: str | Path, force: bool = False) -> None:
     sidecar). Created without following a symlink; an existing file is
     refused unless ``force`` (:func:`mrctl.runlog.files.create_log`)."""
     cols = log_columns(result)
-    data = np.column_stack([np.asarray(cols[c], float) for c in CSV_COLUMNS])
+    extra = tuple(c for c in result.columns if c not in SIM_COLUMNS)  # a bench's channels (quarter car)
+    names = CSV_COLUMNS + extra
+    data = np.column_stack([np.asarray(cols[c] if c in cols else result.columns[c], float) for c in names])
     text = io.StringIO()
-    text.write(",".join(CSV_COLUMNS) + "\n")
-    np.savetxt(text, data, delimiter=",", fmt=[RUN_FORMATS[c] for c in CSV_COLUMNS])
+    text.write(",".join(names) + "\n")
+    np.savetxt(text, data, delimiter=",", fmt=[RUN_FORMATS.get(c, "%.9g") for c in names])
     with files.create_log(path, force) as fh:
         fh.write(text.getvalue().encode("ascii"))
         os.fsync(fh.fileno())

@@ -69,6 +69,7 @@ FAULT_BITS: tuple[tuple[str, int, str], ...] = (
     ("OUT_OF_RANGE", 1 << 4, "x, v or F outside the configured safety range"),
     ("DEVICE_STATUS", 1 << 5, "the device reported a driver or sensor fault in its status"),
     ("DRIVER", 1 << 6, "the current driver could not be commanded (latched; the run ends)"),
+    ("LAW", 1 << 7, "a control law raised, returned NaN/inf or overran its budget (latched; the run ends, docs/laws.md)"),
 )
 
 #: ``mrctl`` exit codes (README, mrctl/errors.py).

@@ -138,6 +138,10 @@ class Union:
     variants: Mapping[str, Mapping[str, Any]]
     default: str | None = None
     doc: str = ""
+    #: absent section → None (no error); only with ``default`` None
+    optional: bool = False
+    #: names beyond ``variants`` (plugins): name → (fields, None) or (None, why not)
+    resolve: Callable[[str], tuple[Mapping[str, Any] | None, str | None]] | None = None
 
 
 @dataclass(frozen=True)
@@ -290,6 +294,8 @@ def validate_fields(fields_: Mapping[str, Any], data: Any, path: str) -> tuple[N
 def validate_union(spec: Union, data: Any, path: str, present: bool) -> tuple[Node, list[str]]:
     if not present or data is None:
         if spec.default is None:
+            if spec.optional:
+                return None, []  # type: ignore[return-value]
             return Node({}), [f"{path}: missing required section (with {spec.key}: one of {', '.join(spec.variants)})"]
         data = {spec.key: spec.default}
     if not isinstance(data, dict):
@@ -297,6 +303,11 @@ def validate_union(spec: Union, data: Any, path: str, present: bool) -> tuple[No
     kind = data.get(spec.key, spec.default)
     if kind is None:
         return Node({}), [f"{_path(path, spec.key)}: missing (one of {', '.join(spec.variants)})"]
+    if isinstance(kind, str) and kind not in spec.variants and spec.resolve is not None:
+        fields_, why = spec.resolve(kind)
+        if fields_ is None:
+            return Node({}), [f"{_path(path, spec.key)}: {why}"]
+        return validate_fields({spec.key: Str(default=kind), **fields_}, data, path)
     if not isinstance(kind, str) or kind not in spec.variants:
         return Node({}), [f"{_path(path, spec.key)}: {kind!r} not allowed (allowed: {', '.join(spec.variants)})"]
     variant = {spec.key: Str(default=kind), **spec.variants[kind]}
@@ -388,7 +399,8 @@ def schema_markdown(schema: Mapping[str, Any]) -> str:
             elif isinstance(spec, Union):
                 lines.append(f"### `{path}`: {spec.doc}")
                 lines.append("")
-                lines.append(f"Chosen by `{path}.{spec.key}`" + (f" (default `{spec.default}`)" if spec.default else "") + ".")
+                lines.append(f"Chosen by `{path}.{spec.key}`" + (f" (default `{spec.default}`)" if spec.default else "")
+                             + ("; the section is optional" if spec.optional else "") + ".")
                 lines.append("")
                 for name, vfields in spec.variants.items():
                     lines.append(f"#### `{path}.{spec.key}: {name}`")

@@ -50,6 +50,11 @@ __all__ = [
     "SampleFrame",
     "ErrorFrame",
     "ForeignFrame",
+    "ChannelQueryFrame",
+    "ChannelListFrame",
+    "MAX_CHANNELS",
+    "encode_channel_query",
+    "encode_channel_list",
     "Frame",
     "ProtocolVersionError",
     "crc16",
@@ -83,6 +88,9 @@ class FrameType(enum.IntEnum):
     SETPOINT = 0x01  #: host → device
     SAMPLE = 0x81  #: device → host, reply to SETPOINT
     ERROR = 0xE1  #: device → host, NAK instead of a SAMPLE
+    CHANNEL_QUERY = 0x02  #: host → device: which extra channels do you have? (§2.5)
+    CHANNEL_LIST = 0x82  #: device → host: their names (variable length)
+    SAMPLE_X = 0x83  #: device → host: a SAMPLE followed by the channels' values (variable length)
 
 
 class SetpointFlag(enum.IntFlag):
@@ -93,6 +101,9 @@ class SetpointFlag(enum.IntFlag):
     #: device pacing: apply this setpoint at the device's next sampling tick
     #: and answer after that tick, with its sample (docs/protocol.md §6.1)
     SYNC = 0x04
+    #: answer with SAMPLE_X (the SAMPLE and the extra channels, §2.5); a device
+    #: without channels ignores it and answers a plain SAMPLE
+    CHANNELS = 0x08
 
 
 class ErrorCode(enum.IntEnum):
@@ -121,7 +132,10 @@ _PAYLOAD_LEN: dict[int, int] = {
     FrameType.SETPOINT: _SETPOINT_PAYLOAD.size,  # 6
     FrameType.SAMPLE: _SAMPLE_PAYLOAD.size,  # 26
     FrameType.ERROR: _ERROR_PAYLOAD.size,  # 6
+    FrameType.CHANNEL_QUERY: 0,
 }
+#: most extra channels a SAMPLE_X carries: (MAX_PAYLOAD − 26) // 4
+MAX_CHANNELS = 9
 SETPOINT_FRAME_SIZE = HEADER_SIZE + _SETPOINT_PAYLOAD.size + CRC_SIZE  # 17
 SAMPLE_FRAME_SIZE = HEADER_SIZE + _SAMPLE_PAYLOAD.size + CRC_SIZE  # 37
 ERROR_FRAME_SIZE = HEADER_SIZE + _ERROR_PAYLOAD.size + CRC_SIZE  # 17
@@ -154,6 +168,21 @@ class SampleFrame(NamedTuple):
     F_N: float  #: NaN = no load cell
     current_A: float  #: current actually applied, A
     status: int  #: :class:`mrctl.io.base.Status` bits
+    channels: tuple[float, ...] = ()  #: SAMPLE_X: the extra channels, in CHANNEL_LIST order
+
+
+class ChannelQueryFrame(NamedTuple):
+    """Host → device: which extra channels do you have?"""
+
+    seq: int
+
+
+class ChannelListFrame(NamedTuple):
+    """Device → host: the names of its extra channels (ASCII, in SAMPLE_X order)."""
+
+    seq: int
+    echo_seq: int  #: the CHANNEL_QUERY's seq
+    names: tuple[str, ...]
 
 
 class ErrorFrame(NamedTuple):
@@ -174,7 +203,7 @@ class ForeignFrame(NamedTuple):
     payload: bytes
 
 
-Frame = Union[SetpointFrame, SampleFrame, ErrorFrame, ForeignFrame]
+Frame = Union[SetpointFrame, SampleFrame, ErrorFrame, ForeignFrame, ChannelQueryFrame, ChannelListFrame]
 
 
 class ProtocolVersionError(FrameError):
@@ -239,12 +268,30 @@ def encode_sample(
     F_N: float,
     current_A: float,
     status: int,
+    channels: tuple[float, ...] = (),
 ) -> bytes:
-    """SAMPLE frame (37 bytes); device side, fakes and tests."""
+    """SAMPLE frame (37 bytes), or SAMPLE_X with ``channels``; device side, fakes and tests."""
     payload = _SAMPLE_PAYLOAD.pack(
         echo_seq & _U32, t_dev_us & _U32, x_m, v_mps, F_N, current_A, status
     )
+    if channels:
+        if len(channels) > MAX_CHANNELS:
+            raise ValueError(f"at most {MAX_CHANNELS} channels in a SAMPLE_X, got {len(channels)}")
+        return encode_frame(FrameType.SAMPLE_X, seq, payload + struct.pack(f"<{len(channels)}f", *channels))
     return encode_frame(FrameType.SAMPLE, seq, payload)
+
+
+def encode_channel_query(seq: int) -> bytes:
+    """CHANNEL_QUERY frame (11 bytes)."""
+    return encode_frame(FrameType.CHANNEL_QUERY, seq, b"")
+
+
+def encode_channel_list(seq: int, echo_seq: int, names: tuple[str, ...]) -> bytes:
+    """CHANNEL_LIST frame: echo_seq, then the names, comma-separated ASCII."""
+    text = ",".join(names).encode("ascii")
+    if len(text) + 4 > MAX_PAYLOAD or len(names) > MAX_CHANNELS:
+        raise ValueError(f"channel names too long for one frame: {names!r}")
+    return encode_frame(FrameType.CHANNEL_LIST, seq, _SEQ.pack(echo_seq & _U32) + text)
 
 
 def encode_error(seq: int, echo_seq: int, code: int, detail: int = 0) -> bytes:
@@ -260,6 +307,10 @@ def encode(frame: Frame) -> bytes:
         return encode_sample(*frame)
     if isinstance(frame, ErrorFrame):
         return encode_error(*frame)
+    if isinstance(frame, ChannelQueryFrame):
+        return encode_channel_query(frame.seq)
+    if isinstance(frame, ChannelListFrame):
+        return encode_channel_list(*frame)
     if isinstance(frame, ForeignFrame):
         return encode_frame(frame.ftype, frame.seq, frame.payload, frame.version)
     raise TypeError(f"not a frame: {frame!r}")
@@ -310,6 +361,16 @@ def _parse(buf: bytes | bytearray, i: int, end: int) -> Frame | None:
         return SetpointFrame(seq, *_SETPOINT_PAYLOAD.unpack_from(buf, p))
     if ftype == FrameType.ERROR:
         return ErrorFrame(seq, *_ERROR_PAYLOAD.unpack_from(buf, p))
+    plen = end - CRC_SIZE - p
+    if ftype == FrameType.SAMPLE_X and plen >= _SAMPLE_PAYLOAD.size and (plen - _SAMPLE_PAYLOAD.size) % 4 == 0:
+        n = (plen - _SAMPLE_PAYLOAD.size) // 4
+        return SampleFrame(seq, *_SAMPLE_PAYLOAD.unpack_from(buf, p),
+                           struct.unpack_from(f"<{n}f", buf, p + _SAMPLE_PAYLOAD.size))
+    if ftype == FrameType.CHANNEL_QUERY:
+        return ChannelQueryFrame(seq)
+    if ftype == FrameType.CHANNEL_LIST and plen >= 4:
+        text = bytes(buf[p + 4:end - CRC_SIZE]).decode("ascii", "replace")
+        return ChannelListFrame(seq, _SEQ.unpack_from(buf, p)[0], tuple(n for n in text.split(",") if n))
     return None
 
 
@@ -335,10 +396,13 @@ def decode_frame(data: bytes | bytearray | memoryview) -> Frame:
     if version != PROTOCOL_VERSION:
         raise ProtocolVersionError(PROTOCOL_VERSION, version)
     expected = _PAYLOAD_LEN.get(ftype)
-    if expected is None:
-        raise FrameError(f"unknown frame type 0x{ftype:02X}")
-    if plen != expected:
+    if expected is not None and plen != expected:
         raise FrameError(f"type 0x{ftype:02X} needs a {expected}-byte payload, got {plen}")
     frame = _parse(raw, 0, n)
-    assert frame is not None  # known type of our version
+    if frame is None:  # an unknown type, or a variable-length one of a wrong length
+        raise FrameError(f"unknown frame type 0x{ftype:02X}" if expected is None and ftype not in _VARIABLE
+                         else f"type 0x{ftype:02X}: bad payload length {plen}")
     return frame
+
+
+_VARIABLE = (FrameType.SAMPLE_X, FrameType.CHANNEL_LIST)

@@ -1,0 +1,91 @@
+"""Laws that misbehave after ``after_ticks`` good ticks, named in test configs as
+``bad_laws:Raises`` etc. (module:Class; tests/test_law_guard.py)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+from mrctl.laws.base import CurrentLaw, DemandLaw, LawContext, Measurement
+from mrctl.util.schema import Num
+
+_AFTER = {"after_ticks": Num(default=200, integer=True, min=0, doc="good ticks before misbehaving")}
+
+
+class _Bad(CurrentLaw):
+    params = _AFTER
+
+    def __init__(self, ctx: LawContext, after_ticks: int) -> None:
+        self.I_max = ctx.I_max
+        self.after = after_ticks
+        self.n = 0
+
+    def reset(self, I0: float = 0.0) -> None:
+        self.n = 0
+
+    def current(self, m: Measurement, F_des: float) -> float:
+        self.n += 1
+        return self.bad() if self.n > self.after else 0.2
+
+    def bad(self) -> float:
+        raise NotImplementedError
+
+
+class Raises(_Bad):
+    def bad(self) -> float:
+        raise RuntimeError("boom from a plugin")
+
+
+class ReturnsNaN(_Bad):
+    def bad(self) -> float:
+        return math.nan
+
+
+class Sleeps(_Bad):
+    def bad(self) -> float:
+        time.sleep(0.005)
+        return 0.2
+
+
+class DemandRaises(DemandLaw):
+    params = _AFTER
+
+    def __init__(self, ctx: LawContext, after_ticks: int) -> None:
+        self.after = after_ticks
+        self.n = 0
+
+    def force(self, m: Measurement) -> float:
+        self.n += 1
+        if self.n > self.after:
+            raise ZeroDivisionError("demand divided by zero")
+        return 10.0 * m.v
+
+
+class NeedsChannel(CurrentLaw):
+    channels = ("v_sprung",)
+
+    def __init__(self, ctx: LawContext) -> None:
+        self.I_max = ctx.I_max
+
+    def current(self, m: Measurement, F_des: float) -> float:
+        return 0.0
+
+
+class NotALaw:
+    pass
+
+
+class BadParams(CurrentLaw):
+    params = {"gain": 3.0}
+
+    def current(self, m: Measurement, F_des: float) -> float:
+        return 0.0
+
+
+class RaisesOnBuild(CurrentLaw):
+    @classmethod
+    def from_config(cls, cfg, ctx):
+        raise RuntimeError("cannot build me")
+
+    def current(self, m: Measurement, F_des: float) -> float:
+        return 0.0

@@ -1,0 +1,126 @@
+"""A law that raises, returns NaN or is slow: 0 A and an orderly fault, never a crash.
+
+The misbehaving laws are plugins named as module:Class (tests/plugins/bad_laws.py).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mrctl.cli import main
+from mrctl.daemon.recorder import read_run, read_sidecar
+from mrctl.daemon.safety import Fault
+from mrctl.daemon.service import RunOptions, Service
+
+ROOT = Path(__file__).resolve().parents[1]
+FIG5 = (ROOT / "config" / "experiments" / "fig5.yaml").read_text()
+LAW = int(Fault.LAW)
+
+
+@pytest.fixture(autouse=True)
+def _plugins_on_path(monkeypatch):
+    monkeypatch.syspath_prepend(str(Path(__file__).parent / "plugins"))
+
+
+def _cfg(tmp_path: Path, inverse: str, demand: str | None = None) -> Path:
+    text = FIG5.replace("inverse:\n  law: smooth\n  eps_N_per_A: 3.0        # hold the current where dF/dI is below ~3 N/A\n"
+                        "  max_slew_A_per_s: 50.0  # current-driver slew bound: 0.05 A per 1 ms tick\n",
+                        f"inverse: {inverse}\n")
+    assert text != FIG5
+    if demand is not None:
+        text = text.replace("demand: {type: viscous, c_des: 500.0}", f"demand: {demand}")
+    p = tmp_path / "exp.yaml"
+    p.write_text(text)
+    return p
+
+
+def _run(tmp_path: Path, cfg: Path) -> tuple[Service, int, dict]:
+    out = tmp_path / "run.csv"
+    svc = Service(RunOptions(str(cfg), out=str(out), duration_s=3.0, live=False,
+                             status_socket=str(tmp_path / "st.sock")))
+    code = svc.run()
+    return svc, code, read_run(out)
+
+
+@pytest.mark.parametrize("cls,kind", [("Raises", "raised"), ("ReturnsNaN", "non-finite")])
+def test_run_a_law_that_fails_ends_at_zero_amps_with_exit_1(tmp_path, cls, kind):
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, f"{{law: 'bad_laws:{cls}', after_ticks: 200}}"))
+    assert code == 1
+    fault = svc.ctl.law_fault
+    assert fault is not None and fault.kind == kind and fault.k == int(cols["k"][-1])
+    assert "bad_laws" in fault.law or cls in fault.law
+    # the run ended at the fault: that tick is the last row, commanded 0 A, LAW bit set
+    assert len(cols["t"]) == 201
+    assert cols["I"][-1] == 0.0 and int(cols["fault"][-1]) & LAW
+    assert np.all(cols["I"][150:200] > 0.0)  # the law commanded 0.2 A before
+    assert svc.exit_current_A == 0.0
+    assert svc.sup.fault & Fault.LAW and svc.sup.in_fault
+    side = read_sidecar(tmp_path / "run.csv")
+    assert side["summary"]["law_fault"].startswith("law fault:")
+    assert any("law fault" in m for m in svc.messages)
+
+
+def test_run_a_demand_law_that_raises_is_named(tmp_path):
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: smooth}", "{type: 'bad_laws:DemandRaises', after_ticks: 100}"))
+    assert code == 1
+    assert svc.ctl.law_fault.kind == "raised" and "ZeroDivisionError" in svc.ctl.law_fault.detail
+    assert svc.ctl.law_fault.law == "DemandRaises"
+    assert cols["I"][-1] == 0.0 and len(cols["t"]) == 101
+
+
+def test_run_a_slow_law_faults_after_three_overruns(tmp_path):
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: 'bad_laws:Sleeps', after_ticks: 100}"))
+    assert code == 1
+    fault = svc.ctl.law_fault
+    assert fault.kind == "slow" and "3 ticks in a row" in fault.detail
+    # three slow ticks (5 ms each) after 100 good ones: the third one commands 0 A and ends the run
+    assert len(cols["t"]) == 103
+    assert cols["I"][-1] == 0.0 and int(cols["fault"][-1]) & LAW
+    assert svc.loop.stats.summary()["overruns"] >= 3
+    assert svc.exit_current_A == 0.0
+
+
+def test_one_slow_tick_is_not_a_fault(tmp_path):
+    """A single overrun (a preempted tick) does not stop the run."""
+    from mrctl.config import load_experiment
+    from mrctl.daemon.controller import Controller
+    from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+    from mrctl.experiment import build
+
+    exp = build(load_experiment(_cfg(tmp_path, "{law: smooth}")))
+    link = exp.make_link()
+    link.open()
+    now = [0]
+    ctl = Controller(link, exp.law, exp.demand, SafetySupervisor(SafetyConfig(I_max=0.6)), exp.dt,
+                     clock_ns=lambda: now[0])
+    real = exp.law.current
+
+    def slow_once(m, F):
+        if m.k == 10 or m.k in (20, 21):
+            now[0] += 2_000_000  # 2 ms inside the law
+        return real(m, F)
+
+    exp.law.current = slow_once
+    for k in range(40):
+        assert ctl.tick(k, now[0]) is True
+    assert ctl.law_fault is None
+
+
+def test_simulate_a_law_that_raises_exits_1_at_zero_amps(tmp_path, capsys):
+    cfg = _cfg(tmp_path, "{law: 'bad_laws:Raises', after_ticks: 300}")
+    out = tmp_path / "sim.csv"
+    assert main(["simulate", str(cfg), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "law fault" in err and "RuntimeError: boom from a plugin" in err and "tick 300" in err
+    data = np.genfromtxt(out, delimiter=",", names=True)  # a plain CSV: the header first
+    assert len(data) == 301 and data["I"][-1] == 0.0 and data["I"][-2] > 0.0
+
+
+def test_simulate_nan_is_a_fault_on_the_quarter_car_too(tmp_path, capsys):
+    text = _cfg(tmp_path, "{law: 'bad_laws:ReturnsNaN', after_ticks: 50}").read_text()
+    (tmp_path / "exp.yaml").write_text(text.replace("plant: {driver_tau_s: 0.0}", "plant: {bench: quarter_car}"))
+    assert main(["simulate", str(tmp_path / "exp.yaml")]) == 1
+    assert "returned a non-finite value at tick 50" in capsys.readouterr().err
