@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from mrctl.config.observe import stream_section
 from mrctl.config.params import params_check
 from mrctl.laws.base import LawContext
 from mrctl.laws.registry import current_laws, demand_laws
@@ -209,6 +210,8 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "probe_exchanges": Num(default=50, integer=True, min=0, max=10000,
                                    doc="round trips measured at start-up (0 = wire-time estimate only)"),
         }, doc="start-up feasibility check of real links"),
+        # -- observability (docs/observe.md): kept together, in mrctl/config/observe.py --
+        "stream": stream_section(),
     }
 
 
