@@ -121,3 +121,4 @@ def test_listen_addresses():
     assert parse_listen("[::1]:9000") == ("::1", 9000)
     with pytest.raises(BadInput):
         parse_listen("9877x")
+

@@ -244,3 +244,11 @@ def test_a_receiver_that_never_reads_leaves_the_run_and_its_log_whole(tmp_path):
     assert side["complete"] and side["dropped_rows"] == 0 and side["rows_written"] == side["ticks"]
     s = side["summary"]["stream"]
     assert s["datagrams"] + s["dropped"] == side["ticks"] and s["rows_behind"] == 0
+
+
+def test_status_text_shows_the_stream_and_taps():
+    from mrctl.daemon.status import format_status
+
+    text = format_status({"stream": {"url": "udp://127.0.0.1:9870", "datagrams": 11000, "dropped": 3,
+                                     "rows_behind": 0}, "taps": {"active": 1}})
+    assert "stream udp://127.0.0.1:9870: 11000 datagrams sent, 3 dropped" in text and "taps: 1 connected" in text

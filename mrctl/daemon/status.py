@@ -247,6 +247,12 @@ def format_status(st: dict[str, Any]) -> str:
         state = g("log") if isinstance(g("log"), str) else "ok"
         lines.append(f"log: {rec.get('rows_written')} rows written, {rec.get('dropped_rows')} lost"
                      + ("" if state == "ok" else f"; {state}"))
+    stream, taps = g("stream"), g("taps")
+    if isinstance(stream, dict):
+        lines.append(f"stream {stream.get('url')}: {stream.get('datagrams')} datagrams sent, "
+                     f"{stream.get('dropped')} dropped, {stream.get('rows_behind')} rows behind")
+    if isinstance(taps, dict) and taps.get("active"):
+        lines.append(f"taps: {taps.get('active')} connected")
     warnings = g("warnings")
     if isinstance(warnings, list):
         lines += [f"warning: {w}" for w in warnings[-3:]]
