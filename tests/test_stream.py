@@ -252,3 +252,16 @@ def test_status_text_shows_the_stream_and_taps():
     text = format_status({"stream": {"url": "udp://127.0.0.1:9870", "datagrams": 11000, "dropped": 3,
                                      "rows_behind": 0}, "taps": {"active": 1}})
     assert "stream udp://127.0.0.1:9870: 11000 datagrams sent, 3 dropped" in text and "taps: 1 connected" in text
+
+
+def test_device_pacing_sends_from_the_worker_thread():
+    rx = Receiver()
+    bus = RowBus(COLS, block_ticks=64, defer=False)
+    assert bus._worker is None  # no thread until something consumes rows
+    bus.add(UdpStream(rx.url, COLS, None, 1, epoch0=lambda: 0.0))
+    assert bus._worker is not None
+    for j in range(4):
+        bus.publish(_rows(64, 64 * j), 64, 64 * j)  # the loop thread only copies; the worker sends
+        time.sleep(0.05)
+    bus.close()
+    assert [r["k"] for r in rx.close()] == list(range(256))

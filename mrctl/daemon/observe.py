@@ -87,7 +87,7 @@ class Observe:
 
     def attach(self, ctl: Any, loop: Any, rec: Any) -> None:
         """Wire the bus to the recorder (or the controller) and the loop.
-        Call before RT setup: the worker thread must not inherit it."""
+        Call before RT setup: a stream's worker thread must not inherit it."""
         self._ctl = ctl
         if rec is not None:
             rec.on_block = self.bus.publish
@@ -97,10 +97,8 @@ class Observe:
             self.bus.add(self.stream)
             if self._own_rows:
                 ctl.record = self.bus.record
-        if self.bus.defer:
+        if self.bus.defer:  # else the bus starts its worker thread when a sink comes
             loop.background = _chain(loop.background, self.bus.work) if loop.background else self.bus.work
-        else:
-            self.bus.start_worker()
 
     def _taps_changed(self, n: int) -> None:
         """Without a run log or a stream, rows are packed only while a tap is connected."""

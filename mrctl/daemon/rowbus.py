@@ -153,6 +153,8 @@ class RowBus:
     def add(self, sink: Any) -> None:
         with self._lock:
             self._sinks = (*self._sinks, sink)
+            if not self.defer and self._worker is None and not self._closing:
+                self.start_worker()  # device pacing: only once something consumes rows
 
     def remove(self, sink: Any) -> None:
         with self._lock:
@@ -164,7 +166,9 @@ class RowBus:
 
     def start_worker(self) -> None:
         """Device pacing: a thread does the sinks' work while the loop waits on
-        its device. Start it before RT setup (it must not inherit SCHED_FIFO)."""
+        its device; started by the first :meth:`add`, from a thread that is not
+        the loop's (before RT setup, or the status thread's: it must not inherit
+        SCHED_FIFO or the loop's CPU)."""
         if self._worker is None:
             self._worker = threading.Thread(target=self._run_worker, name="mrctl-rows", daemon=True)
             self._worker.start()
@@ -172,7 +176,7 @@ class RowBus:
     def _run_worker(self) -> None:
         pause = time.sleep  # sleep(0) after each chunk: hand the GIL back to the loop
         while not self._closing:
-            self._wake.wait(0.2)
+            self._wake.wait()
             self._wake.clear()
             try:
                 for s in self._sinks:
