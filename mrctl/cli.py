@@ -1,4 +1,4 @@
-"""``mrctl`` command line: run, status, simulate, report, identify, check, examples.
+"""``mrctl`` command line: run, status, tap, exporter, simulate, report, identify, check, examples.
 
 The one place that turns errors into exit codes: every user-facing error is
 a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mrctl import __version__
-from mrctl.errors import ExitCode, LogIncomplete, MrctlError
+from mrctl.errors import BadInput, ExitCode, LogIncomplete, MrctlError
 from mrctl.util.jsonutil import jsonable
 
 EXIT_OK = ExitCode.OK
@@ -25,7 +25,9 @@ EXIT_BAD_INPUT = ExitCode.BAD_INPUT
 
 
 def _err(msg: str) -> None:
-    print(f"mrctl: {msg}", file=sys.stderr)
+    from mrctl.util.journal import ERR, Journal
+
+    Journal(sys.stderr).log(ERR, msg)  # <3> first when stderr is the journal (a unit's ExecStartPre=)
 
 
 def _load(config_path: str):
@@ -95,22 +97,99 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mrctl.daemon.service import RunOptions, run
 
     out = time.strftime(args.out) if args.out and "%" in args.out else args.out
+    columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
-                          status_socket=args.status_socket, live=not args.quiet))
+                          status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
+                          stream_every=args.stream_every, stream_columns=columns,
+                          log_priorities=True if args.log_priorities else None))
+
+
+def _columns(text: str, option: str) -> tuple[str, ...]:
+    from mrctl.config.observe import parse_columns
+
+    try:
+        return parse_columns(text)
+    except ValueError as exc:
+        raise BadInput(f"{option}: {exc}") from None
+
+
+def _status_path(args: argparse.Namespace) -> str:
+    from mrctl.daemon.status import default_status_socket
+
+    if args.instance:
+        return f"/run/mrctl/{args.instance}/status.sock"
+    return args.socket or default_status_socket(check=True)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from mrctl.daemon.status import default_status_socket, format_status, query_status
+    from mrctl.daemon.status import StatusError, format_status, query_status
 
-    if args.instance:
-        path = f"/run/mrctl/{args.instance}/status.sock"
-    else:
-        path = args.socket or default_status_socket(check=True)
-    st = query_status(path)  # StatusError (exit 1) with a clear message
-    if args.json:
+    fmt = "json" if args.json else args.format
+    path = _status_path(args)
+    try:
+        st = query_status(path)  # StatusError (exit 1) with a clear message
+    except StatusError:
+        if fmt == "prometheus":  # the textfile collector still learns that nothing answered
+            from mrctl.daemon.prometheus import prometheus_text
+
+            print(prometheus_text(None, args.instance), end="")
+        raise
+    if fmt == "json":
         print(json.dumps(st, indent=2))
+    elif fmt == "prometheus":
+        from mrctl.daemon.prometheus import prometheus_text
+
+        print(prometheus_text(st, args.instance), end="")
+    else:
+        print(format_status(st))
+    return EXIT_OK
+
+
+def cmd_tap(args: argparse.Namespace) -> int:
+    """CSV rows of a running daemon on stdout; Ctrl-C ends it cleanly (exit 0)."""
+    import os
+
+    from mrctl.daemon.tap import parse_trigger, tap
+    from mrctl.runlog.format import RUN_COLUMNS
+
+    if args.n is not None and args.n < 1:
+        raise BadInput(f"-n: must be >= 1, got {args.n}")
+    columns = _columns(args.columns, "--columns") if args.columns else None
+    if args.trigger is not None:
+        try:
+            parse_trigger(args.trigger, RUN_COLUMNS)
+        except ValueError as exc:
+            raise BadInput(f"--trigger: {exc}") from None
+    if args.pre and args.trigger is None:
+        raise BadInput("--pre: only with --trigger")
+    try:
+        res = tap(_status_path(args), sys.stdout.buffer, args.n, columns, args.trigger, args.pre)
+    except KeyboardInterrupt:
+        sys.stdout.flush()
         return EXIT_OK
-    print(format_status(st))
+    except BrokenPipeError:  # | head: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
+    short = args.n is not None and res.rows < args.n
+    if res.end != "complete" and (short or res.end.startswith("dropped")):
+        _err(f"tap: {res.rows} rows, then {res.end}")
+        return EXIT_FAILURE
+    return EXIT_OK
+
+
+def cmd_exporter(args: argparse.Namespace) -> int:
+    from mrctl.daemon.exporter import start
+
+    path = _status_path(args)
+    server, thread = start(args.listen, path, args.instance)
+    host, port = server.server_address[:2]
+    print(f"mrctl exporter: http://{host}:{port}/metrics, reading {path}", flush=True)
+    try:
+        while thread.is_alive():
+            thread.join(1.0)
+    except KeyboardInterrupt:
+        pass
+    server.shutdown()
     return EXIT_OK
 
 
@@ -195,13 +274,37 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")
     rn.add_argument("--quiet", action="store_true", help="no live progress line")
+    rn.add_argument("--stream", metavar="udp://HOST:PORT",
+                    help="send every run-log row as a JSON datagram (PlotJuggler's UDP server; docs/observe.md)")
+    rn.add_argument("--stream-every", type=int, metavar="N", help="stream every Nth row (default 1)")
+    rn.add_argument("--stream-columns", metavar="COLS", help="comma-separated run-log columns to stream (default all)")
+    rn.add_argument("--log-priorities", action="store_true",
+                    help="prefix warnings and errors with <4>/<3> (default: when stderr is the journal)")
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="live state of a running mrctl")
     st.add_argument("--socket", help="status socket path (default as for run)")
     st.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
-    st.add_argument("--json", action="store_true", help="print the raw JSON")
+    st.add_argument("--format", choices=("text", "json", "prometheus"), default="text",
+                    help="text (default), json, or prometheus (node_exporter textfile collector)")
+    st.add_argument("--json", action="store_true", help="print the raw JSON (= --format json)")
     st.set_defaults(func=cmd_status)
+
+    tp = sub.add_parser("tap", help="the next N rows of a running mrctl as CSV on stdout (like halsampler)")
+    tp.add_argument("-n", type=int, help="rows to capture (default: until Ctrl-C)")
+    tp.add_argument("--columns", "-c", metavar="COLS", help="comma-separated run-log columns (default all; in the run log's order)")
+    tp.add_argument("--trigger", metavar="COND",
+                    help="start at the next rising edge of fault, COLUMN>VALUE or COLUMN<VALUE (e.g. F>500)")
+    tp.add_argument("--pre", type=int, default=0, metavar="N", help="with --trigger: rows before the trigger")
+    tp.add_argument("--socket", help="status socket path (default as for run)")
+    tp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
+    tp.set_defaults(func=cmd_tap)
+
+    xp = sub.add_parser("exporter", help="Prometheus HTTP exporter reading the status socket (mrctl[metrics])")
+    xp.add_argument("--listen", default=":9877", metavar="[HOST]:PORT", help="where to serve /metrics (default :9877)")
+    xp.add_argument("--socket", help="status socket path (default as for run)")
+    xp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service (also a damper label)")
+    xp.set_defaults(func=cmd_exporter)
 
     ip = sub.add_parser("identify", help="fit the LuGre parameter set from constant-current sine runs")
     ip.add_argument("runs", nargs="+", help="run CSVs (simulate or run) with a constant-current schedule")

@@ -13,6 +13,7 @@ from typing import Any
 
 from mrctl.config.bench import bench_fields, road_excitations
 from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
+from mrctl.config.observe import stream_section
 from mrctl.config.params import params_check
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import (
@@ -208,6 +209,8 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             "probe_exchanges": Num(default=50, integer=True, min=0, max=10000,
                                    doc="round trips measured at start-up (0 = wire-time estimate only)"),
         }, doc="start-up feasibility check of real links"),
+        # -- observability (docs/observe.md): kept together, in mrctl/config/observe.py --
+        "stream": stream_section(),
     }
 
 

@@ -101,7 +101,7 @@ class Recorder:
         "_tick", "_ov_rows", "_ov_first", "_ov_last", "_after_close", "_free", "_q", "_pending",
         "path", "sidecar", "columns", "meta", "rate_hz", "flush_interval_s", "block_ticks", "n_blocks",
         "capacity_ticks", "flush_every_ticks", "defer_format", "_chunk_fmt", "_unpack_chunk", "_tail_fmts",
-        "_w", "_closed", "_close_stats", "_sidecar_base", "_sidecar_error",
+        "_w", "_closed", "_close_stats", "_sidecar_base", "_sidecar_error", "on_block",
     )
 
     def __init__(
@@ -175,6 +175,9 @@ class Recorder:
         self._closed = False
         self._close_stats: dict[str, Any] | None = None
         self._sidecar_error: str | None = None
+        #: on_block(block, rows, first tick): called in the loop thread at each hand-over, before the
+        #: block is formatted (the live rows of :mod:`mrctl.daemon.rowbus`; it copies, never keeps it)
+        self.on_block: Callable[[array, int, int], None] | None = None
 
         # Create the CSV with its header and the "incomplete" sidecar now, so
         # a bad path fails before the first tick.
@@ -237,6 +240,8 @@ class Recorder:
 
     def _handover(self) -> None:
         n = self._off // self._rb
+        if self.on_block is not None:
+            self.on_block(self._buf, n, self._tick)
         if self.defer_format:
             if self._pending:  # the loop had no idle time for the last one
                 self._release_pending()

@@ -48,11 +48,13 @@ from mrctl import __version__
 from mrctl.config import ConfigError, Node, load_experiment
 from mrctl.daemon.controller import Controller, safe_zero
 from mrctl.daemon import ownership
+from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
 from mrctl.daemon.logcheck import LogWatch, close_log
 from mrctl.daemon.loop import FixedRateLoop
 from mrctl.daemon.monitor import Monitor, live_line
 from mrctl.daemon.notify import Notifier
+from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
 from mrctl.daemon.status import StatusServer, default_status_socket
@@ -63,6 +65,7 @@ from mrctl.io.base import Link, LinkError
 from mrctl.runlog import files
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
 from mrctl.runlog.metrics import format_summary
+from mrctl.util.journal import CRIT, ERR, NOTICE, WARNING, Journal
 from mrctl.util.jsonutil import jsonable
 from mrctl.util.options import check_duration
 
@@ -83,6 +86,11 @@ class RunOptions:
     sleep: Callable[[float], object] = time.sleep
     stream: TextIO = field(default_factory=lambda: sys.stdout)
     err: TextIO = field(default_factory=lambda: sys.stderr)
+    # live observers (docs/observe.md): over the config's stream section
+    stream_url: str | None = None
+    stream_every: int | None = None
+    stream_columns: tuple[str, ...] | None = None
+    log_priorities: bool | None = None  # <N> prefixes on stderr; None: when stderr is the journal
 
 
 class Service:
@@ -98,6 +106,9 @@ class Service:
         self.ctl: Controller | None = None
         self.sup: SafetySupervisor | None = None
         self.rec: Any = None
+        self.obs: Observe | None = None
+        self.faults: FaultWatch | None = None
+        self._stream: tuple[str, int, tuple[str, ...] | None] | None = None
         self.monitor: Monitor | None = None
         self.rt_results: list[Any] = []
         self.messages: list[str] = []
@@ -109,15 +120,17 @@ class Service:
         self._zero_error: str | None = "not attempted"
         self._total_ticks: int | None = None
         self._log_fh: Any = None  # the run log, created before the link opens, until the recorder takes it
+        self.journal = Journal(opts.err, opts.log_priorities)
         self.log_watch = LogWatch(bool(opts.out), self.warn, self.notifier.send)
 
     # -- output helpers ---------------------------------------------------
     def say(self, msg: str) -> None:
         print(msg, file=self.opts.stream, flush=True)
 
-    def warn(self, msg: str) -> None:
+    def warn(self, msg: str, priority: int = WARNING) -> None:
+        """Every warning, error and fault goes out here, with its journal priority."""
         self.messages.append(msg)
-        print(f"mrctl: {msg}", file=self.opts.err, flush=True)
+        self.journal.log(priority, msg)
 
     # -- the run ---------------------------------------------------------------
     def run(self) -> int:
@@ -128,16 +141,16 @@ class Service:
                 try:
                     code = self._run(stack)
                 except MrctlError as exc:  # a refusal at start-up: the error says how to exit
-                    self.warn(str(exc))
+                    self.warn(str(exc), ERR)
                     code = exc.exit_code
                 except KeyboardInterrupt:
                     pass  # a second Ctrl-C during start-up: still leave safely (the stack)
                 except Exception as exc:  # noqa: BLE001 - report, then leave safely (the stack)
-                    self.warn(f"internal error: {type(exc).__name__}: {exc}")
+                    self.warn(f"internal error: {type(exc).__name__}: {exc}", ERR)
                     code = EXIT_FAILURE
         finally:
             if self.link is not None and self._zero_error is not None:
-                self.warn(f"could not command 0 A on exit: {self._zero_error}")
+                self.warn(f"could not command 0 A on exit: {self._zero_error}", CRIT)
                 code = code or EXIT_LINK
         return self._finish(code) if self.ctl is not None and self.loop is not None else code
 
@@ -150,6 +163,7 @@ class Service:
         duration = override if override is not None else exp.config.duration_s
         if o.out:
             files.check_log_path(o.out, o.force)
+        self._stream = stream_settings(exp.config, o.stream_url, o.stream_every, o.stream_columns)
         try:
             link = exp.make_link()
         except ValueError as exc:  # a combination the schema cannot see (e.g. a register map for RTU)
@@ -187,7 +201,7 @@ class Service:
         else:
             loop.run(ctl.tick, duration_s=duration)
         if ctl.stopped_reason:
-            self.warn(ctl.stopped_reason)
+            self.warn(ctl.stopped_reason, ERR)
             return EXIT_FAILURE if ctl.law_fault is not None else EXIT_LINK  # a law is software: exit 1
         return EXIT_OK
 
@@ -291,14 +305,17 @@ class Service:
             ctl.record = self.rec.record
             if host_paced:
                 loop.background = self.rec.format_pending
-        status = StatusServer(o.status_socket or cfg.service.status_socket or default_status_socket(), self.snapshot)
+        obs = self.obs = Observe.for_run(cfg, ctl, loop, self.rec, self._stream, o.clock_ns, exp.name, self.warn)
+        status = StatusServer(o.status_socket or cfg.service.status_socket or default_status_socket(), self.snapshot,
+                              obs.handle_request)
         try:
             status.start()
             stack.callback(status.close)
         except OSError as exc:
             self.warn(f"status socket unavailable ({exc}); running without it")
+        faults = self.faults = FaultWatch(self.sup, self.warn, lambda: ctl.ticks)
         mon = self.monitor = Monitor(self.notifier, lambda: ctl.ticks, self._live_line, self._reload, o.err, o.live,
-                                     watch=lambda: self.log_watch.check(self.rec))
+                                     watch=lambda: (self.log_watch.check(self.rec), faults.check()))
         mon.start()
         stack.callback(mon.stop)
         old_handlers = {sig: signal.signal(sig, lambda s, f: loop.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -350,6 +367,8 @@ class Service:
         if self.rec is not None:
             self.log_watch.check(self.rec)
             d["recorder"] = self.rec.stats()
+        if self.obs is not None:
+            d.update(self.obs.stats())
         d["log"] = self.log_watch.state
         d["warnings"] = self.messages[-5:]
         return d
@@ -368,7 +387,8 @@ class Service:
         assert self.exp is not None and self.ctl is not None and self.loaded is not None
         try:
             new = build(load_experiment(self.opts.config_path))
-            changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt")
+            changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
+                                   "stream")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
             if new.config.rate_hz != self.exp.config.rate_hz:
                 new = new.at_rate(self.exp.config.rate_hz)
@@ -382,7 +402,7 @@ class Service:
             msg = "reload: new demand, inverse taken at the next tick"
             if changed:
                 msg += f"; changes to {', '.join(changed)} need a restart and were not applied"
-            self.warn(msg)
+            self.warn(msg, NOTICE)
             self.notifier.send(f"STATUS={msg}")
         except Exception as exc:  # noqa: BLE001 - a reload must never take the loop down
             self.reloads_rejected += 1
@@ -404,10 +424,15 @@ class Service:
                                    "rt": [str(r) for r in self.rt_results],
                                    "exit_current_A": self.exit_current_A,
                                    "law_fault": str(self.ctl.law_fault) if self.ctl.law_fault else None}
+        if self.obs is not None:
+            summary.update(self.obs.close(self.rec))  # the last rows to the stream and taps, before the log closes
         if self.rec is not None:
             exit_code = close_log(self.rec, self.opts.out or "", summary, exit_code, self.messages,
                                   I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,
-                                  warn=self.warn, format_tracking=lambda t: format_summary(t, self.exp.I_max))
+                                  warn=lambda m: self.warn(m, ERR),
+                                  format_tracking=lambda t: format_summary(t, self.exp.I_max))
+        if self.faults is not None:
+            self.faults.check()  # a fault in the last 50 ms, after the monitor's last look
         s = self.sup
         self.say(f"safety: {s.state.name}, faults entered {s.counters().faults_entered}, "
                  f"link errors {self.ctl.link_errors}")

@@ -5,6 +5,12 @@ and is closed. Client side (``mrctl status``, hil_sim's harnesses): one
 connect, one read. The socket is created 0660 under a umask, so it is
 never briefly wider.
 
+A client may first send one JSON request line (``mrctl tap``,
+:mod:`mrctl.daemon.tap`): the server waits up to 0.1 s for it, and a
+request hook may take the connection over. ``mrctl status`` shuts its
+sending side at once, so the reply is not delayed; a client that sends
+nothing gets the status after 0.1 s.
+
 Where: systemd's ``$RUNTIME_DIRECTORY``, else the per-user directory
 ``$TMPDIR/mrctl-<uid>`` (:func:`mrctl.util.files.private_dir`): created
 0700, and neither the daemon nor ``mrctl status`` uses one that another
@@ -49,12 +55,21 @@ def default_status_socket(check: bool = False) -> str:
     return str(d / "status.sock")
 
 
-class StatusServer:
-    """Answers each connection with one JSON line of live state, then closes."""
+#: how long the server waits for a request line before it answers with the status
+REQUEST_WAIT_S = 0.1
 
-    def __init__(self, path: str, snapshot: Callable[[], dict[str, Any]]) -> None:
+
+class StatusServer:
+    """Answers each connection with one JSON line of live state, then closes.
+
+    ``requests(conn, request)``: called with a client's JSON request line;
+    returns True if it took the connection over (then it closes it)."""
+
+    def __init__(self, path: str, snapshot: Callable[[], dict[str, Any]],
+                 requests: Callable[[socket.socket, dict[str, Any]], bool] | None = None) -> None:
         self.path = path
         self.snapshot = snapshot
+        self.requests = requests
         self._stop = threading.Event()
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -93,6 +108,13 @@ class StatusServer:
                 continue
             except OSError:
                 break
+            req = _read_request(conn) if self.requests is not None else None
+            if req is not None and self.requests is not None:
+                try:
+                    if self.requests(conn, req):
+                        continue  # the hook owns the connection now
+                except Exception:  # noqa: BLE001 - a bad request must not end the status thread
+                    pass
             with conn:
                 try:
                     conn.settimeout(1.0)
@@ -112,6 +134,28 @@ class StatusServer:
                 pass
 
 
+def _read_request(conn: socket.socket) -> dict[str, Any] | None:
+    """The client's request line (a JSON object), or None: it sent nothing
+    within :data:`REQUEST_WAIT_S`, closed its side, or sent something else."""
+    data = b""
+    try:
+        conn.settimeout(REQUEST_WAIT_S)
+        while b"\n" not in data and len(data) < 4096:
+            b = conn.recv(4096)
+            if not b:
+                break
+            data += b
+    except OSError:
+        pass
+    if not data.strip():
+        return None
+    try:
+        req = json.loads(data.split(b"\n", 1)[0].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    return req if isinstance(req, dict) else None
+
+
 def _socket_alive(path: str) -> bool:
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(0.5)
@@ -124,20 +168,34 @@ def _socket_alive(path: str) -> bool:
         s.close()
 
 
-def query_status(path: str, timeout_s: float = 2.0) -> dict[str, Any]:
-    """Client side of ``mrctl status``: the daemon's state, a JSON object.
-    :class:`StatusError` with a clear message otherwise."""
+def connect_status(path: str, timeout_s: float = 2.0) -> socket.socket:
+    """A connection to the daemon's status socket; :class:`StatusError` saying
+    why there is none."""
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(timeout_s)
     try:
+        s.connect(path)
+    except FileNotFoundError:
+        s.close()
+        raise StatusError(f"no mrctl running (no status socket at {path})") from None
+    except ConnectionRefusedError:
+        s.close()
+        raise StatusError(f"no mrctl running (stale status socket at {path})") from None
+    except OSError as exc:
+        s.close()
+        raise StatusError(f"{path}: cannot connect: {exc.strerror or exc}") from None
+    return s
+
+
+def query_status(path: str, timeout_s: float = 2.0) -> dict[str, Any]:
+    """Client side of ``mrctl status``: the daemon's state, a JSON object.
+    :class:`StatusError` with a clear message otherwise."""
+    s = connect_status(path, timeout_s)
+    try:
         try:
-            s.connect(path)
-        except FileNotFoundError:
-            raise StatusError(f"no mrctl running (no status socket at {path})") from None
-        except ConnectionRefusedError:
-            raise StatusError(f"no mrctl running (stale status socket at {path})") from None
-        except OSError as exc:
-            raise StatusError(f"{path}: cannot connect: {exc.strerror or exc}") from None
+            s.shutdown(socket.SHUT_WR)  # no request: the status, at once
+        except OSError:
+            pass
         chunks = []
         size = 0
         while size <= 1 << 20:
@@ -189,6 +247,12 @@ def format_status(st: dict[str, Any]) -> str:
         state = g("log") if isinstance(g("log"), str) else "ok"
         lines.append(f"log: {rec.get('rows_written')} rows written, {rec.get('dropped_rows')} lost"
                      + ("" if state == "ok" else f"; {state}"))
+    stream, taps = g("stream"), g("taps")
+    if isinstance(stream, dict):
+        lines.append(f"stream {stream.get('url')}: {stream.get('datagrams')} datagrams sent, "
+                     f"{stream.get('dropped')} dropped, {stream.get('rows_behind')} rows behind")
+    if isinstance(taps, dict) and taps.get("active"):
+        lines.append(f"taps: {taps.get('active')} connected")
     warnings = g("warnings")
     if isinstance(warnings, list):
         lines += [f"warning: {w}" for w in warnings[-3:]]

@@ -1,0 +1,40 @@
+"""Safety faults, reported while the run goes on (the monitor thread polls this).
+
+The supervisor (:mod:`mrctl.daemon.safety`) acts within the tick: 0 A on a
+fault. Saying so is slower work, so it happens here, off the loop, at the
+monitor's 50 ms poll: each new entry into FAULT is reported once at error
+priority (``<3>`` in the journal, :mod:`mrctl.util.journal`), with the
+reason and the count; a recovery (``safety.auto_resume``) at notice
+priority. A fault that comes and goes within one poll is still counted
+(``faults_entered``), and reported with the last reason.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from mrctl.util.journal import ERR, NOTICE
+
+
+class FaultWatch:
+    """Compares the supervisor's counters with what was last reported."""
+
+    def __init__(self, sup: Any, report: Callable[[str, int], None], ticks: Callable[[], int]) -> None:
+        self.sup = sup
+        self.report = report
+        self.ticks = ticks
+        self.entered = 0
+        self.resumes = 0
+
+    def check(self) -> None:
+        c = self.sup.counters()
+        if c.faults_entered > self.entered:
+            new = c.faults_entered - self.entered
+            self.entered = c.faults_entered
+            fault = self.sup.fault.name if self.sup.fault else "?"
+            more = f" ({new} new faults since the last report)" if new > 1 else ""
+            self.report(f"safety: FAULT {fault} near tick {self.ticks()}: {self.sup.reason or 'no reason given'}; "
+                        f"0 A commanded{more}; faults so far {self.entered}", ERR)
+        if c.resumes > self.resumes:
+            self.resumes = c.resumes
+            self.report(f"safety: fault cleared, control resumed (resumes so far {self.resumes})", NOTICE)
