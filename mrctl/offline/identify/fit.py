@@ -165,7 +165,7 @@ class _Problem:
     def residuals_batch(self, P: np.ndarray) -> np.ndarray:
         self.nfev += P.shape[0]
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            R = _model_batch(self.theta(P), self.rec) - self.rec.F
+            R = self.rec.project(_model_batch(self.theta(P), self.rec) - self.rec.F)
         return np.where(np.isfinite(R), R, 1e6)
 
     def fun(self, p: np.ndarray) -> np.ndarray:
@@ -251,7 +251,7 @@ def _identifiability(prob: _Problem, p: np.ndarray, theta: np.ndarray, ptp: floa
     Jt = J / dth[None, :]
     N = r.size
     Q = float(r @ r)
-    s2 = Q / max(N - 6, 1)
+    s2 = Q / max(N - 6 - (0 if prob.rec.X is None else prob.rec.X.shape[1]), 1)
     col = np.linalg.norm(Jt, axis=0)  # scale columns first: σ0 ~ 1e5 next to vs ~ 1e-2
     col[col == 0.0] = 1.0
     Js = Jt / col
@@ -299,7 +299,7 @@ def _grid_starts(rec: _Record, theta0: np.ndarray, vmax: float, amp: float, k: i
             cands.append(th)
     P = np.array(cands)
     with np.errstate(all="ignore"):
-        R = _model_batch(P, rec) - rec.F
+        R = rec.project(_model_batch(P, rec) - rec.F)
     q = np.where(np.isfinite(R).all(axis=1), np.einsum("ij,ij->i", R, R), np.inf)
     order = np.argsort(q)
     out: list[np.ndarray] = []
@@ -312,13 +312,19 @@ def _grid_starts(rec: _Record, theta0: np.ndarray, vmax: float, amp: float, k: i
     return out
 
 
-def _fit_one_current(windows, method: str, starts_max: int = 2):
+def _fit_one_current(windows, method: str, starts_max: int = 2, X: np.ndarray | None = None):
     """Fit Θ at one current over its windows: data-derived start, the
     ``starts_max`` best distinct (σ0, σ1) grid points, one optimiser run from
-    each, the lowest Q kept. Returns (θ, problem, p, notes, nfev, θ0, starts)."""
-    rec = _window_record(windows)
+    each, the lowest Q kept. ``X``: linear terms at the fit samples (offset,
+    stiffness), solved exactly for every Θ. Returns (θ, problem, p, notes,
+    nfev, θ0, starts)."""
+    rec = _window_record(windows, X)
     vf, Ff = rec.v[rec.fit], rec.F
     hf = rec.h[rec.fit]
+    if X is not None:  # the start on the force without its linear terms (regressed with the branches)
+        A = np.column_stack([X, vf, np.sign(vf)])
+        beta = np.linalg.lstsq(A, Ff, rcond=None)[0][:X.shape[1]]
+        Ff = Ff - X @ beta
     theta0, notes = initial_guess(vf, Ff, hf)
     vmax = float(np.percentile(np.abs(vf), 99.5))
     amp = 0.5 * float(np.ptp(np.cumsum(vf * hf)))  # stroke amplitude from ∫v dt
