@@ -286,17 +286,26 @@ _GRID_LAMBDA = np.geomspace(1e-4, 0.3, 16)
 _GRID_SIGMA1 = (-10.0, -3.0, -1.0, 0.0, 1.0, 3.0)
 
 
+#: Stribeck velocities tried with the grid, as multiples of the data-derived
+#: start: the decelerating-branch estimate can be far too large when the
+#: Stribeck peak rises above Fc, and from there the fit slides into a
+#: degenerate basin (vs above the stroke's velocities, Fc traded against σ2).
+_GRID_VS = (1.0, 0.3, 0.1)
+
+
 def _grid_starts(rec: _Record, theta0: np.ndarray, vmax: float, amp: float, k: int = 2) -> list[np.ndarray]:
-    """The k best (σ0, σ1) of a batched grid of Q, the other four at their
+    """The k best (σ0, σ1, vs) of a batched grid of Q, the other three at their
     data-derived starting values; the slope-based σ0 (with σ1 = 0) competes."""
     scale = theta0[3] / max(vmax, 1e-9)
     cands = [theta0.copy()]
-    for lam in _GRID_LAMBDA:
-        for s1 in _GRID_SIGMA1:
-            th = theta0.copy()
-            th[0] = theta0[3] / (lam * amp)
-            th[1] = s1 * scale
-            cands.append(th)
+    for vs_mul in _GRID_VS:
+        for lam in _GRID_LAMBDA:
+            for s1 in _GRID_SIGMA1:
+                th = theta0.copy()
+                th[0] = theta0[3] / (lam * amp)
+                th[1] = s1 * scale
+                th[5] = theta0[5] * vs_mul
+                cands.append(th)
     P = np.array(cands)
     with np.errstate(all="ignore"):
         R = rec.project(_model_batch(P, rec) - rec.F)
@@ -305,7 +314,8 @@ def _grid_starts(rec: _Record, theta0: np.ndarray, vmax: float, amp: float, k: i
     out: list[np.ndarray] = []
     for i in order.tolist():
         # distinct basins: skip candidates next to one already taken
-        if all(abs(math.log(P[i, 0] / o[0])) > 1.0 or abs(P[i, 1] - o[1]) > 1.5 * scale for o in out):
+        if all(abs(math.log(P[i, 0] / o[0])) > 1.0 or abs(P[i, 1] - o[1]) > 1.5 * scale
+               or abs(math.log(P[i, 5] / o[5])) > 1.0 for o in out):
             out.append(P[i])
         if len(out) == k:
             break
@@ -333,9 +343,11 @@ def _fit_one_current(windows, method: str, starts_max: int = 2, X: np.ndarray | 
         notes["sigma0"] = (f"best of a Q grid (pre-sliding length Fc/σ0 = 1e-4…0.3 × stroke); "
                            f"slope estimate was {theta0[0]:.4g}")
         notes["sigma1"] = "best of a Q grid (0, ±1, ±3, −10 × Fc/max|v|)"
+    if starts[0][5] != theta0[5]:
+        notes["vs"] += f"; {starts[0][5] / theta0[5]:.1f} × that, the best of a Q grid"
     linear = method in _LINEAR
     best = None
-    total_nfev = len(_GRID_LAMBDA) * len(_GRID_SIGMA1) + 1
+    total_nfev = len(_GRID_VS) * len(_GRID_LAMBDA) * len(_GRID_SIGMA1) + 1
     for th in starts:
         prob = _Problem(rec, th, vmax, linear=linear)
         p, _ = _optimise(prob, method)

@@ -11,7 +11,9 @@ every signal the fit needs. Choices, documented in docs/identification.md:
   motion, and never so slow that the LuGre transients after a reversal
   vanish between samples. Decimation is anti-aliased (a zero-phase FIR
   low-pass at 0.8 × the new Nyquist frequency, ``scipy.signal.resample_poly``
-  with linear edge padding), never plain subsampling.
+  with linear edge padding), never plain subsampling. The drive input, often
+  a switched command, is averaged over each q samples instead (centred, zero
+  phase): a low-pass too, and one that never overshoots the command's range.
 - **Velocity from displacement** when none is recorded: a cubic
   Savitzky–Golay differentiator (``scipy.signal.savgol_filter``) at the
   original rate whose window puts its −3 dB cutoff, (p + 1)/(3.2·N − 4.6)·rate
@@ -100,6 +102,18 @@ def _decimate(y: np.ndarray, q: int) -> np.ndarray:
     return resample_poly(y, 1, q, padtype="line")
 
 
+def _decimate_input(u: np.ndarray, q: int) -> np.ndarray:
+    """A switched command decimated by a centred moving average over q samples
+    (zero phase; a convex combination, so no Gibbs overshoot past the command's range)."""
+    w = np.ones(q + 1 - q % 2)
+    if q % 2 == 0:
+        w[0] = w[-1] = 0.5
+    w /= w.sum()
+    half = w.size // 2
+    padded = np.concatenate((np.full(half, u[0]), u, np.full(half, u[-1])))
+    return np.convolve(padded, w, mode="valid")[::q]
+
+
 def _mask(rec: Record) -> np.ndarray:
     t = rec.t
     m = np.zeros(t.size, bool) if rec.use else np.ones(t.size, bool)
@@ -175,7 +189,7 @@ def prepare(records: list[Record], *, band_hz: float | None, resample_hz: float 
                 v = _decimate(v_all[sl], q)
                 F = _decimate(rec.F[sl], q)
                 x = _decimate(rec.x[sl], q) if rec.x is not None else None
-                uu = _decimate(u[sl], q) if u is not None else None
+                uu = _decimate_input(u[sl], q) if u is not None else None
                 lev = lv[sl][::q] if lv is not None else None
             else:
                 t, v, F = rec.t[sl].copy(), v_all[sl].copy(), rec.F[sl].copy()

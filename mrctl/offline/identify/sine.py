@@ -235,7 +235,7 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
             if sp.x is not None:
                 xall.append(sp.x[s.f0:s.f1])
         X = None if Xs[0] is None else np.vstack(Xs)
-        theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method, X=X)
+        theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method, starts_max=4, X=X)
         rec = prob.rec
         from mrctl.offline.identify.model import _model_batch
 
