@@ -306,3 +306,14 @@ def dataset_markdown() -> str:
                                          doc="column of a 2-D .mat variable (0-based)")}
     return "\n".join([_markdown(dataset_schema(Path("."))), "### One record (`files[]`)", "", _markdown(entry),
                       "### One column (`columns.<signal>`: a name, or this mapping)", "", _markdown(col)])
+
+
+if __name__ == "__main__":  # python -m mrctl.config.dataset: regenerate docs/identification.md's table
+    import sys
+
+    _doc = Path(__file__).resolve().parents[2] / "docs" / "identification.md"
+    _b, _e = "<!-- BEGIN GENERATED: mrctl.config.dataset.dataset_markdown -->", "<!-- END GENERATED -->"
+    _src = _doc.read_text()
+    _i = _src.index(_b) + len(_b)
+    _doc.write_text(_src[:_i] + "\n" + dataset_markdown() + "\n" + _src[_src.index(_e, _i):])
+    print(f"updated {_doc}", file=sys.stderr)
