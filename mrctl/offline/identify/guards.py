@@ -82,7 +82,7 @@ def theta_problems(theta: dict[str, float], sup: Support, where: str) -> list[st
                     sigma1B=theta["sigma1"], sigma2A=0.0, sigma2B=theta["sigma2"], FsA=0.0, FsB=theta["Fs"],
                     vsA=0.0, vsB=theta["vs"])
     out = []
-    for msg in law_problems(p, 0.0, 0.0, sup):
+    for msg in law_problems(p, 0.0, 0.0, sup, scope="level"):
         name, rest = msg.split("(", 1)
         text = rest.split(") = ", 1)[1].split(" (law over", 1)[0]
         advice = msg.split("; try: ", 1)[1]
@@ -90,7 +90,12 @@ def theta_problems(theta: dict[str, float], sup: Support, where: str) -> list[st
     return out
 
 
-def _advice(name: str, what: str) -> str:
+def _advice(name: str, what: str, scope: str = "law") -> str:
+    if scope == "level" and what in ("negative", "high"):
+        return ("the model cannot describe this level's force: fit the force offset and stiffness if they are off "
+                "(a dataset's model.offset/model.stiffness; mrctl identify fits them unless --no-offset), check "
+                "the force and displacement columns' scales, and leave out what the model cannot describe (rest, "
+                "ramps, run-away: a dataset's use:/exclude: windows)")
     if name in ("Fs", "vs") and what in ("high", "low"):
         return ("the Stribeck peak is not determined by the data: fit only steady motion (exclude rest, "
                 "pauses and ramps with use:/exclude: windows), and check the velocity column's scale")
@@ -103,7 +108,8 @@ def _advice(name: str, what: str) -> str:
     return "check the columns' scales; exclude parts of the record the model cannot describe (rest, ramps, run-away)"
 
 
-def law_problems(p: LuGreParams, u_lo: float, u_hi: float, sup: Support, unit: str = "A") -> list[str]:
+def law_problems(p: LuGreParams, u_lo: float, u_hi: float, sup: Support, unit: str = "A",
+                 scope: str = "law") -> list[str]:
     """Every way the laws of ``p`` leave the physical/supported range on [u_lo, u_hi]."""
     u = np.linspace(u_lo, u_hi, _GRID)
     vals = {
@@ -149,7 +155,7 @@ def law_problems(p: LuGreParams, u_lo: float, u_hi: float, sup: Support, unit: s
         seen.add(name)
         uu, val = where(mask, np.where(mask, arr, np.inf if low else -np.inf), low)
         out.append(f"{name}({uu:.4g} {unit}) = {val:.4g} {unit_q} {text} (law over the fitted input range "
-                   f"[{u_lo:.4g}, {u_hi:.4g}] {unit}); try: {_advice(name, what)}")
+                   f"[{u_lo:.4g}, {u_hi:.4g}] {unit}); try: {_advice(name, what, scope)}")
     if not (math.isfinite(p.tau_input) and p.tau_input >= 0.0):
         out.append(f"tau_input = {p.tau_input:g} s must be >= 0")
     return out
