@@ -22,6 +22,10 @@ from mrctl.util.csvtable import CsvError, read_table
 
 __all__ = ["load_identification_run", "estimate_period"]
 
+#: what to do with measured data these runs' rules refuse
+_DATASET_HINT = (" (measured data with a switched, broadband or voltage input: describe it in a dataset and use "
+                 "mrctl identify --dataset, docs/identification.md)")
+
 # A commanded current that changes by more than this starts a new segment (A).
 _SEGMENT_TOL_A = 1e-6
 
@@ -100,7 +104,8 @@ def _check_run(run: Mapping[str, Any], label: str) -> dict[str, np.ndarray]:
         raise IdentificationError(f"{label}: time t is not strictly increasing at sample {k + 1} "
                                   f"(t = {cols['t'][k]:g} → {cols['t'][k + 1]:g} s)")
     if np.any(cols["I"] < -1e-9):
-        raise IdentificationError(f"{label}: negative current in column I (min {cols['I'].min():g} A)")
+        raise IdentificationError(f"{label}: negative current in column I (min {cols['I'].min():g} A)"
+                                  f"{_DATASET_HINT}")
     return cols
 
 
@@ -222,7 +227,8 @@ def fit_windows(checked: list[dict[str, np.ndarray]], labels: Sequence[str], dts
         if len(segs) > max(50, 4 * (t[-1] - t[0]) / T):
             raise IdentificationError(
                 f"{lab}: the commanded current changes {len(segs) - 1} times; identification needs steps of "
-                "constant current (inverse law 'schedule' or 'constant'), not a closed-loop run")
+                "constant current (inverse law 'schedule' or 'constant'), not a closed-loop run"
+                f"{_DATASET_HINT}")
         for si, (a, b) in enumerate(segs):
             I_cmd = float(c["I"][a])
             dur = t[b - 1] - t[a] + dt
