@@ -21,10 +21,20 @@ from typing import Any
 
 import numpy as np
 
-from mrctl.offline.identify.bbmodel import IDX, LINEAR_IN_F, PHYS, SpanData, linear_columns, simulate, to_params
-from mrctl.offline.identify.guards import Support
-from mrctl.offline.identify.progress import make_bar
 from mrctl.model.params import LuGreParams
+from mrctl.offline.identify.bbmodel import (
+    IDX,
+    LINEAR_IN_F,
+    PHYS,
+    SpanData,
+    felt_input,
+    linear_columns,
+    simulate,
+    to_params,
+)
+from mrctl.offline.identify.guards import Support
+from mrctl.offline.identify.laws import _langevin_np
+from mrctl.offline.identify.progress import make_bar
 
 __all__ = ["BroadbandFit", "fit_broadband", "predict", "WARMUP_S"]
 
@@ -62,8 +72,6 @@ def _initial(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_hi: fl
              use: dict[str, bool]) -> np.ndarray:
     """A data-derived start: a linear regression of the force on sign(v), v (each
     affine in the lagged input), x and a, then the LuGre quantities from it."""
-    from mrctl.offline.identify.bbmodel import felt_input
-
     rows, ys = [], []
     for sp, F in zip(spans, Fs_):
         ud = felt_input(sp.u, tau, sp.h)
@@ -84,8 +92,6 @@ def _initial(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_hi: fl
     s2_hi = float(np.clip(c[3] + c[4] * u_hi, 0.01 * sup.F_amp / sup.v_max, s2max))
     p = np.zeros(len(PHYS))
     Bc = du / 3.0
-    from mrctl.offline.identify.laws import _langevin_np
-
     L2 = float(_langevin_np(np.array([u_hi / Bc]))[0] ** 2 - _langevin_np(np.array([u_lo / Bc]))[0] ** 2)
     p[IDX["F0"]], p[IDX["Ac"]], p[IDX["Bc"]] = Fc_lo, max((Fc_hi - Fc_lo) / max(L2, 1e-6), 1e-3 * sup.F_amp), Bc
     x_amp = sup.x_amp if sup.x_amp is not None else sup.v_max * 0.01
@@ -185,12 +191,11 @@ class _Problem:
         J = np.empty((r0.size, q.size))
         lin = [i for i, k in enumerate(self.free) if k in LINEAR_IN_F]
         nl = [i for i in range(q.size) if i not in lin]
-        P0 = self.phys(q)[0]
         for i in lin:
             k = self.free[i]
             dth = (self.p0[IDX[k]] * math.exp(q[i])) if k in _LOG else self.scale[i]  # dθ/dq
-            J[:, i] = np.concatenate([linear_columns(k, sp, d)[self.warm:] for sp, d in zip(self.spans, self._parts)]) * dth
-        del P0
+            J[:, i] = np.concatenate([linear_columns(k, sp, d)[self.warm:]
+                                      for sp, d in zip(self.spans, self._parts)]) * dth
         if nl:
             steps = _FD_STEP * np.maximum(1.0, np.abs(q[nl]))
             steps = np.where(q[nl] + steps > self.hi[nl], -steps, steps)  # stay inside the bounds

@@ -32,7 +32,7 @@ from mrctl.offline.identify.prep import Span, prepare
 from mrctl.offline.identify.progress import make_bar
 from mrctl.offline.identify.records import read_records
 from mrctl.offline.identify.sine import find_segments, fit_levels, predict_segment
-from mrctl.util.schema import ConfigError, Node
+from mrctl.util.schema import Node
 
 __all__ = ["identify_dataset", "identify_dataset_file", "parse_holdout"]
 
@@ -265,10 +265,7 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
 def identify_dataset_file(dataset: str | os.PathLike[str], out: str | os.PathLike[str], **kwargs: Any
                           ) -> DatasetResult:
     """``mrctl identify --dataset``'s work: identify, then write the YAML and ``PARAMS.json``.
-    Nothing is written unless identification succeeds."""
-    try:
-        res = identify_dataset(dataset, **kwargs)
-    except ConfigError:
-        raise
+    Nothing is written unless identification succeeds (errors as :func:`identify_dataset`)."""
+    res = identify_dataset(dataset, **kwargs)
     write_dataset_outputs(res, out)
     return res

@@ -141,7 +141,7 @@ def _level_of(rec: Record) -> np.ndarray | None:
 
 
 def prepare(records: list[Record], *, band_hz: float | None, resample_hz: float | None, need_accel: bool,
-            warnings: list[str], min_span_s: float = 0.0) -> tuple[list[Span], dict]:
+            warnings: list[str]) -> tuple[list[Span], dict]:
     """Spans of every record at the fit rate, and what was done (for the JSON summary)."""
     from scipy.signal import savgol_filter
 
@@ -178,10 +178,8 @@ def prepare(records: list[Record], *, band_hz: float | None, resample_hz: float 
                                      "motion_band_hz": band, "velocity": velocity}
         for a, b in _runs(m):
             if (b - a) < max(8 * q, 4):
-                continue
-            if (b - a) / fs < min_span_s:
-                warnings.append(f"{rec.name}: ignored a {(b - a) / fs:.3g} s window at {rec.t[a]:.4g} s "
-                                f"(shorter than {min_span_s:g} s)")
+                warnings.append(f"{rec.name}: ignored a {(b - a) / fs:.3g} s window at {rec.t[a]:.4g} s (too "
+                                "short to fit)")
                 continue
             sl = slice(a, b)
             if q > 1:

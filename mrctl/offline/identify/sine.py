@@ -33,7 +33,7 @@ import numpy as np
 from mrctl.offline.identify.errors import IdentificationError
 from mrctl.offline.identify.fit import _fit_one_current
 from mrctl.offline.identify.guards import Support
-from mrctl.offline.identify.model import THETA_NAMES, lugre_force
+from mrctl.offline.identify.model import THETA_NAMES, _model_batch, lugre_force
 from mrctl.offline.identify.prep import Span
 
 __all__ = ["Segment", "LevelFit", "find_segments", "fit_levels", "predict_segment"]
@@ -237,8 +237,6 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
         X = None if Xs[0] is None else np.vstack(Xs)
         theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method, starts_max=4, X=X)
         rec = prob.rec
-        from mrctl.offline.identify.model import _model_batch
-
         Fm = _model_batch(theta[None, :], rec)[0]
         beta = rec.linear_terms(Fm)
         resid = rec.with_terms(Fm) - rec.F
