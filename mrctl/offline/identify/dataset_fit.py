@@ -165,7 +165,9 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
         for lv in sorted({s.level for s in segs if s.record == rec}):
             lf = min(fits, key=lambda f: abs(f.level - lv))
             if abs(lf.level - lv) > 1e-3 * max(abs(lv), 1.0) and round(lv, 9) not in by_level:
-                continue  # a level only held out: no fit at it
+                warnings.append(f"{rec}: level {lv:g} {unit} is held out but no record was fitted at it; "
+                                "not scored")
+                continue
             th_laws = theta_from_params(params, lf.level)
             for part, sel in (("holdout", lambda s: s.h1 > s.f1), ("fit", lambda s: s.cycles_fit > 0)):
                 mm, pp, pl, tt, vv = [], [], [], [], []
