@@ -202,21 +202,57 @@ def cmd_examples(args: argparse.Namespace) -> int:
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    """One progress line per current, the summary table, what was written.
-    Errors are raised (IdentificationError exit 2, DependencyMissing without
-    scipy exit 1, ReportError exit 2) for :func:`main`'s handler."""
+    """Run CSVs (mrctl's own logs of constant-current steps) or a dataset
+    description (a lab's measured records, ``--dataset`` or a .yaml argument).
+    Prints progress, the summary table, what was written. Errors are raised
+    (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
+    exit 1, ReportError exit 2) for :func:`main`'s handler."""
+    from mrctl.errors import BadInput
+
+    runs = list(args.runs)
+    dataset = args.dataset
+    if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
+        dataset, runs = runs[0], []
+    if dataset is not None:
+        if runs:
+            raise BadInput("identify: give run CSVs or --dataset, not both")
+        if args.period is not None or args.method != "trf":
+            raise BadInput("identify: --period and --method are for run CSVs; a dataset's segments have their own "
+                           "period")
+        return _identify_dataset(args, dataset)
+    if args.holdout is not None:
+        raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
     from mrctl.offline.identify import format_summary, identify_files
 
     def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
         print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
 
-    result = identify_files(args.runs, args.out, method=args.method, progress=progress)
+    if args.period is not None and not args.period > 0:
+        raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
+    result = identify_files(args.runs, args.out, method=args.method, progress=progress, period_s=args.period,
+                            offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
     print(format_summary(result))
     print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
     if args.report:
         from mrctl.offline.report import make_identification_report
 
         make_identification_report(result, args.report)
+        print(f"wrote {args.report}")
+    return EXIT_OK
+
+
+def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
+    from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
+
+    model = {"offset": False, "stiffness": False} if args.no_offset else None
+    res = identify_dataset_file(dataset, args.out, holdout=args.holdout, model=model,
+                                progress=not args.no_progress and sys.stderr.isatty())
+    print(format_dataset_summary(res))
+    print(f"wrote {args.out} and {json_path(args.out)} ({res.time_s:.1f} s)")
+    if args.report:
+        from mrctl.offline.identify_figure import make_dataset_report
+
+        make_dataset_report(res, args.report)
         print(f"wrote {args.report}")
     return EXIT_OK
 
@@ -306,12 +342,22 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service (also a damper label)")
     xp.set_defaults(func=cmd_exporter)
 
-    ip = sub.add_parser("identify", help="fit the LuGre parameter set from constant-current sine runs")
-    ip.add_argument("runs", nargs="+", help="run CSVs (simulate or run) with a constant-current schedule")
-    ip.add_argument("--out", required=True, help="parameters YAML to write (usable as parameters: FILE)")
+    ip = sub.add_parser("identify", help="fit the LuGre parameter set: from run CSVs of constant-current steps, "
+                                         "or from measured data described by a dataset YAML")
+    ip.add_argument("runs", nargs="*", help="run CSVs (simulate or run) with a constant-current schedule; "
+                                            "or one dataset .yaml")
+    ip.add_argument("--dataset", help="dataset description (docs/identification.md): measured records, any columns")
+    ip.add_argument("--out", required=True, help="parameters YAML to write (usable as parameters: FILE); "
+                                                 "a dataset also writes the JSON summary beside it")
+    ip.add_argument("--report", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 and 3, "
+                                     "a dataset its held-out force and F-v loops")
+    ip.add_argument("--holdout", help="dataset: held out of the fit: a fraction (0.3), none, or record names "
+                                      "(a,b) held out whole; default the description's")
+    ip.add_argument("--period", type=float, help="run CSVs: the excitation period (s), if it cannot be estimated")
+    ip.add_argument("--no-offset", action="store_true", help="fit no force offset and stiffness (for comparison)")
+    ip.add_argument("--no-progress", action="store_true", help="dataset: no progress bar")
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
-                    help="optimiser (docs/identification.md); default trf")
-    ip.add_argument("--report", help="also draw Figs 2 and 3 of the paper to this PNG")
+                    help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
 
     cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")

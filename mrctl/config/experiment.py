@@ -14,7 +14,7 @@ from typing import Any
 from mrctl.config.bench import bench_fields, road_excitations
 from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
 from mrctl.config.observe import stream_section
-from mrctl.config.params import params_check
+from mrctl.config.params import INPUT_KINDS, input_kind_errors, params_check
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import (
     Bool,
@@ -75,7 +75,11 @@ def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
 
 def experiment_schema(base_dir: Path) -> dict[str, Any]:
     """The experiment schema; relative file paths resolve against ``base_dir``."""
+    driver_input = Str(default="current", choices=tuple(INPUT_KINDS),
+                       doc="what the driver takes: a coil current (A) or a command voltage (V); the parameter "
+                           "sets' input (docs/identification.md) must match")
     modbus_common = {
+        "input": driver_input,
         "timeout_s": Num(default=0.005, min=0.0, min_exclusive=True, max=1.0, doc="reply timeout (s)"),
         "use_fc23": Custom(optional_bool, default=None, doc="one FC23 transaction per tick; null = probe at start"),
         "register_map": Custom(_register_map, default=None, doc="register map (docs/registers.md); null = default"),
@@ -177,8 +181,9 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
             }),
         }, doc="simulated bench (backend sim)"),
         "backend": Union("type", {
-            "sim": {},
+            "sim": {"input": driver_input},
             "serial": {
+                "input": driver_input,
                 "url": Str(doc="device path, socket://host:port or loop://"),
                 "baudrate": Num(default=921600, integer=True, min=1200, max=20_000_000, doc="baud (see docs/protocol.md)"),
                 "timeout_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0,
@@ -247,6 +252,7 @@ def validate_experiment(data: Any, base_dir: Path, source: str | None = None) ->
     node, errors = validate_fields(schema, data, "")
     if not errors:
         errors = _cross_checks(node, base_dir)
+        errors += input_kind_errors(data, base_dir, node.backend.get("input"))
     if errors:
         raise ConfigError(errors, source)
     return node

@@ -2,28 +2,76 @@
 
 A parameters file holds the spec's names (docs/identification.md writes
 them); inline overrides in an experiment change single values of a base set.
+
+A file may say what its laws are a function of: ``input: current`` (A, the
+default and Table I's) or ``input: voltage`` (V, a driver's command voltage:
+a set identified from a voltage-driven bench), and ``input_range: [lo, hi]``,
+the input range it was identified over. An experiment's ``backend.input``
+must match (:func:`input_kind_errors`): a daemon that commands currents must
+not run laws written in volts.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 from mrctl.model.params import LuGreParams, params_from_mapping
 from mrctl.util.schema import ConfigError, load_yaml
 
-_PARAM_FILE_META = ("version", "description", "source", "fit")
+__all__ = ["INPUT_KINDS", "ParamsFile", "read_params_file", "load_params_file", "params_check",
+           "params_input_kind", "input_kind_errors"]
+
+#: what a set's laws take, and the unit of that input
+INPUT_KINDS: dict[str, str] = {"current": "A", "voltage": "V"}
+
+_PARAM_FILE_META = ("version", "description", "source", "fit", "input", "input_range")
 
 
-def load_params_file(path: str | Path) -> LuGreParams:
-    """Read a parameters YAML (keys: the spec's names, plus metadata keys
-    version/description/source/fit which are ignored)."""
+@dataclass(frozen=True)
+class ParamsFile:
+    """A parameters file: the set and what its laws take."""
+
+    params: LuGreParams
+    input: str = "current"  # a key of INPUT_KINDS
+    input_range: tuple[float, float] | None = None  # identified over this input range (unit of ``input``)
+
+    @property
+    def unit(self) -> str:
+        return INPUT_KINDS[self.input]
+
+
+def _check_meta(data: dict[str, Any]) -> tuple[str, tuple[float, float] | None, list[str]]:
+    errors: list[str] = []
+    kind = data.get("input", "current")
+    if kind not in INPUT_KINDS:
+        errors.append(f"input: {kind!r} not allowed (allowed: {', '.join(INPUT_KINDS)}: what the laws take, "
+                      "a coil current in A or a driver command voltage in V)")
+        kind = "current"
+    rng = data.get("input_range")
+    out: tuple[float, float] | None = None
+    if rng is not None:
+        ok = (isinstance(rng, list) and len(rng) == 2
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)) for x in rng))
+        if not ok or not float(rng[0]) < float(rng[1]):
+            errors.append(f"input_range: must be [lo, hi] with lo < hi (the identified input range), got {rng!r}")
+        else:
+            out = (float(rng[0]), float(rng[1]))
+    return kind, out, errors
+
+
+def read_params_file(path: str | Path) -> ParamsFile:
+    """Read a parameters YAML: the spec's names, plus metadata keys
+    (version, description, source, fit are ignored; ``input`` and
+    ``input_range`` are checked and returned). A set whose laws leave the
+    physical range (σ0, Fs, vs, Fc > 0) over its ``input_range`` is refused."""
     data = load_yaml(path)
     if not isinstance(data, dict):
         raise ConfigError(["must be a mapping of parameter names to numbers"], str(path))
     values = {k: v for k, v in data.items() if k not in _PARAM_FILE_META}
-    errors = []
+    kind, rng, errors = _check_meta(data)
     known = set(LuGreParams.all_names())
     for k in values:
         if k not in known:
@@ -31,9 +79,64 @@ def load_params_file(path: str | Path) -> LuGreParams:
     if errors:
         raise ConfigError(errors, str(path))
     try:
-        return params_from_mapping(values)
+        params = params_from_mapping(values)
     except ValueError as exc:
         raise ConfigError([str(exc)], str(path)) from None
+    if rng is not None:
+        problems = params.check_range(rng[1], I_min=rng[0], unit=INPUT_KINDS[kind])
+        if problems:
+            raise ConfigError([f"input_range: {p}" for p in problems], str(path))
+    return ParamsFile(params, kind, rng)
+
+
+def load_params_file(path: str | Path) -> LuGreParams:
+    """The parameter set of a parameters YAML (see :func:`read_params_file`)."""
+    return read_params_file(path).params
+
+
+def _file_of(value: Any, base_dir: Path) -> Path | None:
+    if isinstance(value, dict):
+        value = value.get("file")
+    if not isinstance(value, str) or value == "table1":
+        return None
+    return (base_dir / value) if not Path(value).is_absolute() else Path(value)
+
+
+def params_input_kind(value: Any, base_dir: Path) -> tuple[str, Path | None]:
+    """What the set named by a raw ``parameters`` value takes, and its file.
+
+    Table I and inline sets take a current; a file says (``input:``, default
+    current). A file that cannot be read counts as current here (the
+    parameters check reports why it cannot be read)."""
+    f = _file_of(value, base_dir)
+    if f is None:
+        return "current", None
+    try:
+        data = load_yaml(f)
+    except ConfigError:
+        return "current", f
+    kind = data.get("input", "current") if isinstance(data, dict) else "current"
+    return (kind if kind in INPUT_KINDS else "current"), f
+
+
+def input_kind_errors(data: Any, base_dir: Path, backend_input: Any) -> list[str]:
+    """``parameters`` and ``plant.parameters`` against ``backend.input``: the
+    laws must take what the driver takes. One line per mismatch, naming both keys."""
+    if not isinstance(data, dict) or backend_input not in INPUT_KINDS:
+        return []
+    errors = []
+    plant = data.get("plant")
+    for key, raw in (("parameters", data.get("parameters")),
+                     ("plant.parameters", plant.get("parameters") if isinstance(plant, dict) else None)):
+        if raw is None and key == "plant.parameters":
+            continue  # the simulated damper runs the law's set, checked above
+        kind, f = params_input_kind(raw, base_dir)
+        if kind != backend_input:
+            errors.append(
+                f"{key}: the set in {f or 'table1'} takes a {kind} ({INPUT_KINDS[kind]}: input: {kind}), but backend.input "
+                f"is '{backend_input}' ({INPUT_KINDS[backend_input]}): use a set identified for a {backend_input} "
+                f"input, or set backend.input: {kind} if the driver really takes a {kind}")
+    return errors
 
 
 def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:

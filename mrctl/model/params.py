@@ -126,20 +126,23 @@ class LuGreParams:
         """Every name a parameters file may set."""
         return tuple(f.name for f in fields(cls))
 
-    def check_range(self, I_max: float, samples: int = 201) -> list[str]:
-        """Problems that make the model meaningless on [0, I_max] (empty if fine).
+    def check_range(self, I_max: float, samples: int = 201, I_min: float = 0.0, unit: str = "A") -> list[str]:
+        """Problems that make the model meaningless on [I_min, I_max] (empty if fine).
 
         The state equation divides by g, whose minimum over v is min(Fc, Fs),
         and needs vs != 0 and sigma0 > 0 for z to stay bounded. Checked on a
-        grid, which is exact for the linear laws and ample for eq (6)."""
+        grid, which is exact for the linear laws and ample for eq (6). A set
+        identified from a driver's command voltage has laws in volts: pass its
+        fitted input range and ``unit="V"``."""
         problems: list[str] = []
         if not self.tau_input >= 0.0:
             problems.append(f"tau_input must be >= 0 s, got {self.tau_input:g}")
+        span = I_max - I_min
         for name, fn in (("sigma0", self.sigma0), ("Fs", self.Fs), ("vs", self.vs), ("Fc", self.Fc)):
-            worst = min(fn(I_max * k / (samples - 1)) for k in range(samples))
+            worst = min(fn(I_min + span * k / (samples - 1)) for k in range(samples))
             if not worst > 0.0:
                 problems.append(
-                    f"{name}(I) must stay > 0 for I in [0, {I_max:g}] A, but reaches {worst:.6g}"
+                    f"{name}(I) must stay > 0 for I in [{I_min:g}, {I_max:g}] {unit}, but reaches {worst:.6g}"
                 )
         return problems
 

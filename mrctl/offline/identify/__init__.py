@@ -1,4 +1,5 @@
-"""Identification of the LuGre parameters from constant-current sine tests.
+"""Identification of the LuGre parameters: from mrctl's constant-current
+runs, and from a lab's measured records described by a dataset YAML.
 
 The paper's Section III, usable on a lab's own damper: record the damper
 under a sine stroke at a staircase of constant currents (one run CSV, e.g.
@@ -19,7 +20,18 @@ under a sine stroke at a staircase of constant currents (one run CSV, e.g.
    parameters YAML that ``mrctl.config.load_params_file`` accepts —
    :mod:`.result`.
 
-:mod:`.pipeline` strings these together (:func:`identify` on run records,
+Measured records (``mrctl identify --dataset``, :func:`identify_dataset`):
+a dataset description (:mod:`mrctl.config.dataset`) says where the data
+is and what it means; :mod:`.records` reads CSV or .mat, :mod:`.prep`
+resamples (anti-aliased) and differentiates, then one of two protocols:
+constant-input sine tests with pauses, ramps and several levels
+(:mod:`.sine`), or broadband and switched-input records by an output-error
+fit of the laws, offset, stiffness and input lag (:mod:`.bbmodel`,
+:mod:`.broadband`); :mod:`.guards` refuses a set that leaves what the data
+support; :mod:`.dataset_result` writes the YAML and the JSON summary with
+the held-out scores.
+
+:mod:`.pipeline` strings the run-CSV steps together (:func:`identify` on run records,
 :func:`identify_files` on CSV paths, what ``mrctl identify`` calls). Errors
 are :mod:`.errors`': ``IdentificationError`` (bad input, exit 2) and
 ``DependencyMissing`` (exit 1). The figure of the result is
@@ -32,6 +44,8 @@ that the daemon never needs it.
 
 from __future__ import annotations
 
+from mrctl.offline.identify.dataset_fit import identify_dataset, identify_dataset_file, parse_holdout
+from mrctl.offline.identify.dataset_result import DatasetResult, Score, format_dataset_summary, json_path
 from mrctl.offline.identify.errors import DependencyMissing, IdentificationError
 from mrctl.offline.identify.fit import DEFAULT_METHOD, METHODS, initial_guess
 from mrctl.offline.identify.laws import LawFit, fit_laws, theta_from_params
@@ -68,4 +82,11 @@ __all__ = [
     "result_metadata",
     "write_params_yaml",
     "format_summary",
+    "DatasetResult",
+    "Score",
+    "identify_dataset",
+    "identify_dataset_file",
+    "format_dataset_summary",
+    "json_path",
+    "parse_holdout",
 ]

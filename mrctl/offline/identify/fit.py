@@ -165,7 +165,7 @@ class _Problem:
     def residuals_batch(self, P: np.ndarray) -> np.ndarray:
         self.nfev += P.shape[0]
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            R = _model_batch(self.theta(P), self.rec) - self.rec.F
+            R = self.rec.project(_model_batch(self.theta(P), self.rec) - self.rec.F)
         return np.where(np.isfinite(R), R, 1e6)
 
     def fun(self, p: np.ndarray) -> np.ndarray:
@@ -251,7 +251,7 @@ def _identifiability(prob: _Problem, p: np.ndarray, theta: np.ndarray, ptp: floa
     Jt = J / dth[None, :]
     N = r.size
     Q = float(r @ r)
-    s2 = Q / max(N - 6, 1)
+    s2 = Q / max(N - 6 - (0 if prob.rec.X is None else prob.rec.X.shape[1]), 1)
     col = np.linalg.norm(Jt, axis=0)  # scale columns first: σ0 ~ 1e5 next to vs ~ 1e-2
     col[col == 0.0] = 1.0
     Js = Jt / col
@@ -286,39 +286,55 @@ _GRID_LAMBDA = np.geomspace(1e-4, 0.3, 16)
 _GRID_SIGMA1 = (-10.0, -3.0, -1.0, 0.0, 1.0, 3.0)
 
 
+#: Stribeck velocities tried with the grid, as multiples of the data-derived
+#: start: the decelerating-branch estimate can be far too large when the
+#: Stribeck peak rises above Fc, and from there the fit slides into a
+#: degenerate basin (vs above the stroke's velocities, Fc traded against σ2).
+_GRID_VS = (1.0, 0.3, 0.1)
+
+
 def _grid_starts(rec: _Record, theta0: np.ndarray, vmax: float, amp: float, k: int = 2) -> list[np.ndarray]:
-    """The k best (σ0, σ1) of a batched grid of Q, the other four at their
+    """The k best (σ0, σ1, vs) of a batched grid of Q, the other three at their
     data-derived starting values; the slope-based σ0 (with σ1 = 0) competes."""
     scale = theta0[3] / max(vmax, 1e-9)
     cands = [theta0.copy()]
-    for lam in _GRID_LAMBDA:
-        for s1 in _GRID_SIGMA1:
-            th = theta0.copy()
-            th[0] = theta0[3] / (lam * amp)
-            th[1] = s1 * scale
-            cands.append(th)
+    for vs_mul in _GRID_VS:
+        for lam in _GRID_LAMBDA:
+            for s1 in _GRID_SIGMA1:
+                th = theta0.copy()
+                th[0] = theta0[3] / (lam * amp)
+                th[1] = s1 * scale
+                th[5] = theta0[5] * vs_mul
+                cands.append(th)
     P = np.array(cands)
     with np.errstate(all="ignore"):
-        R = _model_batch(P, rec) - rec.F
+        R = rec.project(_model_batch(P, rec) - rec.F)
     q = np.where(np.isfinite(R).all(axis=1), np.einsum("ij,ij->i", R, R), np.inf)
     order = np.argsort(q)
     out: list[np.ndarray] = []
     for i in order.tolist():
         # distinct basins: skip candidates next to one already taken
-        if all(abs(math.log(P[i, 0] / o[0])) > 1.0 or abs(P[i, 1] - o[1]) > 1.5 * scale for o in out):
+        if all(abs(math.log(P[i, 0] / o[0])) > 1.0 or abs(P[i, 1] - o[1]) > 1.5 * scale
+               or abs(math.log(P[i, 5] / o[5])) > 1.0 for o in out):
             out.append(P[i])
         if len(out) == k:
             break
     return out
 
 
-def _fit_one_current(windows, method: str, starts_max: int = 2):
+def _fit_one_current(windows, method: str, starts_max: int = 2, X: np.ndarray | None = None):
     """Fit Θ at one current over its windows: data-derived start, the
     ``starts_max`` best distinct (σ0, σ1) grid points, one optimiser run from
-    each, the lowest Q kept. Returns (θ, problem, p, notes, nfev, θ0, starts)."""
-    rec = _window_record(windows)
+    each, the lowest Q kept. ``X``: linear terms at the fit samples (offset,
+    stiffness), solved exactly for every Θ. Returns (θ, problem, p, notes,
+    nfev, θ0, starts)."""
+    rec = _window_record(windows, X)
     vf, Ff = rec.v[rec.fit], rec.F
     hf = rec.h[rec.fit]
+    if X is not None:  # the start on the force without its linear terms (regressed with the branches)
+        A = np.column_stack([X, vf, np.sign(vf)])
+        beta = np.linalg.lstsq(A, Ff, rcond=None)[0][:X.shape[1]]
+        Ff = Ff - X @ beta
     theta0, notes = initial_guess(vf, Ff, hf)
     vmax = float(np.percentile(np.abs(vf), 99.5))
     amp = 0.5 * float(np.ptp(np.cumsum(vf * hf)))  # stroke amplitude from ∫v dt
@@ -327,9 +343,11 @@ def _fit_one_current(windows, method: str, starts_max: int = 2):
         notes["sigma0"] = (f"best of a Q grid (pre-sliding length Fc/σ0 = 1e-4…0.3 × stroke); "
                            f"slope estimate was {theta0[0]:.4g}")
         notes["sigma1"] = "best of a Q grid (0, ±1, ±3, −10 × Fc/max|v|)"
+    if starts[0][5] != theta0[5]:
+        notes["vs"] += f"; {starts[0][5] / theta0[5]:.1f} × that, the best of a Q grid"
     linear = method in _LINEAR
     best = None
-    total_nfev = len(_GRID_LAMBDA) * len(_GRID_SIGMA1) + 1
+    total_nfev = len(_GRID_VS) * len(_GRID_LAMBDA) * len(_GRID_SIGMA1) + 1
     for th in starts:
         prob = _Problem(rec, th, vmax, linear=linear)
         p, _ = _optimise(prob, method)

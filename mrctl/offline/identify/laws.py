@@ -45,15 +45,20 @@ def _langevin_np(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fit_Fc_law(I: np.ndarray, Fc: np.ndarray, F0_fixed: float | None = None) -> tuple[float, float, float]:
-    """(Ac, Bc, F0) of eq (6) by variable projection: for each Bc, Ac and F0 are linear."""
-    from scipy.optimize import minimize_scalar
+def _fit_Fc_law(I: np.ndarray, Fc: np.ndarray, F0_fixed: float | None = None,
+                F0_min: float | None = None) -> tuple[float, float, float]:
+    """(Ac, Bc, F0) of eq (6) by variable projection: for each Bc, Ac and F0 are
+    linear. With ``F0_min``, bounded: Ac ≥ 0 and F0 ≥ F0_min, so Fc ≥ F0_min
+    at every input (the squared Langevin function is ≥ 0)."""
+    from scipy.optimize import lsq_linear, minimize_scalar
 
     def solve(Bc: float) -> tuple[float, float, float]:
         L2 = _langevin_np(I / Bc) ** 2
         if F0_fixed is None:
             A = np.column_stack([L2, np.ones_like(L2)])
             (Ac, F0), *_ = np.linalg.lstsq(A, Fc, rcond=None)
+            if F0_min is not None and (Ac < 0.0 or F0 < F0_min):
+                Ac, F0 = lsq_linear(A, Fc, bounds=([0.0, F0_min], [np.inf, np.inf])).x
         else:
             y = Fc - F0_fixed
             Ac = float(L2 @ y / (L2 @ L2)) if L2 @ L2 > 0 else 0.0
@@ -91,11 +96,36 @@ _LINEAR_LAWS = (("sigma0", "sigma0A", "sigma0B", "(7)"), ("sigma1", "sigma1A", "
                 ("vs", "vsA", "vsB", "(11)"))
 
 
-def fit_laws(I: np.ndarray, thetas: Mapping[str, np.ndarray], F0: str = "fit") -> tuple[LuGreParams, dict[str, LawFit]]:
+def _linear_law(I: np.ndarray, y: np.ndarray, lower: float | None) -> tuple[float, float]:
+    """(A, B) of y ≈ A·I + B; with ``lower``, bounded so that the law is ≥ lower
+    at both ends of [min I, max I], hence everywhere between (it is linear)."""
+    lo, hi = float(I.min()), float(I.max())
+    if hi - lo <= 0.0:
+        return 0.0, float(np.mean(y))
+    (a, b), *_ = np.linalg.lstsq(np.column_stack([I, np.ones_like(I)]), y, rcond=None)
+    if lower is None or (a * lo + b >= lower and a * hi + b >= lower):
+        return float(a), float(b)
+    from scipy.optimize import lsq_linear
+
+    s = (I - lo) / (hi - lo)
+    q_lo, q_hi = lsq_linear(np.column_stack([1.0 - s, s]), y, bounds=([lower, lower], [np.inf, np.inf])).x
+    a = (q_hi - q_lo) / (hi - lo)
+    return float(a), float(q_lo - a * lo)
+
+
+#: laws kept at or above a floor over the fitted range when bounded (σ1 may change sign)
+_FLOORED = {"sigma0", "sigma2", "Fs", "vs"}
+
+
+def fit_laws(I: np.ndarray, thetas: Mapping[str, np.ndarray], F0: str = "fit",
+             floors: Mapping[str, float] | None = None) -> tuple[LuGreParams, dict[str, LawFit]]:
     """Laws (6)–(11) fitted to per-current values (arrays indexed like I).
 
     ``F0``: "fit" (eq 6's offset fitted with Ac, Bc) or "measured" (F0 pinned
-    to the identified Fc at the smallest current, which must be 0 A)."""
+    to the identified Fc at the smallest current, which must be 0 A).
+    ``floors``: the least value each of sigma0, sigma2, Fs, vs and Fc may take
+    over [min I, max I]; the laws are then fitted within those bounds (the
+    unbounded least-squares fit whenever it already stays above them)."""
     I = np.asarray(I, float)
     laws: dict[str, LawFit] = {}
     values: dict[str, float] = {}
@@ -106,17 +136,19 @@ def fit_laws(I: np.ndarray, thetas: Mapping[str, np.ndarray], F0: str = "fit") -
         if I[k] > 1e-9:
             raise IdentificationError("F0 = 'measured' needs a run at 0 A")
         F0_fixed = float(Fc[k])
-    Ac, Bc, F0v = _fit_Fc_law(I, Fc, F0_fixed)
+    if I.size == 1 or float(np.ptp(I)) == 0.0:  # one level: constant laws (valid there only)
+        Ac, Bc, F0v = 0.0, 1.0, float(np.mean(Fc))
+    else:
+        Ac, Bc, F0v = _fit_Fc_law(I, Fc, F0_fixed, None if floors is None else floors.get("Fc"))
     # Table I writes Bc < 0; the square makes its sign irrelevant: keep the paper's
     Bc = -abs(Bc)
     values.update(F0=F0v, Ac=Ac, Bc=Bc)
     p_tmp = LuGreParams(F0=F0v, Ac=Ac, Bc=Bc)
     Fc_hat = np.array([p_tmp.Fc(float(i)) for i in I])
     laws["Fc"] = _law_stats("Fc", "Fc = Ac·(coth(I/Bc) − Bc/I)² + F0   (6)", {"Ac": Ac, "Bc": Bc, "F0": F0v}, Fc, Fc_hat)
-    X = np.column_stack([I, np.ones_like(I)])
     for name, kA, kB, eq in _LINEAR_LAWS:
         y = np.asarray(thetas[name], float)
-        (a, b), *_ = np.linalg.lstsq(X, y, rcond=None)
+        a, b = _linear_law(I, y, floors.get(name) if floors is not None and name in _FLOORED else None)
         values[kA], values[kB] = float(a), float(b)
         laws[name] = _law_stats(name, f"{name} = {kA}·I + {kB}   {eq}", {kA: float(a), kB: float(b)}, y, a * I + b)
     return LuGreParams(**values), laws

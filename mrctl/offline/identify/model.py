@@ -59,8 +59,12 @@ class _Record:
     reset: np.ndarray  # index of each window's first sample
     fit: np.ndarray  # indices of the samples in Q
     F: np.ndarray  # measured force at the fit samples (N)
+    #: terms the force is linear in, at the fit samples (columns: 1 for an
+    #: offset, x for a stiffness); None = the LuGre force alone
+    X: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        self.Qx = np.linalg.qr(self.X)[0] if self.X is not None and self.X.size else None
         v = self.v
         vm = np.empty_like(v)
         vm[1:] = 0.5 * (v[1:] + v[:-1])  # mid-step velocity, as LuGreModel.advance
@@ -73,6 +77,23 @@ class _Record:
         self.abs_vf = np.abs(vf)
         self.vf2 = vf * vf
         self.v0 = v[self.reset]
+
+    def project(self, R: np.ndarray) -> np.ndarray:
+        """Residuals with the best linear terms removed (variable projection:
+        an offset and a stiffness are solved exactly for every Θ)."""
+        if self.Qx is None:
+            return R
+        return R - (R @ self.Qx) @ self.Qx.T
+
+    def linear_terms(self, F_model: np.ndarray) -> np.ndarray:
+        """The coefficients of X that best explain F − F_model (empty without X)."""
+        if self.X is None:
+            return np.zeros(0)
+        return np.linalg.lstsq(self.X, self.F - F_model, rcond=None)[0]
+
+    def with_terms(self, F_model: np.ndarray) -> np.ndarray:
+        """F_model plus the best linear terms."""
+        return F_model if self.X is None else F_model + self.X @ self.linear_terms(F_model)
 
 
 def _model_batch(P: np.ndarray, rec: _Record, z0: float | None = None) -> np.ndarray:
@@ -122,8 +143,10 @@ def lugre_force(theta: Sequence[float] | Mapping[str, float], v: np.ndarray, dt:
     return _model_batch(np.asarray(theta, float).reshape(1, 6), rec, z0)[0]
 
 
-def _window_record(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]) -> _Record:
-    """Concatenate (v, F, h, n_warm) windows into one record with state resets."""
+def _window_record(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]],
+                   X: np.ndarray | None = None) -> _Record:
+    """Concatenate (v, F, h, n_warm) windows into one record with state resets;
+    ``X``: linear terms at the fit samples (see :class:`_Record`)."""
     vs_, hs, Fs_, fit, reset = [], [], [], [], []
     off = 0
     for v, F, h, nw in windows:
@@ -134,5 +157,5 @@ def _window_record(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]
         Fs_.append(F[nw:])
         off += v.size
     return _Record(np.concatenate(vs_), np.concatenate(hs), np.asarray(reset), np.concatenate(fit),
-                   np.concatenate(Fs_))
+                   np.concatenate(Fs_), X)
 

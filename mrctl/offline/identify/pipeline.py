@@ -17,6 +17,7 @@ import numpy as np
 
 from mrctl.offline.identify.errors import IdentificationError, require_scipy
 from mrctl.offline.identify.fit import DEFAULT_METHOD, METHODS, _fit_one_current, _identifiability, _noise_N
+from mrctl.offline.identify.guards import Support, check_laws, theta_problems
 from mrctl.offline.identify.laws import fit_laws, theta_from_params
 from mrctl.offline.identify.model import THETA_NAMES, _model_batch
 from mrctl.offline.identify.result import CurrentFit, IdentificationResult, write_params_yaml
@@ -31,7 +32,8 @@ ProgressFn = Callable[[int, int, float, float, float], None]
 def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
              settle_periods: float = 1.0, warmup_periods: float = 1.0, fit_periods: float | None = None,
              max_rate_hz: float | None = 2000.0, period_s: float | None = None, F0: str = "fit",
-             progress: ProgressFn | None = None, sources: Sequence[str] | None = None) -> IdentificationResult:
+             progress: ProgressFn | None = None, sources: Sequence[str] | None = None,
+             offset: bool = False, stiffness: bool = False) -> IdentificationResult:
     """Identify the 13 LuGre constants from constant-current sine runs.
 
     Args:
@@ -43,15 +45,21 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
         warmup_periods: periods the candidate model runs before Q is
             accumulated (taken from the settling part when it is long enough).
         fit_periods: whole periods per segment in Q (None: all available).
-        max_rate_hz: records sampled faster are decimated (plain subsampling).
+        max_rate_hz: records sampled faster are decimated (anti-aliased).
         period_s: excitation period; estimated from the velocity if None.
         F0: "fit" or "measured" (see :func:`fit_laws`).
         progress: called after each current as
             ``progress(index, total, current_A, elapsed_s, nrmse)``, index 1-based,
             elapsed since the start of identify.
         sources: a name per run for messages and the YAML (default "run 1"…).
+        offset: fit a constant force offset at every current (a real
+            bench's load-cell zero, accumulator preload), solved exactly for
+            every Θ; the set's F_offset is their mean weighted by samples.
+        stiffness: fit a stiffness k_x on the displacement too (needs x_meas or x).
     Raises:
-        IdentificationError: bad or insufficient input, with a message for the user.
+        IdentificationError: bad or insufficient input, with a message for the
+            user; also a fit that leaves what the data support (a per-current
+            Θ or a law over the identified range): no absurd set is returned.
         DependencyMissing: scipy is not installed.
     """
     if method not in METHODS:
@@ -70,6 +78,9 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
     t_start = time.perf_counter()
     warnings: list[str] = []
     checked = [_check_run(r, lab) for r, lab in zip(runs, labels)]
+    if stiffness and not all("x" in c for c in checked):
+        raise IdentificationError("stiffness: needs a displacement column (x_meas or x) in every run")
+    use_x = stiffness
     dts = decimate(checked, labels, max_rate_hz, warnings)
     T = common_period(checked, labels, period_s)
     groups = fit_windows(checked, labels, dts, T, settle_periods, warmup_periods, fit_periods, warnings)
@@ -81,6 +92,7 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
         windows = []
         Iapp = []
         segs_info = []
+        Xs, xs = [], []
         for r, w0, f0, f1 in groups[I_cmd]:
             c = checked[r]
             h = np.empty(f1 - w0)
@@ -89,9 +101,17 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
             windows.append((c["v"][w0:f1], c["F"][w0:f1], h, f0 - w0))
             Iapp.append(c.get("I_applied", c["I"])[f0:f1])
             segs_info.append((r, float(c["t"][f0]), float(c["t"][f1 - 1])))
-        theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method)
+            cols = ([np.ones(f1 - f0)] if offset else []) + ([c["x"][f0:f1]] if use_x else [])
+            Xs.append(np.column_stack(cols) if cols else None)
+            if "x" in c:
+                xs.append(c["x"][f0:f1])
+        X = np.vstack(Xs) if Xs[0] is not None else None
+        theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method, X=X)
         rec = prob.rec
         F_fit = _model_batch(theta[None, :], rec)[0]
+        beta = rec.linear_terms(F_fit)
+        off_k = (float(beta[0]) if offset else 0.0, float(beta[-1]) if use_x else 0.0)
+        F_fit = rec.with_terms(F_fit)
         res = F_fit - rec.F
         rms = float(np.sqrt(np.mean(res * res)))
         ptp = float(np.ptp(rec.F))
@@ -109,23 +129,37 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
             segments=segs_info, v=rec.v[rec.fit].copy(), F_meas=rec.F.copy(), F_fit=F_fit,
         )
         cf._rec = rec  # type: ignore[attr-defined]  # for the law-based NRMSE below
+        cf._x = np.concatenate(xs) if use_x else None  # type: ignore[attr-defined]
+        cf.offset_N, cf.k_x = off_k
+        cf._support = Support.of(rec.F - (rec.X @ beta if rec.X is not None else 0.0), rec.v[rec.fit],  # type: ignore[attr-defined]
+                                 np.concatenate(xs) if xs else None)
+        problems = theta_problems(cf.theta, cf._support, f"{cf.current:.4g} A")  # type: ignore[attr-defined]
+        if problems:
+            raise IdentificationError("the fit at a current is not physical, so no parameters file was written:\n  "
+                                      + "\n  ".join(problems))
         fits.append(cf)
         if progress is not None:
             progress(gi + 1, total, cf.current, time.perf_counter() - t_start, cf.nrmse)
 
     I_arr = np.array([f.current for f in fits])
-    params, laws = fit_laws(I_arr, {k: np.array([f.theta[k] for f in fits]) for k in THETA_NAMES}, F0)
+    sup = max((f._support for f in fits), key=lambda q: q.F_amp)  # type: ignore[attr-defined]
+    params, laws = fit_laws(I_arr, {k: np.array([f.theta[k] for f in fits]) for k in THETA_NAMES}, F0,
+                            floors=sup.floors())
+    if offset or use_x:
+        w = np.array([f.samples for f in fits], float)
+        params = params.with_overrides(F_offset=float(np.average([f.offset_N for f in fits], weights=w)),
+                                       k_x=float(np.average([f.k_x for f in fits], weights=w)))
+    check_laws(params, float(I_arr.min()), float(I_arr.max()), sup)
     for f in fits:
         th = theta_from_params(params, f.current)
         rec = f._rec  # type: ignore[attr-defined]
-        if th[0] > 0 and th[3] > 0 and th[4] > 0 and th[5] != 0:
-            with np.errstate(all="ignore"):
-                F_law = _model_batch(th[None, :], rec)[0]
-            f.F_laws = F_law
-            f.nrmse_laws = float(np.sqrt(np.mean((F_law - rec.F) ** 2))) / f.ptp_N
-        del f._rec  # type: ignore[attr-defined]
-    problems = params.check_range(float(I_arr.max()))
-    warnings += [f"fitted laws: {p_}" for p_ in problems]
+        with np.errstate(all="ignore"):
+            F_law = _model_batch(th[None, :], rec)[0] + params.F_offset
+        if f._x is not None:  # type: ignore[attr-defined]
+            F_law = F_law + params.k_x * f._x  # type: ignore[attr-defined]
+        f.F_laws = F_law
+        f.nrmse_laws = float(np.sqrt(np.mean((F_law - rec.F) ** 2))) / f.ptp_N
+        del f._rec, f._x, f._support  # type: ignore[attr-defined]
     return IdentificationResult(params=params, fits=fits, laws=laws, method=method, period_s=T,
                                 dt_s=float(np.median(dts)), settle_periods=settle_periods,
                                 warmup_periods=warmup_periods, fit_periods=fit_periods,
@@ -151,6 +185,8 @@ def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLi
         raise IdentificationError("no run CSV given")
     require_scipy()
     runs = [load_identification_run(p) for p in paths]
+    if kwargs.get("stiffness") == "auto":  # fit it where every run has a displacement column
+        kwargs["stiffness"] = all(("x" in r or "x_meas" in r) for r in runs)
     result = identify(runs, method=method, progress=progress, sources=[str(p) for p in paths], **kwargs)
     write_params_yaml(result, out)
     return result

@@ -45,6 +45,8 @@ class CurrentFit:
     sensitivity: dict[str, float] = field(default_factory=dict)  # |Δθ|/|θ| moving F by 1 % of ptp
     corr: list[list[float]] = field(default_factory=list)
     determined: dict[str, str] = field(default_factory=dict)  # "well" / "poor"
+    offset_N: float = 0.0  # fitted force offset at this current (0 unless identify(offset=True))
+    k_x: float = 0.0  # fitted stiffness (N/m) (0 unless identify(stiffness=True))
     nfev: int = 0
     starts: int = 1
     time_s: float = 0.0
@@ -118,6 +120,7 @@ def result_metadata(result: IdentificationResult) -> dict[str, Any]:
             "theta": {k: _r(v) for k, v in f.theta.items()},
             "nrmse": _r(f.nrmse, 4), "nrmse_noise_floor": _r(f.noise_nrmse, 4), "nrmse_laws": _r(f.nrmse_laws, 4),
             "rms_N": _r(f.rms_N, 4), "noise_N": _r(f.noise_N, 4),
+            "offset_N": _r(f.offset_N), "k_x": _r(f.k_x),
             "std_error": {k: _r(v, 3) for k, v in f.se.items()},
             "rel_std_error": {k: _r(v, 3) for k, v in f.rel_se.items()},
             "sensitivity_1pct": {k: _r(v, 3) for k, v in f.sensitivity.items()},

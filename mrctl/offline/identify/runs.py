@@ -23,6 +23,10 @@ from mrctl.util.csvtable import CsvError, read_table
 
 __all__ = ["load_identification_run", "estimate_period"]
 
+#: what to do with measured data these runs' rules refuse
+_DATASET_HINT = (" (measured data with a switched, broadband or voltage input: describe it in a dataset and use "
+                 "mrctl identify --dataset, docs/identification.md)")
+
 # A commanded current that changes by more than this starts a new segment (A).
 _SEGMENT_TOL_A = 1e-6
 
@@ -79,8 +83,12 @@ def _check_run(run: Mapping[str, Any], label: str) -> dict[str, np.ndarray]:
     _, Ia = _pick(run, ("I_applied",))
     if Ia is not None:
         cols["I_applied"] = Ia.reshape(-1)
+    xname, xa = _pick(run, ("x_meas", "x"))
+    if xa is not None:
+        cols["x"] = xa.reshape(-1)
+        cols["x_name"] = xname  # type: ignore[assignment]
     n = cols["t"].size
-    for key in ("t", "I", "F", "v", "I_applied"):
+    for key in ("t", "I", "F", "v", "I_applied", "x"):
         if key not in cols:
             continue
         if cols[key].size != n:
@@ -98,7 +106,8 @@ def _check_run(run: Mapping[str, Any], label: str) -> dict[str, np.ndarray]:
         raise IdentificationError(f"{label}: time t is not strictly increasing at sample {k + 1} "
                                   f"(t = {cols['t'][k]:g} → {cols['t'][k + 1]:g} s)")
     if np.any(cols["I"] < -1e-9):
-        raise IdentificationError(f"{label}: negative current in column I (min {cols['I'].min():g} A)")
+        raise IdentificationError(f"{label}: negative current in column I (min {cols['I'].min():g} A)"
+                                  f"{_DATASET_HINT}")
     return cols
 
 
@@ -139,7 +148,8 @@ def estimate_period(t: np.ndarray, v: np.ndarray) -> float:
     if spread > 0.05 * T:
         raise IdentificationError(
             f"the excitation is not periodic (period varies {np.percentile(d, 10):.3g}–{np.percentile(d, 90):.3g} s); "
-            "identification needs a constant-frequency sine stroke (or pass period_s)")
+            "identification needs a constant-frequency sine stroke: pass the period (mrctl identify --period S), "
+            "or describe the record in a dataset (--dataset, docs/identification.md) to estimate it per segment")
     return T
 
 
@@ -151,18 +161,29 @@ def _segments(I: np.ndarray) -> list[tuple[int, int]]:
 
 def decimate(checked: list[dict[str, np.ndarray]], labels: Sequence[str], max_rate_hz: float | None,
              warnings: list[str]) -> list[float]:
-    """Subsample (in place) the checked runs sampled faster than ``max_rate_hz``;
-    returns each run's sample interval (s) after that."""
+    """Decimate (in place) the checked runs sampled faster than ``max_rate_hz``;
+    returns each run's sample interval (s) after that.
+
+    Anti-aliased: the measured signals (F, v, x, I_applied) go through a
+    zero-phase FIR low-pass at 0.8 × the new Nyquist frequency
+    (``scipy.signal.resample_poly``, linear edge padding) before every
+    ``step``-th sample is kept; t and the commanded current I, a staircase
+    the segments are cut on, are subsampled."""
+    from scipy.signal import resample_poly
+
     dts = []
     for c, lab in zip(checked, labels):
         dt = float(np.median(np.diff(c["t"])))
         if max_rate_hz is not None and dt < 1.0 / max_rate_hz * 0.999:
             step = int(round(1.0 / (max_rate_hz * dt)))
             if step > 1:
-                for key in ("t", "I", "F", "v", "I_applied"):
+                n = c["t"][::step].size
+                for key in ("F", "v", "I_applied", "x"):
                     if key in c:
-                        c[key] = c[key][::step]
-                warnings.append(f"{lab}: decimated by {step} to {1.0 / (dt * step):.0f} Hz")
+                        c[key] = resample_poly(c[key], 1, step, padtype="line")[:n]
+                for key in ("t", "I"):
+                    c[key] = c[key][::step]
+                warnings.append(f"{lab}: decimated by {step} to {1.0 / (dt * step):.0f} Hz (anti-aliased)")
                 dt *= step
         dts.append(dt)
     return dts
@@ -208,7 +229,8 @@ def fit_windows(checked: list[dict[str, np.ndarray]], labels: Sequence[str], dts
         if len(segs) > max(50, 4 * (t[-1] - t[0]) / T):
             raise IdentificationError(
                 f"{lab}: the commanded current changes {len(segs) - 1} times; identification needs steps of "
-                "constant current (inverse law 'schedule' or 'constant'), not a closed-loop run")
+                "constant current (inverse law 'schedule' or 'constant'), not a closed-loop run"
+                f"{_DATASET_HINT}")
         for si, (a, b) in enumerate(segs):
             I_cmd = float(c["I"][a])
             dur = t[b - 1] - t[a] + dt

@@ -1,0 +1,224 @@
+#!/usr/bin/env python3
+"""Identify every shipped dataset (``config/datasets/*.yaml``) and print the tables.
+
+The data are real measurements from other labs, read from ``../shared/data``
+(never copied into mrctl): a dataset whose files are not on this machine is
+skipped with the reason. Per dataset:
+
+- broadband (NEES): held-out force NRMSE per record for the shipped model
+  and for the comparisons the docs quote: without the inertia term, without
+  the input lag (the command applied at once), and both; fitted τ;
+- constant input (Labcontrol): per record and level, with the offset and
+  stiffness and without; per level the median and range over its records,
+  with the per-level Θ and with the final laws (6)–(11);
+- the time of the shipped fit: median of ``--repeat`` runs, with the
+  machine it ran on (identification is single-threaded numpy).
+
+Usage: python bench/identify_real.py [--repeat 3] [--only NAME] [--figures DIR] [--json OUT]
+(``--figures docs/img`` redraws the documentation's figures.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mrctl.config.dataset import load_dataset  # noqa: E402
+from mrctl.errors import MrctlError  # noqa: E402
+from mrctl.offline.identify import identify_dataset  # noqa: E402
+
+DATASETS = ROOT / "config" / "datasets"
+
+
+def machine() -> str:
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    cpu = "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.node()}: {os.cpu_count()} CPU(s) {cpu}, Python {platform.python_version()}, load {load:.2f}"
+
+
+def run(path: Path, **kw):
+    t0 = time.perf_counter()
+    try:
+        res = identify_dataset(path, **kw)
+    except MrctlError as exc:
+        return None, str(exc).splitlines()[0], time.perf_counter() - t0
+    return res, None, time.perf_counter() - t0
+
+
+def model_speed(res, n: int = 14900, repeat: int = 5) -> dict:
+    """One simulation over n samples: the plant's plain-float tick loop against the
+    batched scan for one parameter set and for a Jacobian's batch (value + 17 columns)."""
+    from mrctl.model.plant import DamperPlant
+    from mrctl.offline.identify.bbmodel import PHYS, SpanData, from_params, simulate
+
+    rng = np.random.default_rng(0)
+    dt = 1e-3
+    t = np.arange(n) * dt
+    v = 0.2 * np.sin(2 * np.pi * 7 * t) + 0.1 * np.sin(2 * np.pi * 23 * t)
+    x = np.cumsum(v) * dt
+    u = np.repeat(rng.choice([0.0, res.input_range[1]], n // 50 + 1), 50)[:n]
+    sp = SpanData(u, v, x, np.zeros(n), dt)
+    P = from_params(res.params, *res.input_range)
+    batch = np.repeat(P[None, :], len(PHYS) + 1, axis=0)
+
+    def best(fn):
+        ts = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        return 1e3 * min(ts)
+
+    def loop():
+        plant = DamperPlant(res.params, dt)
+        tick = plant.tick
+        for vk, uk, xk in zip(v.tolist(), u.tolist(), x.tolist()):
+            tick(vk, uk, xk)
+
+    out = {"samples": n, "plain_loop_ms": best(loop),
+           "batched_one_ms": best(lambda: simulate(P[None, :], sp, *res.input_range)),
+           "batched_jacobian_ms": best(lambda: simulate(batch, sp, *res.input_range)), "rows": batch.shape[0]}
+    print(f"  one simulation over {n} samples (best of {repeat}): plant tick loop {out['plain_loop_ms']:.0f} ms, "
+          f"batched scan {out['batched_one_ms']:.1f} ms, a batch of {out['rows']} (value + Jacobian) "
+          f"{out['batched_jacobian_ms']:.0f} ms ({out['rows'] * out['plain_loop_ms'] / out['batched_jacobian_ms']:.0f}x "
+          "the loop)")
+    return out
+
+
+def broadband(path: Path, ds, repeat: int, out: dict) -> object:
+    shipped = {k: bool(ds.model.get(k)) for k in ("offset", "stiffness", "lag", "inertia")}
+    variants = [("shipped", {})]
+    if shipped["inertia"]:
+        variants.append(("no inertia term", {"inertia": False}))
+    variants += [("no input lag", {"lag": False, "inertia": False})]
+    rows, first = [], None
+    times = []
+    for name, model in variants:
+        res, err, dt = run(path, model=model)
+        if name == "shipped":
+            first = res
+            times.append(dt)
+            for _ in range(repeat - 1):
+                times.append(run(path)[2])
+        if res is None:
+            rows.append({"variant": name, "error": err})
+            continue
+        rows.append({"variant": name, "tau_ms": 1e3 * res.params.tau_input, "inertia_kg": res.inertia_kg,
+                     "holdout": {s.record: s.nrmse for s in res.holdout},
+                     "fit": {s.record: s.nrmse for s in res.train}})
+    print(f"\n{ds.name} (broadband; model as shipped: {', '.join(k for k, v in shipped.items() if v)})")
+    recs = list(rows[0].get("holdout", {}))
+    print(f"  {'variant':<18} {'tau (ms)':>9} {'m (kg)':>7} " + " ".join(f"{r + ' held out':>20}" for r in recs))
+    for r in rows:
+        if "error" in r:
+            print(f"  {r['variant']:<18} refused: {r['error']}")
+            continue
+        print(f"  {r['variant']:<18} {r['tau_ms']:9.2f} {r['inertia_kg']:7.2f} "
+              + " ".join(f"{100 * r['holdout'].get(k, float('nan')):19.2f}%" for k in recs))
+    print(f"  time of the shipped fit: median {statistics.median(times):.1f} s of {len(times)} "
+          f"(min {min(times):.1f}, max {max(times):.1f})")
+    out[ds.name] = {"protocol": "broadband", "variants": rows, "time_s": times}
+    if first is not None:
+        out[ds.name]["model_speed"] = model_speed(first)
+    return first
+
+
+def constant_input(path: Path, ds, repeat: int, out: dict) -> object:
+    res, err, dt = run(path)
+    times = [dt] + [run(path)[2] for _ in range(repeat - 1)]
+    plain, perr, _ = run(path, model={"offset": False, "stiffness": False})
+    if res is None:
+        print(f"\n{ds.name}: refused: {err}")
+        out[ds.name] = {"error": err}
+        return None
+    no_off = {(s.record, s.level): s.nrmse for s in (plain.holdout if plain else [])}
+    print(f"\n{ds.name} (constant input; held-out force NRMSE per record, the second half of its steady cycles)")
+    print(f"  {'record':<16} {'level':>7} {'offset':>8} {'laws':>8} {'no offset':>10}")
+    for s in res.holdout:
+        nf = no_off.get((s.record, s.level))
+        print(f"  {s.record:<16} {s.level:7.4g} {100 * s.nrmse:7.2f}% {100 * s.nrmse_laws:7.2f}% "
+              + (f"{100 * nf:9.2f}%" if nf is not None else f"{'refused' if perr else '-':>10}"))
+    levels = sorted({s.level for s in res.holdout})
+    per_level = []
+    print(f"\n  per level ({res.unit}): median [min–max] over its records")
+    print(f"  {'level':>7} {'records':>7} {'with offset':>20} {'with laws':>20} {'no offset':>20} {'beats':>6}")
+    for lv in levels:
+        a = [s.nrmse for s in res.holdout if s.level == lv]
+        b = [s.nrmse_laws for s in res.holdout if s.level == lv]
+        c = [no_off[(s.record, s.level)] for s in res.holdout if s.level == lv and (s.record, s.level) in no_off]
+
+        def f(x):
+            return f"{100 * statistics.median(x):5.2f} [{100 * min(x):.2f}–{100 * max(x):.2f}]" if x else "-"
+
+        beats = bool(c) and max(a) < min(c)
+        per_level.append({"level": lv, "records": len(a), "median": statistics.median(a), "min": min(a),
+                          "max": max(a), "median_laws": statistics.median(b),
+                          "median_no_offset": statistics.median(c) if c else None, "beats_no_offset": beats})
+        print(f"  {lv:7.4g} {len(a):7d} {f(a):>20} {f(b):>20} {f(c):>20} {'yes' if beats else 'NO':>6}")
+    p = res.params
+    print(f"  final set: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m; time median "
+          f"{statistics.median(times):.1f} s of {len(times)}")
+    out[ds.name] = {"protocol": "constant_input", "holdout": [s.as_dict() for s in res.holdout],
+                    "no_offset": {f"{k[0]}@{k[1]}": v for k, v in no_off.items()}, "per_level": per_level,
+                    "time_s": times, "no_offset_error": perr}
+    return res
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeat", type=int, default=1, help="runs of each shipped fit for the time (median)")
+    ap.add_argument("--only", help="only the dataset with this name")
+    ap.add_argument("--figures", help="write each shipped fit's figure here (NAME.png)")
+    ap.add_argument("--json", help="write every number to this JSON file")
+    args = ap.parse_args()
+    print(machine())
+    out: dict = {"machine": machine()}
+    for path in sorted(DATASETS.glob("*.yaml")):
+        try:
+            ds = load_dataset(path)
+        except MrctlError as exc:
+            print(f"\n{path.name}: skipped: {str(exc).splitlines()[0]}")
+            continue
+        if args.only and ds.name != args.only:
+            continue
+        fn = broadband if ds.protocol == "broadband" else constant_input
+        res = fn(path, ds, max(1, args.repeat), out)
+        if args.figures and res is not None:
+            from mrctl.offline.identify_figure import make_dataset_report
+
+            fig = Path(args.figures) / f"{ds.name}.png"
+            fig.parent.mkdir(parents=True, exist_ok=True)
+            make_dataset_report(res, fig, dpi=80)
+            try:  # a palette PNG: a third of the size, for the docs
+                from PIL import Image
+
+                Image.open(fig).convert("RGB").quantize(colors=64).save(fig, optimize=True)
+            except ImportError:
+                pass
+            print(f"  wrote {fig} ({fig.stat().st_size // 1024} kB)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    sys.exit(main())

@@ -1,0 +1,273 @@
+"""Identification from a dataset description, end to end.
+
+:func:`identify_dataset` reads the records a description names
+(:mod:`.records`), prepares spans at the fit rate (:mod:`.prep`), splits off
+the held-out data, runs the protocol (constant-input sine tests,
+:mod:`.sine`; broadband or switched input, :mod:`.broadband`), checks the
+result (:mod:`.guards`: an absurd set is an error, never a file) and scores
+it on the held-out data. :func:`identify_dataset_file` is what
+``mrctl identify --dataset`` calls: it also writes the parameters YAML and
+the JSON summary beside it.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrctl.config.dataset import load_dataset
+from mrctl.config.params import INPUT_KINDS
+from mrctl.offline.identify.bbmodel import SpanData
+from mrctl.offline.identify.broadband import fit_broadband, predict, warmup_samples
+from mrctl.offline.identify.dataset_result import DatasetResult, Score, Trace, write_dataset_outputs
+from mrctl.offline.identify.errors import IdentificationError, require_scipy
+from mrctl.offline.identify.guards import Support, check_laws, theta_problems
+from mrctl.offline.identify.laws import fit_laws
+from mrctl.offline.identify.model import THETA_NAMES
+from mrctl.offline.identify.prep import Span, prepare
+from mrctl.offline.identify.progress import make_bar
+from mrctl.offline.identify.records import read_records
+from mrctl.offline.identify.sine import find_segments, fit_levels, predict_segment
+from mrctl.util.schema import Node
+
+__all__ = ["identify_dataset", "identify_dataset_file", "parse_holdout"]
+
+_DEFAULT_FRACTION = {"broadband": 0.3, "constant_input": 0.5}
+
+
+def parse_holdout(text: str | None) -> tuple[float | None, list[str] | None]:
+    """``--holdout``: a fraction (0.3), ``none`` (0), or record names (a,b) held out whole."""
+    if text is None:
+        return None, None
+    s = text.strip()
+    if s.lower() == "none":
+        return 0.0, None
+    try:
+        f = float(s)
+    except ValueError:
+        names = [n.strip() for n in s.split(",") if n.strip()]
+        if not names:
+            raise IdentificationError(f"--holdout: {text!r}: give a fraction, none, or record names") from None
+        return None, names
+    if not 0.0 <= f <= 0.9:
+        raise IdentificationError(f"--holdout: {f:g} out of range (a fraction in [0, 0.9], none, or record names)")
+    return f, None
+
+
+def _nrmse(meas: np.ndarray, pred: np.ndarray) -> float:
+    ptp = float(np.ptp(meas)) if meas.size else 0.0
+    return float(np.sqrt(np.mean((pred - meas) ** 2)) / ptp) if ptp > 0 else float("nan")
+
+
+def _spandata(sp: Span, a: int, b: int) -> SpanData:
+    z = np.zeros(b - a)
+    return SpanData(sp.u[a:b], sp.v[a:b], sp.x[a:b] if sp.x is not None else z,
+                    sp.a[a:b] if sp.a is not None else z, sp.dt)
+
+
+def _broadband(ds: Node, spans: list[Span], frac: float, use: dict[str, bool], progress: bool,
+               warnings: list[str]) -> dict[str, Any]:
+    # the held-out part: the last `frac` of each fit record's used samples
+    cuts: dict[int, int] = {}
+    for rec in {s.record for s in spans if s.role == "fit"}:
+        idx = [i for i, s in enumerate(spans) if s.record == rec]
+        total = sum(spans[i].n for i in idx)
+        keep = int(round((1.0 - frac) * total))
+        for i in idx:
+            cuts[i] = int(np.clip(keep, 0, spans[i].n))
+            keep -= spans[i].n
+    fit_parts = [(i, cuts[i]) for i in cuts if cuts[i] > warmup_samples(spans[i].dt) + 10]
+    if not fit_parts:
+        raise IdentificationError("nothing left to fit: every record is held out or too short")
+    if len({round(spans[i].dt, 12) for i, _ in fit_parts}) > 1:
+        raise IdentificationError("the fit records have different sample rates after resampling; set resample_hz")
+    u_fit = np.concatenate([spans[i].u[:c] for i, c in fit_parts])
+    u_lo, u_hi = float(u_fit.min()), float(u_fit.max())
+    F_fit = np.concatenate([spans[i].F[:c] for i, c in fit_parts])
+    sup = Support.of(F_fit, np.concatenate([spans[i].v[:c] for i, c in fit_parts]),
+                     np.concatenate([spans[i].x[:c] for i, c in fit_parts]) if spans[0].x is not None else None)
+    fit = fit_broadband([_spandata(spans[i], 0, c) for i, c in fit_parts], [spans[i].F[:c] for i, c in fit_parts],
+                        u_lo, u_hi, sup, use=use, starts=ds.fit.starts, max_nfev=ds.fit.max_nfev,
+                        progress=progress)
+    unit = INPUT_KINDS[ds.input]
+    check_laws(fit.params, u_lo, u_hi, sup, unit)
+    hold, train, traces = [], [], []
+    for rec in dict.fromkeys(s.record for s in spans):
+        idx = [i for i, s in enumerate(spans) if s.record == rec]
+        mh, ph, mt, pt, th, vh = [], [], [], [], [], []
+        for i in idx:
+            sp = spans[i]
+            w = warmup_samples(sp.dt)
+            Fp = predict(fit, _spandata(sp, 0, sp.n))
+            c = cuts.get(i, 0)
+            a = max(c, w)
+            mh.append(sp.F[a:])
+            ph.append(Fp[a:])
+            th.append(sp.t[a:])
+            vh.append(sp.v[a:])
+            mt.append(sp.F[w:c])
+            pt.append(Fp[w:c])
+            if sp.role == "holdout" and (sp.u.max() > u_hi * 1.0001 + 1e-12 or sp.u.min() < u_lo - 1e-12):
+                warnings.append(f"{rec}: its input ({sp.u.min():.4g}–{sp.u.max():.4g} {unit}) leaves the fitted "
+                                f"range [{u_lo:.4g}, {u_hi:.4g}] {unit}: the laws are extrapolated there")
+        Mh, Ph = np.concatenate(mh), np.concatenate(ph)
+        if Mh.size:
+            hold.append(Score(rec, None, _nrmse(Mh, Ph), int(Mh.size)))
+            traces.append(Trace(rec, None, np.concatenate(th), np.concatenate(vh), Mh, Ph))
+        Mt = np.concatenate(mt)
+        if Mt.size:
+            train.append(Score(rec, None, _nrmse(Mt, np.concatenate(pt)), int(Mt.size), part="fit"))
+    details = {"optimiser": "scipy least_squares (trust-region reflective, bounded), forward-difference "
+                            "Jacobian batched across columns, exact columns for the linear terms",
+               "starts": fit.starts, "model_evaluations": fit.nfev, "fit_time_s": round(fit.time_s, 3),
+               "at_bound": fit.at_bound, "warmup_s": warmup_samples(spans[0].dt) * spans[0].dt,
+               "support": sup.__dict__}
+    return {"params": fit.params, "range": (u_lo, u_hi), "holdout": hold, "train": train, "traces": traces,
+            "details": details, "inertia": fit.inertia_kg}
+
+
+def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, bool], method: str, progress: bool,
+                    warnings: list[str]) -> dict[str, Any]:
+    segs = find_segments(spans, fraction=frac, steady_tol=ds.fit.steady_tolerance, min_cycles=ds.fit.min_cycles,
+                         warnings=warnings)
+    n_levels = len({round(s.level, 9) for s in segs if s.cycles_fit > 0})
+    bar = make_bar(max(n_levels, 1), "identify (levels)", enabled=progress)
+    fits = fit_levels(spans, segs, use=use, method=method, bar=bar)
+    bar.close()
+    unit = INPUT_KINDS[ds.input]
+    problems = []
+    for lf in fits:
+        problems += theta_problems(lf.theta, lf.support, f"level {lf.level:g} {unit}")
+    if problems:
+        raise IdentificationError("the fit at a level is not physical, so no parameters file was written:\n  "
+                                  + "\n  ".join(problems))
+    levels = np.array([lf.level for lf in fits])
+    sup = max((lf.support for lf in fits), key=lambda s: s.F_amp)
+    params, laws = fit_laws(levels, {k: np.array([lf.theta[k] for lf in fits]) for k in THETA_NAMES},
+                            floors=sup.floors())
+    w = np.array([lf.samples for lf in fits], float)
+    off = float(np.average([lf.offset_N for lf in fits], weights=w))
+    kx = float(np.average([lf.k_x for lf in fits], weights=w))
+    params = params.with_overrides(F_offset=off, k_x=kx, tau_input=0.0)
+    u_lo, u_hi = float(levels.min()), float(levels.max())
+    check_laws(params, u_lo, u_hi, sup, unit)
+    if len(fits) == 2:
+        warnings.append("2 levels: Fc's law (6) passes through both, its shape between them is not determined")
+    by_level = {round(lf.level, 9): lf for lf in fits}
+    hold, train, traces = [], [], []
+    from mrctl.offline.identify.laws import theta_from_params
+
+    for rec in dict.fromkeys(s.record for s in segs):
+        for lv in sorted({s.level for s in segs if s.record == rec}):
+            lf = min(fits, key=lambda f: abs(f.level - lv))
+            if abs(lf.level - lv) > 1e-3 * max(abs(lv), 1.0) and round(lv, 9) not in by_level:
+                warnings.append(f"{rec}: level {lv:g} {unit} is held out but no record was fitted at it; "
+                                "not scored")
+                continue
+            th_laws = theta_from_params(params, lf.level)
+            for part, sel in (("holdout", lambda s: s.h1 > s.f1), ("fit", lambda s: s.cycles_fit > 0)):
+                mm, pp, pl, tt, vv = [], [], [], [], []
+                for s in [s for s in segs if s.record == rec and s.level == lv and sel(s)]:
+                    sp = spans[s.span]
+                    start = s.f1 if part == "holdout" else s.f0
+                    m, p = predict_segment(sp, s, lf.theta, lf.offset_N, lf.k_x, start)
+                    end = s.h1 if part == "holdout" else s.f1
+                    m, p = m[:end - start], p[:end - start]
+                    _, pl_ = predict_segment(sp, s, th_laws, off, kx, start)
+                    mm.append(m)
+                    pp.append(p)
+                    pl.append(pl_[:end - start])
+                    tt.append(sp.t[start:end])
+                    vv.append(sp.v[start:end])
+                if not mm:
+                    continue
+                M, P, PL = np.concatenate(mm), np.concatenate(pp), np.concatenate(pl)
+                sc = Score(rec, float(lf.level), _nrmse(M, P), int(M.size), _nrmse(M, PL), part=part)
+                (hold if part == "holdout" else train).append(sc)
+                if part == "holdout":
+                    traces.append(Trace(rec, float(lf.level), np.concatenate(tt), np.concatenate(vv), M, P))
+    details = {"levels": [{"level": lf.level, "theta": lf.theta, "offset_N": lf.offset_N, "k_x": lf.k_x,
+                           "nrmse_fit": lf.nrmse_fit, "samples": lf.samples, "cycles": lf.cycles,
+                           "segments": [{"record": s.record, "t_fit_s": [float(spans[s.span].t[s.f0]),
+                                                                         float(spans[s.span].t[s.f1 - 1])],
+                                         "period_s": s.period_s, "stroke_m": s.stroke_m, "cycles_fit": s.cycles_fit,
+                                         "cycles_holdout": s.cycles_hold} for s in lf.segments],
+                           "time_s": round(lf.time_s, 3)} for lf in fits],
+               "laws": {k: {"rms": lf_.rms, "rel_rms": lf_.rel_rms} for k, lf_ in laws.items()},
+               "tau_input": "not identifiable from constant-input tests: 0"}
+    return {"params": params, "range": (u_lo, u_hi), "holdout": hold, "train": train, "traces": traces,
+            "details": details, "inertia": 0.0}
+
+
+def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | None = None, progress: bool = False,
+                     method: str = "trf", model: dict[str, bool] | None = None, source: str | None = None
+                     ) -> DatasetResult:
+    """Identify a parameter set from the records a dataset description names.
+
+    Args:
+        dataset: path of the description (YAML), or a validated one.
+        holdout: ``--holdout``'s text: a fraction, ``none`` or record names
+            held out whole (overrides the description's).
+        progress: show a progress bar (tqdm, or plain lines without it).
+        model: overrides of the description's ``model`` section (offset,
+            stiffness, lag, inertia), e.g. ``{"lag": False}`` for a comparison.
+    Raises:
+        ConfigError: the description is invalid (every error with its key path).
+        IdentificationError: the data cannot be identified from, or the fit is not physical.
+        DependencyMissing: scipy is not installed.
+    """
+    t0 = time.perf_counter()
+    require_scipy()
+    if isinstance(dataset, Node):
+        ds, src = dataset, source or "(dataset)"
+    else:
+        src = str(dataset)
+        ds = load_dataset(dataset)
+    frac_cli, names = parse_holdout(holdout)
+    records = read_records(ds)
+    if names is not None:
+        unknown = [n for n in names if n not in {r.name for r in records}]
+        if unknown:
+            raise IdentificationError(f"--holdout: no record named {', '.join(unknown)} (records: "
+                                      f"{', '.join(r.name for r in records)})")
+        for r in records:
+            r.role = "holdout" if r.name in names else "fit"
+        if all(r.role == "holdout" for r in records):
+            raise IdentificationError("--holdout: every record would be held out; at least one must be fitted")
+    frac = frac_cli if frac_cli is not None else (0.0 if names is not None else ds.holdout.fraction)
+    if frac is None:
+        frac = _DEFAULT_FRACTION[ds.protocol]
+    use = {k: bool(ds.model.get(k)) for k in ("offset", "stiffness", "lag", "inertia")}
+    use.update(model or {})
+    if ds.protocol == "constant_input":
+        use["lag"] = use["inertia"] = False
+    warnings: list[str] = []
+    spans, info = prepare(records, band_hz=ds.motion_band_hz, resample_hz=ds.resample_hz,
+                          need_accel=use["inertia"], warnings=warnings)
+    if use["stiffness"] and any(s.x is None for s in spans):  # pragma: no cover - the schema checks it
+        use["stiffness"] = False
+    if ds.protocol == "broadband":
+        out = _broadband(ds, spans, frac, use, progress, warnings)
+    else:
+        out = _constant_input(ds, spans, frac, use, method, progress, warnings)
+    if not out["holdout"]:
+        warnings.append("no held-out data (holdout fraction 0 and no record with role: holdout): every score "
+                        "is on data the fit has seen")
+    settings = {"holdout_fraction": frac, "holdout_records": sorted({r.name for r in records if r.role == "holdout"}),
+                "model": use, "records": info["records"], "method": method}
+    return DatasetResult(ds.name or Path(src).stem, src, ds.protocol, ds.input, INPUT_KINDS[ds.input], out["params"],
+                         out["range"], out["holdout"], out["train"], settings, out["details"], out["traces"],
+                         warnings, time.perf_counter() - t0, out["inertia"])
+
+
+def identify_dataset_file(dataset: str | os.PathLike[str], out: str | os.PathLike[str], **kwargs: Any
+                          ) -> DatasetResult:
+    """``mrctl identify --dataset``'s work: identify, then write the YAML and ``PARAMS.json``.
+    Nothing is written unless identification succeeds (errors as :func:`identify_dataset`)."""
+    res = identify_dataset(dataset, **kwargs)
+    write_dataset_outputs(res, out)
+    return res

@@ -1,0 +1,196 @@
+"""What identification from a dataset returns, and how it is written and shown.
+
+:class:`DatasetResult` holds the fitted set, the held-out scores and the
+plotting data; :func:`write_dataset_outputs` writes the parameters YAML
+(``mrctl.config.load_params_file`` reads it: the set, ``input``,
+``input_range``, and a ``fit:`` block) and the JSON summary beside it
+(``PARAMS.json``: settings, the ``holdout`` list of ``{record, level,
+nrmse}``, per-level or per-record figures); :func:`format_dataset_summary`
+is what ``mrctl identify --dataset`` prints.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrctl.model.params import LuGreParams
+from mrctl.offline.identify.errors import IdentificationError
+
+__all__ = ["Score", "Trace", "DatasetResult", "write_dataset_outputs", "format_dataset_summary", "json_path"]
+
+
+@dataclass
+class Score:
+    """Force NRMSE (RMSE / peak-to-peak of the measured force) of one record at one level."""
+
+    record: str
+    level: float | None  # constant-input level; None for a broadband record
+    nrmse: float
+    samples: int
+    nrmse_laws: float | None = None  # with the final set's laws (constant input)
+    part: str = "holdout"  # "holdout" or "fit"
+
+    def as_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"record": self.record, "level": _r(self.level) if self.level is not None else None,
+                             "nrmse": _r(self.nrmse, 5), "samples": self.samples}
+        if self.nrmse_laws is not None:
+            d["nrmse_laws"] = _r(self.nrmse_laws, 5)
+        return d
+
+
+@dataclass
+class Trace:
+    """Measured and predicted force of one record's held-out (or fitted) part, for the figure."""
+
+    record: str
+    level: float | None
+    t: np.ndarray
+    v: np.ndarray
+    F_meas: np.ndarray
+    F_pred: np.ndarray
+    part: str = "holdout"
+
+
+@dataclass
+class DatasetResult:
+    """The fitted set and how good it is on data the fit never saw."""
+
+    name: str
+    source: str
+    protocol: str
+    input: str  # "current" | "voltage"
+    unit: str  # "A" | "V"
+    params: LuGreParams
+    input_range: tuple[float, float]
+    holdout: list[Score]
+    train: list[Score]
+    settings: dict[str, Any]
+    details: dict[str, Any]  # per level (constant input) or the broadband fit
+    traces: list[Trace] = field(default_factory=list, repr=False)
+    warnings: list[str] = field(default_factory=list)
+    time_s: float = 0.0
+    inertia_kg: float = 0.0
+
+    @property
+    def tau_s(self) -> float:
+        return self.params.tau_input
+
+
+def _r(x: float | None, digits: int = 6) -> Any:
+    if x is None:
+        return None
+    x = float(x)
+    if not math.isfinite(x):
+        return None
+    return float(f"{x:.{digits}g}")
+
+
+def json_path(params_path: str | Path) -> Path:
+    """``PARAMS.yaml`` → ``PARAMS.json`` (beside it)."""
+    return Path(params_path).with_suffix(".json")
+
+
+def summary_dict(res: DatasetResult) -> dict[str, Any]:
+    from mrctl import __version__
+
+    p = res.params
+    return {
+        "mrctl_version": __version__,
+        "dataset": res.source,
+        "name": res.name,
+        "protocol": res.protocol,
+        "input": res.input,
+        "input_unit": res.unit,
+        "input_range": [_r(res.input_range[0]), _r(res.input_range[1])],
+        "nrmse_definition": "RMS(F_meas - F_model) / peak-to-peak(F_meas) over the record's held-out samples",
+        "holdout": [s.as_dict() for s in res.holdout],
+        "fit_scores": [s.as_dict() for s in res.train],
+        "tau_input_s": _r(p.tau_input),
+        "F_offset_N": _r(p.F_offset),
+        "k_x_N_per_m": _r(p.k_x),
+        "inertia_kg": _r(res.inertia_kg),
+        "parameters": {k: _r(v) for k, v in p.as_dict().items()},
+        "settings": res.settings,
+        "details": res.details,
+        "warnings": list(res.warnings),
+        "time_s": _r(res.time_s, 4),
+    }
+
+
+def write_dataset_outputs(res: DatasetResult, out: str | Path) -> Path:
+    """The parameters YAML at ``out`` and the JSON summary beside it; returns the JSON path."""
+    import yaml
+
+    from mrctl.offline.identify.result import _compact_dumper
+
+    summary = summary_dict(res)
+    p = res.params
+    levels = f"{res.input_range[0]:g}–{res.input_range[1]:g} {res.unit}"
+    doc: dict[str, Any] = {
+        "version": 1,
+        "description": f"LuGre parameters identified by mrctl from the dataset {res.name} ({res.protocol}, "
+                       f"{res.input} input {levels})",
+        "source": res.source,
+        "input": res.input,
+        "input_range": [float(res.input_range[0]), float(res.input_range[1])],
+    }
+    values = p.as_dict()
+    doc.update({k: float(values[k]) for k in p.all_names()})
+    doc["fit"] = {
+        "summary": json_path(out).name,
+        "protocol": res.protocol,
+        "holdout": summary["holdout"],
+        "tau_input_s": summary["tau_input_s"],
+        "inertia_kg": summary["inertia_kg"],
+        "warnings": summary["warnings"],
+    }
+    out = Path(out)
+    jp = json_path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("w", encoding="utf-8") as fh:
+            fh.write(f"# mrctl identify --dataset: LuGre parameters, laws (6)-(11) in the input ({res.unit}); "
+                     "SI units\n")
+            yaml.dump(doc, fh, Dumper=_compact_dumper(), sort_keys=False, allow_unicode=True, width=120)
+        jp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    except OSError as exc:
+        raise IdentificationError(f"{out}: cannot write: {exc.strerror or exc}") from None
+    return jp
+
+
+def format_dataset_summary(res: DatasetResult) -> str:
+    """The held-out table and the fitted terms, as ``mrctl identify --dataset`` prints them."""
+    u = res.unit
+    lines = [f"{res.name}: {res.protocol}, {res.input} input, range {res.input_range[0]:.4g}–"
+             f"{res.input_range[1]:.4g} {u}"]
+    if res.protocol == "constant_input":
+        lines.append(f"{'level (' + u + ')':>11} {'Fc (N)':>9} {'Fs (N)':>9} {'σ2 (N·s/m)':>11} {'offset (N)':>10} "
+                     f"{'fit':>7}")
+        for lv in res.details.get("levels", []):
+            th = lv["theta"]
+            lines.append(f"{lv['level']:11.4g} {th['Fc']:9.4g} {th['Fs']:9.4g} {th['sigma2']:11.4g} "
+                         f"{lv['offset_N']:10.4g} {100 * lv['nrmse_fit']:6.2f}%")
+    if res.holdout:
+        lines.append("held-out force NRMSE (RMSE / peak-to-peak of the measured force, data the fit never saw):")
+        lines.append(f"  {'record':<24} {'level':>9} {'NRMSE':>8}" + ("  with laws" if any(
+            s.nrmse_laws is not None for s in res.holdout) else ""))
+        for s in res.holdout:
+            lv = "-" if s.level is None else f"{s.level:.4g}"
+            laws = f"  {100 * s.nrmse_laws:8.2f}%" if s.nrmse_laws is not None else ""
+            lines.append(f"  {s.record:<24} {lv:>9} {100 * s.nrmse:7.2f}%{laws}")
+    else:
+        lines.append("no held-out data: the scores are on fitted data only (see warnings)")
+    p = res.params
+    lines.append(f"bench terms: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input "
+                 f"{1e3 * p.tau_input:.3g} ms" + (f", inertia {res.inertia_kg:.3g} kg (measurement term, not in "
+                                                  "the set)" if res.inertia_kg else ""))
+    lines.append("parameters: " + ", ".join(f"{k}={getattr(p, k):.5g}" for k in p.names()))
+    for w in res.warnings:
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
