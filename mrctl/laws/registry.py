@@ -9,12 +9,13 @@ validated, documented and buildable with no other edit.
 from __future__ import annotations
 
 from mrctl.laws.base import CurrentLaw, DemandLaw
+from mrctl.laws.closed import ClosedLoopInverse
 from mrctl.laws.demand import ConstantForce, FromFile, Viscous
 from mrctl.laws.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
 
 _DEMAND: dict[str, type[DemandLaw]] = {c.name: c for c in (Viscous, ConstantForce, FromFile)}
-_CURRENT: dict[str, type[CurrentLaw]] = {c.name: c for c in (PaperInverse, SmoothInverse, ConstantCurrent,
-                                                             ScheduleCurrent)}
+_CURRENT: dict[str, type[CurrentLaw]] = {c.name: c for c in (PaperInverse, SmoothInverse, ClosedLoopInverse,
+                                                             ConstantCurrent, ScheduleCurrent)}
 
 
 def demand_laws() -> dict[str, type[DemandLaw]]:
