@@ -42,7 +42,6 @@ import threading
 
 from mrctl.io.base import Sample, Status
 from mrctl.daemon.loop import FixedRateLoop
-from mrctl.model.bench import SimBench
 
 from hil_sim.config import BenchConfig
 from hil_sim.faults import FaultBit, FaultSchedule, bit_names
@@ -81,8 +80,7 @@ class BenchDevice:
         self.cfg = cfg
         self.state = state
         self.truth = truth
-        self.bench = SimBench(cfg.params, cfg.excitation, cfg.dt, cfg.driver_tau_s,
-                              cfg.make_sensors(), cfg.load_cell)
+        self.bench = cfg.make_bench()
         self._sensors = self.bench.sensors
         self.loop = FixedRateLoop(cfg.rate_hz, wait=wait, spin_margin_s=spin_margin_s, idle=idle)
         self.I_max = cfg.I_max_A

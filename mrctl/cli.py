@@ -51,6 +51,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "config": jsonable(exp.config),
         "parameters": exp.params.as_dict(),
         "summary": s,
+        "notices": res.notices,
     }
     if args.out:
         write_csv(res, args.out, comment=f"mrctl {__version__} simulate {args.config}")
@@ -59,6 +60,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
     print(format_summary(s, exp.I_max))
+    for note in res.notices:
+        print(f"mrctl: {note}", file=sys.stderr)
     if args.out:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     return EXIT_OK

@@ -218,7 +218,7 @@ class Service:
             driver_retries=cfg.safety.driver_retries,
             link_loss_ticks=max(1, round(cfg.safety.link_loss_s * cfg.rate_hz)),
             reconnect_every_ticks=max(1, round(cfg.safety.reconnect_interval_s * cfg.rate_hz)),
-            lead=exp.make_lead(link))
+            lead=exp.make_lead(link), observer=exp.make_observer())
         ctl.I_last = ctl.I_next = 0.0  # the start-up 0 A went out
         exp.law.reset()
         self.loop = ctl.loop = FixedRateLoop(cfg.rate_hz, wait=cfg.loop.wait, spin_margin_s=cfg.loop.spin_margin_s,
@@ -339,6 +339,8 @@ class Service:
     # -- the end -------------------------------------------------------------------
     def _finish(self, exit_code: int) -> int:
         assert self.loop is not None and self.ctl is not None and self.sup is not None and self.exp is not None
+        for note in self.ctl.law.notices():  # what the law flagged in the loop, said once, after it
+            self.warn(note)
         timing = self.loop.stats.summary()
         summary: dict[str, Any] = {"timing": timing, "safety": self.sup.counters().as_dict(),
                                    "link_errors": self.ctl.link_errors, "ticks": self.ctl.ticks,

@@ -30,6 +30,8 @@ class SimResult:
     columns: dict[str, np.ndarray]
     wall_s: float
     summary: dict[str, float] = field(default_factory=dict)
+    #: what the law flagged during the run (Law.notices), said once after it
+    notices: list[str] = field(default_factory=list)
 
     @property
     def ticks(self) -> int:
@@ -55,11 +57,16 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     whole run up front (numpy); the loop itself is the per-tick plain-float
     code the daemon runs. The laws see what the daemon's sim link gives
     them: x and v at tick k, the load cell's reading of the force of tick
-    k − 1, sensor noise drawn in the same order (x, v, F per tick)."""
+    k − 1, sensor noise drawn in the same order (x, v, F per tick), NaN in
+    a channel the bench lacks (``plant.sensors.load_cell``/``velocity``),
+    and the velocity the observer makes of them (``sensing``), as the
+    controller does before its laws."""
     n = int(round(duration_s / exp.dt)) + 1
     I_max = exp.I_max
     plant = exp.make_plant()
     sensors = exp.make_sensors()
+    observe = exp.make_observer()
+    has_F, has_v = exp.config.plant.sensors.load_cell, exp.config.plant.sensors.velocity
     law = exp.law
     law.reset()
     t_arr = np.arange(n) * exp.dt
@@ -71,7 +78,7 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     # local bindings: attribute lookups cost as much as the physics here
     demand = exp.demand.force if exp.demand is not None else None
     current, applied = law.current, law.applied
-    ptick, model = plant.tick, plant.model
+    ptick = plant.tick
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
     I = 0.0
@@ -82,8 +89,14 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
             xm, vm, Fm = x, v, F_prev
         else:
             xm, vm, Fm = sensors.x(x), sensors.v(v), sensors.F(F_prev)
+        if not has_F:
+            Fm = math.nan
         if k:
             cfm[k - 1] = Fm
+        if not has_v:
+            vm = math.nan
+        if observe is not None:
+            vm = observe.update(xm, vm)
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
         Fd = demand(m) if demand is not None else math.nan
         I = current(m, Fd)
@@ -96,8 +109,8 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
         cfd[k] = Fd
         ci[k] = I
         cia[k] = plant.I_applied
-        cz[k] = model.z
-    cfm[n - 1] = F_prev if sensors is None else sensors.F(F_prev)
+        cz[k] = plant.z
+    cfm[n - 1] = (F_prev if sensors is None else sensors.F(F_prev)) if has_F else math.nan
     wall = time.perf_counter() - t0
     out = {"t": t_arr, "x": np.asarray(x_arr, float), "v": np.asarray(v_arr, float)}
     out.update({c: np.frombuffer(a, dtype=float) for c, a in cols.items()})
@@ -106,7 +119,7 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     summary["simulated_s"] = (n - 1) * exp.dt
     summary["wall_s"] = wall
     summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary)
+    return SimResult(out, wall, summary, law.notices())
 
 
 def write_csv(result: SimResult, path: str | Path, comment: str | None = None) -> None:
