@@ -3,6 +3,7 @@ bench, with the safety supervisor and the recorder (writing to a temp file),
 exactly as ``mrctl run`` builds it.
 
     python bench/loop_timing.py --tick controller_tick:make_tick
+    python bench/loop_timing.py --tick controller_tick:make_tick_robust   # closed law + velocity observer
 """
 
 from __future__ import annotations
@@ -24,20 +25,24 @@ from mrctl.experiment import build  # noqa: E402
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
+#: the closed law with the velocity observer, on a displacement-only DAQ (LuGre bench, noisy LVDT and load cell)
+ROBUST = ROOT / "config" / "experiments" / "robust" / "displacement_only_c500.yaml"
 
 
-def make_tick(period_s: float, defer_format: bool = True) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+def make_tick(period_s: float, defer_format: bool = True,
+              config: Path = CONFIG) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
     """(tick, background): as ``mrctl run`` builds them; with ``defer_format``
     the loop formats the log in its idle time (the background hook)."""
     sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
-    exp = build(load_experiment(CONFIG))
+    exp = build(load_experiment(config))
     backend = exp.make_link()
     backend.open()
     sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
     rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
                    fmt=RUN_FORMATS, defer_format=defer_format)
-    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(backend))
+    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(backend),
+                     observer=exp.make_observer())
     atexit.register(rec.close)
     return ctl.tick, (rec.format_pending if defer_format else None)
 
@@ -46,3 +51,9 @@ def make_tick_thread_format(period_s: float) -> tuple[Callable[[int, int], objec
     """The same, with the log formatted by the writer thread (the old design),
     for comparison: ``--tick controller_tick:make_tick_thread_format``."""
     return make_tick(period_s, defer_format=False)  # type: ignore[return-value]
+
+
+def make_tick_robust(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """The closed law with the velocity observer (``sensing.velocity: observer``)
+    on a displacement-only sim bench: ``--tick controller_tick:make_tick_robust``."""
+    return make_tick(period_s, config=ROBUST)

@@ -141,7 +141,7 @@ class ClosedLoopInverse(SmoothInverse):
         if not n:
             return []
         return [f"inverse law closed: no load-cell force on {n} of {self.ticks} ticks; "
-                f"it ran on feed-forward alone there (the smooth law with lag compensation)"]
+                f"it ran on its feed-forward alone there, without the load-cell correction"]
 
     def _coil(self, m: Measurement) -> tuple[float, int]:
         """The coil's current over the last interval (the lag model driven by
