@@ -44,6 +44,9 @@ controller sent, 0 A during a safety fault) and ticks skipped since the
 last call from ``m.k``, so after a fault the current ramps up from 0 A
 within the slew bound and the lag model follows what the coil got.
 
+A reading identical to the previous one (a sample the safety supervisor
+holds over a link error) says nothing new and leaves d̂ alone.
+
 No load cell (F is NaN): d̂ decays to 0 at the rate g, and the law is
 feed-forward alone. It counts those ticks; :meth:`notices` reports them
 once, after the run (nothing is printed or logged from the 1 kHz path).
@@ -126,6 +129,7 @@ class ClosedLoopInverse(SmoothInverse):
         self._k = -1
         self._Fb = 0.0  # previous tick's bench terms F_offset + k_x·x
         self._Fd = math.nan  # previous tick's demand (N)
+        self._F_seen = math.nan  # previous tick's load-cell reading, as read
         self._dv = self._dF = 0.0  # smoothed per-tick slopes of v and F_des
 
     def reset(self, I0: float = 0.0, z0: float = 0.0, v0: float = 0.0) -> None:
@@ -167,8 +171,8 @@ class ClosedLoopInverse(SmoothInverse):
             self.no_force_ticks += 1
             self.d = d - self.gain * d
             return False
-        if not (dk == 1 and self._started):
-            return False
+        if not (dk == 1 and self._started) or F == self._F_seen:
+            return False  # a gap, or the same reading again (the supervisor holding a sample): nothing new
         mod = self.model  # still at the previous tick: z, v_prev
         Fm = F - self._Fb
         e = Fm - mod.force(mod.v_prev, Ia)
@@ -203,7 +207,9 @@ class ClosedLoopInverse(SmoothInverse):
         v = m.v
         self.ticks += 1
         Ia, dk = self._coil(m)
-        guard = self._correct(m.F, Ia, dk)
+        F = m.F
+        guard = self._correct(F, Ia, dk)
+        self._F_seen = F
         Fb = self._Fo + self._kx * m.x if (self._kx != 0.0 or self._Fo != 0.0) else 0.0
         if self._started:
             s = self._slope
