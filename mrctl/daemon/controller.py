@@ -71,7 +71,7 @@ class Controller:
         self.reconnect_every_ticks = max(1, reconnect_every_ticks)
         self.consecutive_failures = 0
         self.reconnects = 0
-        #: latency compensation (mrctl/estimation.py); None when off
+        #: latency compensation (mrctl/estimation/lead.py); None when off
         self.lead = lead
         self._k_prev = -1
         #: velocity observer (sensing.velocity: observer): replaces the sample's

@@ -320,7 +320,8 @@ class Service:
         assert self.exp is not None and self.ctl is not None and self.loaded is not None
         try:
             new = build(load_experiment(self.opts.config_path))
-            changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt")
+            changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
+                                   "sensing")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
             if new.config.rate_hz != self.exp.config.rate_hz:
                 new = new.at_rate(self.exp.config.rate_hz)
