@@ -184,22 +184,19 @@ class ClosedLoopInverse(SmoothInverse):
         self.d = d if -self.d_max < d < self.d_max else (self.d_max if d > 0.0 else -self.d_max)
         return False
 
-    def _look_ahead(self, z: float, v: float, I0: float, F_t: float) -> tuple[float, float]:
+    def _look_ahead(self, v: float, I0: float, F_t: float) -> tuple[float, float]:
         """Σ D_j·(F_t,j − B_j) and Σ D_j² over the horizon: the model's force
-        j ticks ahead, F_j ≈ B_j + D_j·I, from two probes held at I0 and I0 + ΔI."""
-        p0, p1, dt = self._probe0, self._probe1, self.dt
-        p0.z = p1.z = z
-        p0.v_prev = p1.v_prev = v
-        dv, dF = self._dv, self._dF
-        I1 = I0 + _DI
+        j ticks ahead, F_j ≈ B_j + D_j·I, from two probes held at I0 and
+        I0 + ΔI (the law's state, at this tick, copied into each)."""
+        p0, p1, mod = self._probe0, self._probe1, self.model
+        p0.z = p1.z = mod.z
+        dv, dF, H = self._dv, self._dF, self.horizon
+        f0 = p0.look_ahead(v, dv, I0, self.dt, H)
+        f1 = p1.look_ahead(v, dv, I0 + _DI, self.dt, H)
         num = den = 0.0
-        for j in range(1, self.horizon + 1):
-            vj = v + j * dv
-            p0.advance(vj, I0, dt)
-            p1.advance(vj, I1, dt)
-            f0 = p0.force(vj, I0)
-            D = (p1.force(vj, I1) - f0) / _DI
-            num += D * (F_t + j * dF - f0 + D * I0)
+        for j in range(H):
+            D = (f1[j] - f0[j]) / _DI
+            num += D * (F_t + (j + 1) * dF - f0[j] + D * I0)
             den += D * D
         return num, den
 
@@ -227,7 +224,7 @@ class ClosedLoopInverse(SmoothInverse):
         num = D * (F_t - (s0B * z + s1B * zdot + s2B * v))
         den = D * D
         if self.horizon:
-            n2, d2 = self._look_ahead(z, v, Ia, F_t)
+            n2, d2 = self._look_ahead(v, Ia, F_t)
             num += n2
             den += d2
         eps2 = self.eps2
