@@ -5,6 +5,7 @@ exactly as ``mrctl run`` builds it.
     python bench/loop_timing.py --tick controller_tick:make_tick
     python bench/loop_timing.py --tick controller_tick:make_plugin_tick    # the example plugin's laws
     python bench/loop_timing.py --tick controller_tick:make_skyhook_tick   # skyhook on the quarter car
+    python bench/loop_timing.py --tick controller_tick:make_tick_robust   # closed law + velocity observer
 
 ``make_plugin_tick`` runs the example plugin (examples/mrctl-law-example:
 ``sine_force`` demand, ``force_pi`` inverse law) named as module:Class,
@@ -30,8 +31,8 @@ from mrctl.experiment import build  # noqa: E402
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
-
-
+#: the closed law with the velocity observer, on a displacement-only DAQ (LuGre bench, noisy LVDT and load cell)
+ROBUST = ROOT / "config" / "experiments" / "robust" / "displacement_only_c500.yaml"
 PLUGIN_SRC = ROOT / "examples" / "mrctl-law-example" / "src"
 
 
@@ -47,7 +48,8 @@ def make_tick(period_s: float, defer_format: bool = True, config: Path = CONFIG
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
     rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
                    fmt=RUN_FORMATS, defer_format=defer_format)
-    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(backend))
+    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(backend),
+                     observer=exp.make_observer())
     atexit.register(rec.close)
     return ctl.tick, (rec.format_pending if defer_format else None)
 
@@ -79,3 +81,9 @@ def make_plugin_tick(period_s: float) -> tuple[Callable[[int, int], object], Cal
 def make_skyhook_tick(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
     """Skyhook + smooth on the quarter car (config/experiments/quarter_car.yaml)."""
     return make_tick(period_s, config=ROOT / "config" / "experiments" / "quarter_car.yaml")
+
+
+def make_tick_robust(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """The closed law with the velocity observer (``sensing.velocity: observer``)
+    on a displacement-only sim bench: ``--tick controller_tick:make_tick_robust``."""
+    return make_tick(period_s, config=ROBUST)

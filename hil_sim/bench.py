@@ -42,7 +42,6 @@ import threading
 
 from mrctl.io.base import Sample, Status
 from mrctl.daemon.loop import FixedRateLoop
-from mrctl.experiment import make_sim_bench
 
 from hil_sim.config import BenchConfig
 from hil_sim.faults import FaultBit, FaultSchedule, bit_names
@@ -81,9 +80,8 @@ class BenchDevice:
         self.cfg = cfg
         self.state = state
         self.truth = truth
-        # the same bench as the in-process sim link, built the same way (plant.bench)
-        self.bench = make_sim_bench(cfg.params, cfg.excitation, cfg.dt, cfg.driver_tau_s,
-                                    cfg.make_sensors(), cfg.load_cell, quarter_car=cfg.quarter_car)
+        # the same bench as the in-process sim link, built the same way (plant.bench, plant.model)
+        self.bench = cfg.make_bench()
         #: the bench's extra channels (a dict it updates in place), published with each sample
         self._channels = getattr(self.bench, "channels", {})
         state.channel_names = tuple(self._channels)

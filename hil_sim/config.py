@@ -29,10 +29,11 @@ from mrctl.util.schema import (
 )
 from mrctl.config import experiment_schema
 from mrctl.config.bench import quarter_car_params
-from mrctl.experiment import EXCITATIONS
+from mrctl.experiment import EXCITATIONS, make_sim_bench
+from mrctl.model.bench import SimBench
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import Sensors
-from mrctl.model.quarter_car import QuarterCarParams
+from mrctl.model.quarter_car import QuarterCarBench, QuarterCarParams
 
 from hil_sim.faults import FaultSpec, check_fault_list, parse_fault_arg
 
@@ -48,7 +49,8 @@ _SENSOR_KEYS = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps",
 def bench_schema(base_dir: Path) -> dict[str, Any]:
     """The bench schema; relative file paths resolve against ``base_dir``."""
     exp = experiment_schema(base_dir)
-    sensors = {k: v for k, v in exp["plant"].fields["sensors"].fields.items() if k != "seed"}
+    # the seed is top-level here, and so is load_cell (it sets the NO_LOAD_CELL status bit)
+    sensors = {k: v for k, v in exp["plant"].fields["sensors"].fields.items() if k not in ("seed", "load_cell")}
     return {
         "version": exp["version"],
         "name": Str(default=None, optional=True),
@@ -60,6 +62,7 @@ def bench_schema(base_dir: Path) -> dict[str, Any]:
         "parameters": exp["parameters"],
         "excitation": exp["excitation"],
         "plant": Section({
+            "model": exp["plant"].fields["model"],
             "driver_tau_s": exp["plant"].fields["driver_tau_s"],
             "bench": exp["plant"].fields["bench"],
             "quarter_car": exp["plant"].fields["quarter_car"],
@@ -94,10 +97,21 @@ class BenchConfig:
     faults: list[FaultSpec] = field(default_factory=list)
     #: the quarter car the damper sits in (plant.bench: quarter_car), or None: the shaker
     quarter_car: QuarterCarParams | None = None
+    #: the validated plant.model section (None: LuGre with ``params``)
+    model: Node | None = None
+    #: false: the DAQ measures displacement only (v reads NaN)
+    has_velocity: bool = True
 
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
+
+    def make_bench(self) -> SimBench | QuarterCarBench:
+        """The simulated bench, built as the in-process sim link builds its own
+        (:func:`mrctl.experiment.make_sim_bench`): a plant model or bench added
+        there is served over every transport."""
+        return make_sim_bench(self.params, self.excitation, self.dt, self.driver_tau_s, self.make_sensors(),
+                              self.load_cell, self.model, self.has_velocity, self.quarter_car)
 
     def make_sensors(self) -> Sensors | None:
         """Sensor model (seeded), or None when it would be the identity."""
@@ -141,6 +155,9 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         errors += errs
         if spec is not None:
             fault_specs.append(spec)
+    model = node.plant.get("model")
+    if model is not None and model.get("type") == "bouc-wen" and model.get("parameters") is not None:
+        errors += [f"plant.model.parameters: {e}" for e in model.parameters.check_range(float(node.I_max_A))]
     if errors:
         raise ConfigError(errors, source)
     try:
@@ -163,6 +180,8 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         I_max_A=float(node.I_max_A),
         faults=fault_specs,
         quarter_car=quarter_car_params(node.plant),
+        model=node.plant.model,
+        has_velocity=bool(s.velocity),
     )
 
 

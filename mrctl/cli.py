@@ -60,7 +60,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
                 "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
                 "exit_code": 1 if res.fault is not None else 0, "summary": s,
-                "law_fault": str(res.fault) if res.fault is not None else None}
+                "law_fault": str(res.fault) if res.fault is not None else None,
+                "notices": res.notices}
         try:
             write_csv(res, args.out, force=args.force)
             files.write_json(files.sidecar_path(args.out), side)
@@ -75,6 +76,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         from mrctl.runlog.ride import format_ride
 
         print(format_ride(s))
+    for note in res.notices:
+        print(f"mrctl: {note}", file=sys.stderr)
     if args.out:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)

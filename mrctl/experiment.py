@@ -3,7 +3,8 @@
 Every name a user can write in YAML maps to its class through a table:
 excitation ``type`` (:data:`EXCITATIONS`), demand ``type`` and inverse
 ``law`` (:mod:`mrctl.laws.registry`), ``backend.type``
-(:data:`mrctl.io.BACKENDS`). ``mrctl simulate`` and ``mrctl run`` (and
+(:data:`mrctl.io.BACKENDS`), the simulated damper's ``plant.model.type``
+(:data:`PLANTS`). ``mrctl simulate`` and ``mrctl run`` (and
 ``hil_sim``, for its bench) build what they need through here, so the same
 YAML means the same objects everywhere.
 """
@@ -17,7 +18,7 @@ from mrctl.config import ConfigError, Node
 from mrctl.config.bench import quarter_car_params
 from mrctl.config.laws import law_context as _law_context
 from mrctl.errors import LinkFailure, MrctlError
-from mrctl.estimation import VelocityLead
+from mrctl.estimation import KinematicObserver, VelocityLead
 from mrctl.io import link_class
 from mrctl.io.base import Link, LinkError
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawContext
@@ -25,6 +26,7 @@ from mrctl.laws.registry import law_class
 from mrctl.model import excitation as excitation_mod
 from mrctl.model import road
 from mrctl.model.bench import SimBench
+from mrctl.model.boucwen import BoucWenPlant
 from mrctl.model.quarter_car import QuarterCarBench, QuarterCarParams
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
@@ -63,15 +65,42 @@ def make_sensors(s: Node, seed: int | None = None) -> Sensors | None:
     return Sensors(s.get("seed", 0) if seed is None else seed, *(s.get(k) for k in keys))
 
 
+#: plant.model.type → the simulated damper (model node, LuGre set, dt, lag override)
+PLANTS: dict[str, Callable[[Node | None, LuGreParams, float, float | None], Any]] = {
+    "lugre": lambda m, params, dt, tau: DamperPlant(params, dt, tau),
+    "bouc-wen": lambda m, params, dt, tau: BoucWenPlant(m.parameters, dt, tau, m.substeps),
+}
+
+
+def make_plant(model: Node | None, params: LuGreParams, dt: float, driver_tau_s: float | None = None) -> Any:
+    """The damper ``plant.model`` names (None: LuGre with ``params``). Every
+    plant has the interface of :class:`DamperPlant`: ``tick(v, I_cmd, x)``,
+    ``I_applied``, ``F``, ``z``, ``tau_s``."""
+    kind = "lugre" if model is None else model.type
+    return PLANTS[kind](model, params, dt, driver_tau_s)
+
+
 def make_sim_bench(params: LuGreParams, excitation: Any, dt: float, driver_tau_s: float | None = None,
-                   sensors: Sensors | None = None, has_load_cell: bool = True,
-                   quarter_car: QuarterCarParams | None = None) -> SimBench | QuarterCarBench:
+                   sensors: Sensors | None = None, has_load_cell: bool = True, model: Node | None = None,
+                   has_velocity: bool = True, quarter_car: QuarterCarParams | None = None
+                   ) -> SimBench | QuarterCarBench:
     """The simulated bench (shaker + damper + driver + sensors) both the
-    in-process link and ``hil_sim`` run; with ``quarter_car`` the damper sits
-    in a quarter car and the excitation is the road (``plant.bench``)."""
+    in-process link and ``hil_sim`` run; ``model`` is the validated
+    ``plant.model`` section (None: LuGre with ``params``); with
+    ``quarter_car`` the damper sits in a quarter car and the excitation is
+    the road (``plant.bench``)."""
+    plant = make_plant(model, params, dt, driver_tau_s)
     if quarter_car is not None:
-        return QuarterCarBench(params, excitation, dt, quarter_car, driver_tau_s, sensors, has_load_cell)
-    return SimBench(params, excitation, dt, driver_tau_s, sensors, has_load_cell)
+        return QuarterCarBench(params, excitation, dt, quarter_car, driver_tau_s, sensors, has_load_cell, plant)
+    return SimBench(params, excitation, dt, driver_tau_s, sensors, has_load_cell,
+                    plant=plant, has_velocity=has_velocity)
+
+
+def make_observer(sensing: Node, dt: float) -> KinematicObserver | None:
+    """The velocity observer of a ``sensing`` section; None for the DAQ's own velocity."""
+    if sensing.velocity != "observer":
+        return None
+    return KinematicObserver(dt, sensing.x_noise_m, sensing.jerk_psd, sensing.v_noise_mps)
 
 
 @dataclass
@@ -95,8 +124,10 @@ class Experiment:
         """The simulated damper's parameters: ``plant.parameters``, else the law's."""
         return self.config.plant.parameters or self.params
 
-    def make_plant(self) -> DamperPlant:
-        return DamperPlant(self.plant_params, self.dt, self.config.plant.driver_tau_s)
+    def make_plant(self) -> Any:
+        """The simulated damper (``plant.model``; DamperPlant's interface)."""
+        p = self.config.plant
+        return make_plant(p.model, self.plant_params, self.dt, p.driver_tau_s)
 
     def make_sensors(self) -> Sensors | None:
         """Sensor model, or None when it would be the identity (fast path)."""
@@ -104,8 +135,13 @@ class Experiment:
 
     def make_bench(self) -> SimBench | QuarterCarBench:
         """The in-process simulated bench (backend sim)."""
-        return make_sim_bench(self.plant_params, self.excitation, self.dt, self.config.plant.driver_tau_s,
-                              self.make_sensors(), quarter_car=quarter_car_params(self.config.plant))
+        p = self.config.plant
+        return make_sim_bench(self.plant_params, self.excitation, self.dt, p.driver_tau_s, self.make_sensors(),
+                              p.sensors.load_cell, p.model, p.sensors.velocity, quarter_car_params(p))
+
+    def make_observer(self) -> KinematicObserver | None:
+        """The velocity observer (``sensing.velocity: observer``), None when off."""
+        return make_observer(self.config.sensing, self.dt)
 
     def make_link(self) -> Link:
         """The link named by ``backend.type`` (the BACKENDS table)."""

@@ -55,7 +55,7 @@ def test_good_config_fills_defaults():
         ("safety.I_max", True, "safety.I_max: must be a number"),
         ("safety.I_max", float("nan"), "safety.I_max: must be finite"),
         ("demand.c_des", -5, "demand.c_des: -5 out of range"),
-        ("inverse.law", "papr", "inverse.law: 'papr' not allowed (allowed: paper, smooth, constant, schedule)"),
+        ("inverse.law", "papr", "inverse.law: 'papr' not allowed (allowed: paper, smooth, closed, constant, schedule)"),
         ("excitation.type", "square", "excitation.type: 'square' not allowed"),
         ("rate_hz", 0, "rate_hz: 0 out of range"),
         ("version", 2, "version: 2 out of range"),

@@ -15,6 +15,7 @@ from mrctl.config.bench import bench_fields, road_excitations
 from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
 from mrctl.config.observe import stream_section
 from mrctl.config.params import INPUT_KINDS, input_kind_errors, params_check
+from mrctl.config.plants import plant_model_schema
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import (
     Bool,
@@ -161,7 +162,21 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
         "service": Section({
             "status_socket": Str(default=None, optional=True, doc="Unix socket for mrctl status"),
         }),
+        "sensing": Section({
+            "velocity": Str(default="measured", choices=("measured", "observer"),
+                            doc="the velocity the demand and the laws see: the DAQ's velocity channel, or a "
+                                "Kalman filter on the displacement (mrctl/estimation/observer.py; for DAQs without "
+                                "a velocity channel or with a noisy one)"),
+            "x_noise_m": Num(default=2e-6, min=0.0, min_exclusive=True, max=0.01,
+                             doc="observer: std dev of the displacement reading, noise and quantisation (m)"),
+            "jerk_psd": Num(default=1.0, min=0.0, min_exclusive=True, max=1e9,
+                            doc="observer: spectral density of the jerk (m^2/s^5); larger = less lag, more noise"),
+            "v_noise_mps": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=10.0,
+                               doc="observer: also fuse the DAQ's velocity channel, with this std dev (m/s); "
+                                   "null = displacement only"),
+        }, doc="where the controller's velocity comes from (applied before the safety checks and the laws)"),
         "plant": Section({
+            "model": plant_model_schema(base_dir),
             "parameters": Custom(params_check(base_dir), default=None,
                                  doc="the simulated damper's own parameter set (same forms as parameters); "
                                      "null = the law's set. Set it to test a law with identified parameters "
@@ -178,6 +193,10 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                 "x_lsb_m": Num(default=0.0, min=0.0, doc="displacement quantisation step (m), 0 = none"),
                 "v_lsb_mps": Num(default=0.0, min=0.0, doc="velocity quantisation step (m/s)"),
                 "F_lsb_N": Num(default=0.0, min=0.0, doc="force quantisation step (N)"),
+                "load_cell": Bool(default=True, doc="false: the force channel reads NaN (a bench without a load cell)"),
+                "velocity": Bool(default=True,
+                                 doc="false: the velocity channel reads NaN (a DAQ that measures displacement only; "
+                                     "needs sensing.velocity: observer)"),
             }),
         }, doc="simulated bench (backend sim)"),
         "backend": Union("type", {
@@ -229,6 +248,7 @@ def _cross_checks(cfg: Node, base_dir: Path) -> list[str]:
     plant_params = cfg.plant.get("parameters") if "plant" in cfg else None
     if isinstance(plant_params, LuGreParams) and isinstance(I_max, float):
         errors += [f"plant.parameters: {e}" for e in plant_params.check_range(I_max)]
+    errors += _plant_checks(cfg, I_max)
     errors += law_checks(cfg, base_dir)
     loop, backend = cfg.get("loop"), cfg.get("backend")
     if loop is not None and loop.get("pacing") == "device" and backend is not None and backend.get("type") == "sim":
@@ -239,6 +259,28 @@ def _cross_checks(cfg: Node, base_dir: Path) -> list[str]:
         f0, f1 = exc.get("f0_hz"), exc.get("f1_hz")
         if isinstance(f0, float) and isinstance(f1, float) and f1 == f0:
             errors.append("excitation.f1_hz: must differ from f0_hz (use type: sine for one frequency)")
+    return errors
+
+
+def _plant_checks(cfg: Node, I_max: Any) -> list[str]:
+    """The simulated bench's model and sensors against the rest."""
+    errors: list[str] = []
+    plant = cfg.get("plant")
+    if plant is None:
+        return errors
+    model = plant.get("model")
+    if model is not None and model.get("type") == "bouc-wen":
+        if plant.get("parameters") is not None:
+            errors.append("plant.parameters: a LuGre parameter set, but plant.model.type is bouc-wen "
+                          "(its constants are in plant.model.parameters)")
+        bw = model.get("parameters")
+        if bw is not None and isinstance(I_max, float):
+            errors += [f"plant.model.parameters: {e}" for e in bw.check_range(I_max)]
+    sensors, sensing = plant.get("sensors"), cfg.get("sensing")
+    if (sensors is not None and sensors.get("velocity") is False and sensing is not None
+            and sensing.get("velocity") != "observer"):
+        errors.append("plant.sensors.velocity: false leaves the controller without a velocity: "
+                      "set sensing.velocity: observer")
     return errors
 
 

@@ -30,7 +30,7 @@ import time
 from typing import TYPE_CHECKING, Callable
 
 from mrctl.daemon.safety import SafetySupervisor
-from mrctl.estimation import VelocityLead
+from mrctl.estimation import KinematicObserver, VelocityLead
 from mrctl.io.base import Disconnected, Link, LinkError, Sample
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawFault, Measurement, NonFiniteOutput
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: F401 - re-exported for callers
@@ -59,6 +59,7 @@ class Controller:
         lead: VelocityLead | None = None,
         law_budget_s: float | None = None,
         law_overrun_ticks: int = 3,
+        observer: KinematicObserver | None = None,
     ) -> None:
         self.backend = backend
         self.law = law
@@ -72,9 +73,13 @@ class Controller:
         self.reconnect_every_ticks = max(1, reconnect_every_ticks)
         self.consecutive_failures = 0
         self.reconnects = 0
-        #: latency compensation (mrctl/estimation.py); None when off
+        #: latency compensation (mrctl/estimation/lead.py); None when off
         self.lead = lead
         self._k_prev = -1
+        #: velocity observer (sensing.velocity: observer): replaces the sample's
+        #: v before the safety checks, so they judge the velocity the laws see
+        self.observer = observer
+        self._t_obs = NAN
         self.split = backend.split
         self._begin = backend.begin_tick if backend.host_clocked else None
         #: what the laws see, rewritten in place every tick; the link's
@@ -214,6 +219,8 @@ class Controller:
         """Safety check, laws, command, record: the non-blocking part of a tick.
         ``t1`` is the clock when the sample was in hand (the law's budget runs from it)."""
         sup = self.sup
+        if self.observer is not None and sample is not None:
+            sample = self._observe(sample)
         s = sup.check_sample(sample, age_s)
         t = k * self.dt
         if s is not None:
@@ -314,6 +321,22 @@ class Controller:
             self.law_fault = LawFault(kind, name or type(self.law).__name__, k, t, detail)
             self.stopped_reason = str(self.law_fault)
             self.sup.law_failed(f"{self.law_fault.law} {kind}")
+
+    def _observe(self, sample: Sample) -> Sample:
+        """The sample with v from the observer. Its time step is the device's
+        (t_dev), so skipped ticks and a reduced rate keep it on the right
+        clock; a repeated sample (stale) does not update it, a device clock
+        that went back (a restart) starts it over."""
+        obs = self.observer
+        assert obs is not None
+        d = sample.t_dev_s - self._t_obs
+        if d == 0.0:
+            return sample._replace(v_mps=obs.v)
+        if d < 0.0:
+            obs.reset()
+        self._t_obs = sample.t_dev_s
+        n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
+        return sample._replace(v_mps=obs.update(sample.x_m, sample.v_mps, n if n > 0 else 1))
 
     def _write(self, I: float) -> bool:
         for _ in range(self.driver_retries + 1):

@@ -270,7 +270,7 @@ class Service:
             driver_retries=cfg.safety.driver_retries,
             link_loss_ticks=max(1, round(cfg.safety.link_loss_s * cfg.rate_hz)),
             reconnect_every_ticks=max(1, round(cfg.safety.reconnect_interval_s * cfg.rate_hz)),
-            lead=exp.make_lead(link), law_budget_s=cfg.safety.law_budget_s,
+            lead=exp.make_lead(link), observer=exp.make_observer(), law_budget_s=cfg.safety.law_budget_s,
             law_overrun_ticks=cfg.safety.law_overrun_ticks)
         ctl.I_last = ctl.I_next = 0.0  # the start-up 0 A went out
         exp.law.reset()
@@ -388,7 +388,7 @@ class Service:
         try:
             new = build(load_experiment(self.opts.config_path))
             changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
-                                   "stream")
+                                   "sensing", "stream")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
             if new.config.rate_hz != self.exp.config.rate_hz:
                 new = new.at_rate(self.exp.config.rate_hz)
@@ -414,6 +414,11 @@ class Service:
         """Figures, the log's fate, the final sidecar (with the exit code).
         Never raises: a run that ends here has already commanded 0 A."""
         assert self.loop is not None and self.ctl is not None and self.sup is not None and self.exp is not None
+        try:  # what the law flagged in the loop, said once, after it (a plugin's notices() may raise)
+            for note in self.ctl.law.notices():
+                self.warn(note)
+        except Exception as exc:  # noqa: BLE001
+            self.warn(f"{self.ctl.law.name}: notices() raised {type(exc).__name__}: {exc}")
         try:
             timing = self.loop.stats.summary()
             self.say(format_timing(timing))

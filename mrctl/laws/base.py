@@ -122,6 +122,13 @@ class Law(abc.ABC):
         """Start over (a new run, or a hot swap: ``I0`` is the current the
         coil carries now, so a new law starts from it without a step)."""
 
+    def notices(self) -> list[str]:
+        """What the law has to tell the user about the run so far (e.g. it
+        ran without an input it uses), one line each. A law must not print
+        or log from the 1 kHz path: it sets a counter there, and the daemon
+        (after the run) and ``mrctl simulate`` ask here. Default: none."""
+        return []
+
 
 class DemandLaw(Law):
     """Decides the force the damper should produce."""

@@ -17,6 +17,12 @@ Laws, by the name used in YAML (``inverse.law``):
     solved as a regularised least-squares problem that holds the current
     where ∂F/∂I vanishes, inside the driver's slew bound. No spikes; the
     design study and measured figures are in ``docs/inverse-laws.md``.
+    With a coil lag (``tau_input`` of the parameter set, or ``lag_s``) it
+    solves for the current the coil should carry and commands what makes
+    the coil reach it (:func:`lag_gains`).
+``closed`` (:mod:`mrctl.laws.closed`)
+    ``smooth`` as feed-forward plus the model error measured by the load
+    cell.
 ``constant``
     A fixed current, open loop.
 ``schedule``
@@ -33,6 +39,28 @@ from mrctl.laws.base import CurrentLaw, InverseLaw, LawContext, Measurement
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import LuGreParams
 from mrctl.util.schema import Custom, Num, check_num
+
+
+def lag_gains(tau_s: float, horizon_s: float, dt: float) -> tuple[float, float]:
+    """(a1, 1/ah) for a first-order coil lag τ sampled every dt.
+
+    The coil's current follows a held command c as I ← I + a1·(c − I) per
+    tick, a1 = 1 − e^(−dt/τ). Commanding c = I + (I* − I)/ah, with
+    ah = 1 − e^(−h/τ), makes the coil reach the target I* after the horizon
+    h (if the command is held): h = dt is dead-beat, a longer horizon asks
+    for smaller steps. τ = 0: (1, 1), an ideal coil, no compensation."""
+    if not tau_s > 0.0:
+        return 1.0, 1.0
+    h = max(horizon_s, dt)
+    return 1.0 - math.exp(-dt / tau_s), 1.0 / (1.0 - math.exp(-h / tau_s))
+
+
+_LAG_PARAMS = {
+    "lag_s": Num(default=None, optional=True, min=0.0, max=1.0,
+                 doc="coil lag to compensate (s); null = the parameter set's tau_input, 0 = none"),
+    "lag_horizon_s": Num(default=0.003, min=0.0, min_exclusive=True, max=1.0,
+                         doc="with a lag: command what brings the coil to its target this long after (s)"),
+}
 
 
 class _ModelBasedLaw(InverseLaw):
@@ -143,6 +171,7 @@ class SmoothInverse(_ModelBasedLaw):
         "eps_N_per_A": Num(default=3.0, min=0.0, max=1e4, doc="regularisation: hold where dF/dI is below this (N/A)"),
         "max_slew_A_per_s": Num(default=50.0, min=0.0, min_exclusive=True, max=1e6,
                                 doc="driver slew rate the law respects (A/s)"),
+        **_LAG_PARAMS,
     }
 
     def __init__(
@@ -152,16 +181,36 @@ class SmoothInverse(_ModelBasedLaw):
         dt: float,
         eps_N_per_A: float = 3.0,
         max_slew_A_per_s: float = 50.0,
+        lag_s: float | None = None,
+        lag_horizon_s: float = 0.003,
     ) -> None:
         super().__init__(params, I_max, dt)
         if not eps_N_per_A >= 0.0:
             raise ValueError("eps_N_per_A must be >= 0")
         if not max_slew_A_per_s > 0.0:
             raise ValueError("max_slew_A_per_s must be > 0")
+        tau = params.tau_input if lag_s is None else lag_s
+        if not (tau >= 0.0 and lag_horizon_s > 0.0):
+            raise ValueError("lag_s must be >= 0 and lag_horizon_s > 0")
         self.eps2 = float(eps_N_per_A) ** 2
         self.max_step_A = float(max_slew_A_per_s) * self.dt
+        #: coil lag compensated (s), and its per-tick gains (lag_gains)
+        self.lag_s = float(tau)
+        self._a1, self._inv_ah = lag_gains(self.lag_s, lag_horizon_s, self.dt)
+        self.I_coil = 0.0  # the coil's current at the last tick, as the lag model has it
+        self._I_coil0 = 0.0  # ... and before that tick's command
+
+    def reset(self, I0: float = 0.0, z0: float = 0.0, v0: float = 0.0) -> None:
+        super().reset(I0, z0, v0)
+        self.I_coil = self._I_coil0 = I0
+
+    def applied(self, I: float) -> None:
+        self.I_prev = I
+        self.I_coil = self._I_coil0 + self._a1 * (I - self._I_coil0)
 
     def current(self, m: Measurement, F_des: float) -> float:
+        if self._a1 != 1.0:
+            return self._current_lagged(m, F_des)
         v = m.v
         if self._kx != 0.0 or self._Fo != 0.0:
             F_des -= self._Fo + self._kx * m.x
@@ -183,6 +232,35 @@ class SmoothInverse(_ModelBasedLaw):
         # clamp to [0, I_max] (NaN → 0 A), inlined: this runs every tick
         I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0
         self.I_prev = I
+        return I
+
+    def _current_lagged(self, m: Measurement, F_des: float) -> float:
+        """The same solve for the coil's current Ic (the model's z moves with
+        it, as the damper's does), then the command that brings the coil
+        there within the horizon, inside the slew bound around the previous
+        command."""
+        v = m.v
+        if self._kx != 0.0 or self._Fo != 0.0:
+            F_des -= self._Fo + self._kx * m.x
+        Ia = self.I_coil
+        z = self._adv(v, Ia, self.dt) if self._started else self._first(v)
+        zdot = self._zdot(v, Ia)
+        s0B, s1B, s2B = self._B
+        s0A, s1A, s2A = self._A
+        B = s0B * z + s1B * zdot + s2B * v
+        D = s0A * z + s1A * zdot + s2A * v
+        den = D * D + self.eps2
+        It = (D * (F_des - B) + self.eps2 * Ia) / den if den > 0.0 else Ia
+        I = Ia + (It - Ia) * self._inv_ah
+        Ip, step = self.I_prev, self.max_step_A
+        if I > Ip + step:
+            I = Ip + step
+        elif I < Ip - step:
+            I = Ip - step
+        I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0
+        self.I_prev = I
+        self._I_coil0 = Ia
+        self.I_coil = Ia + self._a1 * (I - Ia)
         return I
 
 

@@ -27,6 +27,7 @@ from importlib import metadata
 from typing import Any, Mapping
 
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law
+from mrctl.laws.closed import ClosedLoopInverse
 from mrctl.laws.demand import ConstantForce, FromFile, Viscous
 from mrctl.laws.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.laws.semiactive import LQR, ClippedOptimal, Groundhook, GroundhookOnOff, Skyhook, SkyhookOnOff
@@ -43,7 +44,7 @@ KEYS: dict[str, str] = {"demand": "demand.type", "current": "inverse.law"}
 
 BUILTIN: dict[str, dict[str, type[Law]]] = {
     "demand": {c.name: c for c in (Viscous, ConstantForce, FromFile, Skyhook, Groundhook, LQR)},
-    "current": {c.name: c for c in (PaperInverse, SmoothInverse, ConstantCurrent, ScheduleCurrent,
+    "current": {c.name: c for c in (PaperInverse, SmoothInverse, ClosedLoopInverse, ConstantCurrent, ScheduleCurrent,
                                     SkyhookOnOff, GroundhookOnOff, ClippedOptimal)},
 }
 

@@ -18,15 +18,23 @@ from __future__ import annotations
 
 import math
 
+from typing import Any
+
 from mrctl.model.params import LuGreParams
 from mrctl.model.plant import DamperPlant, Sensors
 
 
 class SimBench:
-    """One damper on one shaker, advanced tick by tick."""
+    """One damper on one shaker, advanced tick by tick.
+
+    The damper is a :class:`DamperPlant` built from ``params`` unless
+    ``plant`` gives another with its interface (``tick(v, I_cmd, x)``,
+    ``I_applied``, ``F``): e.g. :class:`mrctl.model.boucwen.BoucWenPlant`.
+    ``has_velocity`` false: the DAQ measures displacement only, the velocity
+    channel reads NaN (as the force does without a load cell)."""
 
     __slots__ = ("excitation", "plant", "sensors", "dt", "k", "kp", "I_cmd", "t", "x", "v", "F",
-                 "has_load_cell")
+                 "has_load_cell", "has_velocity")
 
     def __init__(
         self,
@@ -36,12 +44,15 @@ class SimBench:
         driver_tau_s: float | None = None,
         sensors: Sensors | None = None,
         has_load_cell: bool = True,
+        plant: Any = None,
+        has_velocity: bool = True,
     ) -> None:
         self.excitation = excitation
-        self.plant = DamperPlant(params, dt, driver_tau_s)
+        self.plant = DamperPlant(params, dt, driver_tau_s) if plant is None else plant
         self.sensors = sensors
         self.dt = dt
         self.has_load_cell = has_load_cell
+        self.has_velocity = has_velocity
         self.I_cmd = 0.0
         self.k = -1  # present tick
         self.kp = -1  # last tick the plant has produced a force for
@@ -83,10 +94,12 @@ class SimBench:
 
     def sample(self) -> tuple[float, float, float]:
         """Measured (x m, v m/s, F N) at the present tick; F is the last
-        completed tick's force, NaN without a load cell."""
+        completed tick's force, NaN without a load cell; v is NaN without a
+        velocity channel. Noise is drawn for every channel either way (the
+        noise sequence depends on the seed and the tick alone)."""
         s = self.sensors
         if s is None:
             x, v, F = self.x, self.v, self.F
         else:
             x, v, F = s.x(self.x), s.v(self.v), s.F(self.F)
-        return x, v, (F if self.has_load_cell else math.nan)
+        return x, (v if self.has_velocity else math.nan), (F if self.has_load_cell else math.nan)

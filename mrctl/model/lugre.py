@@ -128,6 +128,35 @@ class LuGreModel:
         self.z = z
         return z
 
+    def look_ahead(self, v: float, dv: float, I: float, dt: float, n: int) -> list[float]:
+        """The forces (N) of the next ``n`` ticks with the current held at I
+        and the velocity going on by dv per tick, from the present state,
+        which is left as it is (the closed law's horizon; one call instead of
+        2n method calls per current)."""
+        if I != self._I:
+            self._set_current(I)
+        Fc = self._Fc
+        dFs = self._Fs - Fc
+        s0, s1, s2, vs = self._s0, self._s1, self._s2, self._vs
+        z = self.z
+        out = []
+        for j in range(1, n + 1):
+            v1 = v + dv
+            vm = 0.5 * (v + v1)
+            r = vm / vs
+            a = s0 * abs(vm) / (Fc + dFs * math.exp(-r * r))
+            x = a * dt
+            if x < _SMALL_AH:
+                z = z * (1.0 - x) + vm * dt * (1.0 - 0.5 * x)
+            else:
+                e = math.exp(-x)
+                z = z * e + vm * (1.0 - e) / a
+            r = v1 / vs
+            zdot = v1 - s0 * abs(v1) * z / (Fc + dFs * math.exp(-r * r))
+            out.append(s0 * z + s1 * zdot + s2 * v1)
+            v = v1
+        return out
+
     def zdot(self, v: float, I: float) -> float:
         """ż (m/s) from eq (2) at the present z, velocity v and current I."""
         if I != self._I:

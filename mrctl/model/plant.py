@@ -60,6 +60,11 @@ class DamperPlant:
         self._kx = params.k_x
 
     @property
+    def z(self) -> float:
+        """The LuGre state z (m), for the logs (every plant has one state to show)."""
+        return self.model.z
+
+    @property
     def tau_s(self) -> float:
         """The input lag in effect (s)."""
         a = self.driver.alpha

@@ -118,9 +118,9 @@ class QuarterCarBench:
 
     def __init__(self, params: LuGreParams, road, dt: float, qc: QuarterCarParams,
                  driver_tau_s: float | None = None, sensors: Sensors | None = None,
-                 has_load_cell: bool = True) -> None:
+                 has_load_cell: bool = True, plant=None) -> None:
         self.excitation = road  # the road profile x_r(t) (SimBench's name for the input)
-        self.plant = DamperPlant(params, dt, driver_tau_s)
+        self.plant = DamperPlant(params, dt, driver_tau_s) if plant is None else plant
         self.sensors = sensors
         self.dt = dt
         self.has_load_cell = has_load_cell

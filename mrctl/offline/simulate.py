@@ -49,6 +49,8 @@ class SimResult:
     fault: LawFault | None = None
     #: the driver's applied current before the first tick (what tick 0's sample reports)
     I_applied0: float = 0.0
+    #: what the law flagged during the run (Law.notices), said once after it
+    notices: list[str] = field(default_factory=list)
 
     @property
     def ticks(self) -> int:
@@ -74,7 +76,10 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     whole run up front (numpy); the loop itself is the per-tick plain-float
     code the daemon runs. The laws see what the daemon's sim link gives
     them: x and v at tick k, the load cell's reading of the force of tick
-    k − 1, sensor noise drawn in the same order (x, v, F per tick).
+    k − 1, sensor noise drawn in the same order (x, v, F per tick), NaN in
+    a channel the bench lacks (``plant.sensors.load_cell``/``velocity``),
+    and the velocity the observer makes of them (``sensing``), as the
+    controller does before its laws.
 
     A bench whose motion depends on the damper (``plant.bench:
     quarter_car``) is stepped tick by tick instead (:mod:`.bench_sim`). A law
@@ -101,7 +106,7 @@ def simulate(exp: Experiment, duration_s: float) -> SimResult:
     summary["simulated_s"] = (n - 1) * exp.dt
     summary["wall_s"] = wall
     summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary, fault)
+    return SimResult(out, wall, summary, fault, notices=exp.law.notices())
 
 
 def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], cols: dict[str, array]
@@ -114,8 +119,10 @@ def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], co
     # local bindings: attribute lookups cost as much as the physics here
     demand = exp.demand.force if exp.demand is not None else None
     current, applied = exp.law.current, exp.law.applied
-    ptick, model = plant.tick, plant.model
+    ptick = plant.tick
     dname, lname = (exp.config.demand.type if demand is not None else ""), exp.config.inverse.law
+    observe = exp.make_observer()
+    has_F, has_v = exp.config.plant.sensors.load_cell, exp.config.plant.sensors.velocity
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
     I, Fd = 0.0, math.nan
@@ -126,9 +133,15 @@ def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], co
             xm, vm, Fm = x, v, F_prev
         else:
             xm, vm, Fm = sensors.x(x), sensors.v(v), sensors.F(F_prev)
+        if not has_F:
+            Fm = math.nan
         if k:
             cfm[k - 1] = Fm
         cfr[k] = Fm
+        if not has_v:
+            vm = math.nan
+        if observe is not None:
+            vm = observe.update(xm, vm)
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
         who = dname
         try:  # the law guard (docs/laws.md): zero cost on the good path
@@ -147,11 +160,11 @@ def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], co
                 I = Ic
                 applied(I)
         F_prev = cf[k] = ptick(v, I, x)
-        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, Fd, I, plant.I_applied, model.z
+        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, Fd, I, plant.I_applied, plant.z
         if fault is not None:
             n = k + 1
             break
-    cfm[n - 1] = F_prev if sensors is None else sensors.F(F_prev)
+    cfm[n - 1] = (F_prev if sensors is None else sensors.F(F_prev)) if has_F else math.nan
     return n, fault
 
 

@@ -1,4 +1,4 @@
-"""Signal estimates the controller feeds to the laws (plain floats, per tick).
+"""Latency compensation: the velocity predicted ahead (plain floats, per tick).
 
 Latency compensation: on an exchange link the current computed from sample k
 reaches the damper one to two ticks later (one request/reply per tick, and the

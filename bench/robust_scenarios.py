@@ -1,0 +1,299 @@
+#!/usr/bin/env python3
+"""Force tracking on benches that are not the law's model: the robust scenario set.
+
+Every scenario is a file in ``config/experiments/robust/`` (``--write-configs``
+writes them from :data:`SCENARIOS`): the paper's Fig 5 motion (10 mm, 1 Hz,
+4 s, I_max 0.6 A, viscous demand at c_des 250, 500 and 750 N·s/m) on a
+simulated bench that differs from the model the law inverts: its parameters,
+its coil lag, its sensors, its structure (Spencer's Bouc–Wen damper). Each
+runs with ``paper``, ``smooth`` and the file's own law (``closed``), through
+``mrctl.offline.simulate`` (the NRMSE ``mrctl simulate`` prints).
+
+Feasibility, per scenario (law-independent, measured here):
+
+- *reach floor*: the bench runs open loop at 13 constant currents over
+  [0, I_max] on the same motion; the band between the lowest and the highest
+  of those forces at each tick is what the damper reaches (a law switching
+  the current can exceed it slightly after reversals). The RMS distance of
+  F_des outside the band, over the NRMSE window, divided by the
+  peak-to-peak of F_des;
+- *noise floor*: the white noise the demand itself carries (a demand on a
+  noisy velocity), RMS of its second difference / √6, over the same
+  peak-to-peak. No slew-bounded current through a lagging coil follows it.
+
+A scenario is **feasible** when both floors are ≤ 0.5 %: the 1 % target
+then leaves at least half of itself to the law.
+
+    python bench/robust_scenarios.py [--write-configs] [--write-docs] [--only NAME]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mrctl.config import load_yaml, validate_experiment  # noqa: E402
+from mrctl.experiment import build  # noqa: E402
+from mrctl.offline.simulate import simulate  # noqa: E402
+
+DIR = ROOT / "config" / "experiments" / "robust"
+C_VALUES = (250.0, 500.0, 750.0)
+LAWS = ("paper", "smooth", "closed")
+FEASIBLE_FLOOR = 0.005
+DATE = "2026-11-23"
+MISMATCHED = "../../plants/table1_mismatched.yaml"
+BOUC_WEN = {"type": "bouc-wen", "parameters": "../../plants/rd1097_bouc_wen.yaml"}
+NOISE = {"x_noise_m": 2.0e-6, "x_lsb_m": 1.0e-6, "v_noise_mps": 0.002, "F_noise_N": 0.5}
+X_ONLY = {"x_noise_m": 2.0e-6, "x_lsb_m": 1.0e-6, "F_noise_N": 0.5, "velocity": False}
+OBSERVER = {"velocity": "observer", "x_noise_m": 2.0e-6}
+FUSED = {**OBSERVER, "v_noise_mps": 0.002}
+
+#: name → (one line, law parameters, plant section, sensing section or None)
+SCENARIOS: dict[str, tuple[str, Any, dict[str, Any], dict[str, Any] | None]] = {
+    "own": ("the law's own model (Table I), ideal coil, exact sensors", "table1",
+            {"driver_tau_s": 0.0}, None),
+    "mismatch": ("parameters off by 15-30 % (F0 x1.2, Ac x1.15, sigma0A x0.7, sigma1A x0.8, sigma2A/B x1.2)",
+                 "table1", {"parameters": MISMATCHED, "driver_tau_s": 0.0}, None),
+    "lag5": ("coil lag 5 ms (the law's tau_input 5 ms)", {"tau_input": 0.005}, {"driver_tau_s": 0.005}, None),
+    "lag10": ("coil lag 10 ms (the law's tau_input 10 ms)", {"tau_input": 0.010}, {"driver_tau_s": 0.010}, None),
+    "noise": ("velocity noise 2 mm/s, load-cell noise 0.5 N, LVDT 2 um + 1 um LSB; the DAQ's velocity",
+              "table1", {"driver_tau_s": 0.0, "sensors": NOISE}, None),
+    "noise_observer": ("the noise bench, velocity from the observer fusing x and v", "table1",
+                       {"driver_tau_s": 0.0, "sensors": NOISE}, FUSED),
+    "mismatch_lag_noise": ("mismatch + coil lag 5 ms + noise; the DAQ's velocity", {"tau_input": 0.005},
+                           {"parameters": MISMATCHED, "driver_tau_s": 0.005, "sensors": NOISE}, None),
+    "mismatch_lag_noise_observer": ("mismatch + coil lag 5 ms + noise, velocity from the observer",
+                                    {"tau_input": 0.005},
+                                    {"parameters": MISMATCHED, "driver_tau_s": 0.005, "sensors": NOISE}, FUSED),
+    "bouc_wen": ("Spencer's Bouc-Wen damper (config/plants/rd1097_bouc_wen.yaml), its coil 5.3 ms; "
+                 "the law's tau_input 5 ms", {"tau_input": 0.005}, {"model": BOUC_WEN}, None),
+    "displacement_only": ("no velocity channel: LVDT 2 um + 1 um LSB, load cell 0.5 N; observer on x",
+                          "table1", {"driver_tau_s": 0.0, "sensors": X_ONLY}, OBSERVER),
+    "bouc_wen_displacement_only": ("the Bouc-Wen damper, displacement only, load cell 0.5 N; observer on x",
+                                   {"tau_input": 0.005}, {"model": BOUC_WEN, "sensors": X_ONLY}, OBSERVER),
+}
+
+
+def config_dict(name: str, c_des: float) -> dict[str, Any]:
+    what, params, plant, sensing = SCENARIOS[name]
+    d: dict[str, Any] = {
+        "version": 1,
+        "name": f"robust_{name}_c{c_des:g}",
+        "description": f"{what}; c_des {c_des:g}",
+        "duration_s": 4.0,
+        "rate_hz": 1000,
+        "parameters": params,
+        "excitation": {"type": "sine", "amplitude_m": 0.010, "frequency_hz": 1.0},
+        "demand": {"type": "viscous", "c_des": c_des},
+        "inverse": {"law": "closed"},
+        "safety": {"I_max": 0.6},
+        "plant": plant,
+        "backend": {"type": "sim"},
+    }
+    if sensing is not None:
+        d["sensing"] = sensing
+    return d
+
+
+def _flow(v: Any) -> str:
+    """A YAML flow value (the files are small; one line per section)."""
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_flow(x)}" for k, x in v.items()) + "}"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return f"{v:g}" if abs(v) >= 1e-3 or v == 0.0 else f"{v:.1e}"
+    if isinstance(v, str) and any(ch in v for ch in ":#{}[],'\""):
+        return json.dumps(v)
+    return str(v)
+
+
+def write_configs() -> list[Path]:
+    DIR.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name in SCENARIOS:
+        for c in C_VALUES:
+            d = config_dict(name, c)
+            lines = ["# Robust scenario set (bench/robust_scenarios.py --write-configs; docs/inverse-laws.md).",
+                     f"# {SCENARIOS[name][0]}"]
+            lines += [f"{k}: {_flow(v)}" for k, v in d.items()]
+            p = DIR / f"{name}_c{c:g}.yaml"
+            p.write_text("\n".join(lines) + "\n")
+            out.append(p)
+    return out
+
+
+def _experiment(path: Path, law: str | None = None, inverse: dict[str, Any] | None = None) -> Any:
+    data = load_yaml(path)
+    if inverse is not None:
+        data["inverse"] = inverse
+    elif law is not None and law != data["inverse"]["law"]:
+        data["inverse"] = {"law": law}
+    return build(validate_experiment(data, path.parent))
+
+
+def floors(path: Path, F_des: np.ndarray, t: np.ndarray, currents: int = 13) -> tuple[float, float]:
+    """(reach floor, noise floor) of a scenario, as fractions (module docstring)."""
+    bands = []
+    for i in range(currents):
+        data = load_yaml(path)
+        data["inverse"] = {"law": "constant", "current_A": 0.6 * i / (currents - 1)}
+        data["plant"].pop("sensors", None)
+        data.pop("sensing", None)
+        bands.append(simulate(build(validate_experiment(data, path.parent)), 4.0).columns["F"])
+    lo, hi = np.min(bands, axis=0), np.max(bands, axis=0)
+    w = t >= t[0] + 1.0
+    p2p = float(np.ptp(F_des[w]))
+    dist = np.maximum(0.0, np.maximum(lo - F_des, F_des - hi))[w]
+    noise = float(np.std(np.diff(F_des[w], 2)) / math.sqrt(6.0))
+    return float(np.sqrt(np.mean(dist * dist))) / p2p, noise / p2p
+
+
+def run_all(only: str | None = None, closed: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """Every scenario with every law; ``closed``: settings that override the
+    files' ``inverse`` section for the closed law (ablations)."""
+    rows = []
+    for name in SCENARIOS:
+        if only and name != only:
+            continue
+        for c in C_VALUES:
+            path = DIR / f"{name}_c{c:g}.yaml"
+            row: dict[str, Any] = {"scenario": name, "c_des": c, "file": path.name}
+            for law in LAWS:
+                inv = {"law": "closed", **closed} if closed and law == "closed" else None
+                res = simulate(_experiment(path, law, inv), 4.0)
+                row[law] = res.summary["force_nrmse"]
+                row[f"{law}_step"] = res.summary["max_current_step_A"]
+                if law == "closed":
+                    row["reach"], row["noise"] = floors(path, res.columns["F_des"], res.columns["t"])
+            row["feasible"] = row["reach"] <= FEASIBLE_FLOOR and row["noise"] <= FEASIBLE_FLOOR
+            rows.append(row)
+            print(f"{name:28s} c {c:4g}: " + "  ".join(f"{law} {100 * row[law]:.3f} %" for law in LAWS)
+                  + f"  floors {100 * row['reach']:.2f} / {100 * row['noise']:.2f} %", flush=True)
+    return rows
+
+
+def verdicts(rows: list[dict[str, Any]]) -> list[str]:
+    feas = [r for r in rows if r["feasible"]]
+    worst = max(feas, key=lambda r: r["closed"]) if feas else None
+    need3 = [r for r in feas if r["smooth"] > 0.015]
+    ratio_ok = [r for r in need3 if r["closed"] * 3.0 <= r["smooth"]]
+    own = [r for r in rows if r["scenario"] == "own" and r["c_des"] == 500.0]
+    bw = [r for r in rows if r["scenario"] == "bouc_wen"]
+    step = max(max(r[f"{law}_step"] for law in ("smooth", "closed")) for r in rows)
+    out = []
+    if worst is not None:
+        out.append(f"- feasible scenarios: {len(feas)} of {len(rows)}; `closed` ≤ 1.0 % in "
+                   f"{sum(r['closed'] <= 0.010 for r in feas)} of them (worst {100 * worst['closed']:.3f} %, "
+                   f"{worst['scenario']} at c_des {worst['c_des']:g})")
+    out.append(f"- feasible scenarios where `smooth` exceeds 1.5 %: {len(need3)}; `closed` at least 3x lower in "
+               f"{len(ratio_ok)}" + ("" if len(ratio_ok) == len(need3) else " (not in: " + ", ".join(
+                   f"{r['scenario']} c_des {r['c_des']:g} ({r['smooth'] / r['closed']:.1f}x)"
+                   for r in need3 if r not in ratio_ok) + ")"))
+    if own:
+        out.append(f"- the law's own model, c_des 500: `closed` {100 * own[0]['closed']:.3f} % (target ≤ 0.30 %)")
+    for r in bw:
+        out.append(f"- Bouc-Wen bench, c_des {r['c_des']:g}: `smooth` / `closed` = "
+                   f"{r['smooth'] / r['closed']:.2f}x")
+    out.append(f"- largest current step of `smooth` and `closed` in any scenario: {step:.4f} A")
+    return out
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    lines = [
+        f"Measured {DATE} with `python bench/robust_scenarios.py --write-docs` (deterministic: seeded "
+        "noise, no timing). Force NRMSE as `mrctl simulate` prints it (t ≥ 1 s); floors and feasibility "
+        "as defined above; \"step\": the largest current step of `closed` between ticks.",
+        "",
+        "| scenario | c_des | reach / noise floor | feasible | `paper` | `smooth` | `closed` | smooth / closed | step |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['scenario']} | {r['c_des']:g} | {100 * r['reach']:.2f} / {100 * r['noise']:.2f} % | "
+            f"{'yes' if r['feasible'] else 'no'} | {100 * r['paper']:.3f} % | {100 * r['smooth']:.3f} % | "
+            f"**{100 * r['closed']:.3f} %** | {r['smooth'] / r['closed']:.1f}x | {r['closed_step']:.3f} A |")
+    lines += ["", "Scenarios (`config/experiments/robust/NAME_cC.yaml`):", ""]
+    lines += [f"- `{name}`: {what}" for name, (what, *_rest) in SCENARIOS.items()]
+    lines += ["", "Against the targets:", ""] + verdicts(rows)
+    return "\n".join(lines) + "\n"
+
+
+#: the closed law's settings, one at a time, on the feasible cases that tell them apart
+ABLATIONS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("`closed` as shipped", {}),
+    ("one-tick solve (horizon_ticks 0)", {"horizon_ticks": 0}),
+    ("horizon 3 ticks", {"horizon_ticks": 3}),
+    ("no guard (guard_N 10⁴)", {"guard_N": 1e4}),
+    ("guard_N 1 N", {"guard_N": 1.0}),
+    ("correction 10 Hz", {"correction_hz": 10.0}),
+    ("correction 20 Hz", {"correction_hz": 20.0}),
+    ("correction 40 Hz", {"correction_hz": 40.0}),
+    ("no correction (correction_max_N 10⁻⁹)", {"correction_max_N": 1e-9}),
+    ("no lag compensation (lag_s 0)", {"lag_s": 0.0}),
+    ("lag_horizon_s 1 ms (dead-beat)", {"lag_horizon_s": 0.001}),
+)
+ABLATION_CASES = (("own", 250.0), ("own", 500.0), ("mismatch", 250.0), ("mismatch", 500.0), ("lag10", 250.0),
+                  ("noise_observer", 500.0), ("mismatch_lag_noise_observer", 250.0), ("bouc_wen", 250.0),
+                  ("bouc_wen", 500.0), ("displacement_only", 250.0))
+
+
+def ablation() -> str:
+    head = "| variant | " + " | ".join(f"{n} {c:g}" for n, c in ABLATION_CASES) + " |"
+    lines = ["Force NRMSE of `closed` with one setting changed (same files, same seeds).", "", head,
+             "|---|" + "---|" * len(ABLATION_CASES)]
+    for label, kw in ABLATIONS:
+        cells = []
+        for name, c in ABLATION_CASES:
+            path = DIR / f"{name}_c{c:g}.yaml"
+            r = simulate(_experiment(path, inverse={"law": "closed", **kw}), 4.0).summary["force_nrmse"]
+            cells.append(f"{100 * r:.3f} %")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+BEGIN, END = "<!-- BEGIN GENERATED: bench/robust_scenarios.py -->", "<!-- END GENERATED: bench/robust_scenarios.py -->"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--write-configs", action="store_true", help="(re)write config/experiments/robust/")
+    ap.add_argument("--write-docs", action="store_true", help="update docs/inverse-laws.md")
+    ap.add_argument("--only", choices=tuple(SCENARIOS), help="one scenario (no docs)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a setting of the closed law (ablation; no docs)")
+    a = ap.parse_args()
+    closed = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.set)}
+    if a.write_configs:
+        print(f"wrote {len(write_configs())} files in {DIR.relative_to(ROOT)}")
+    t0 = time.perf_counter()
+    rows = run_all(a.only, closed)
+    text = table(rows)
+    if not (a.only or closed):
+        text += "\n" + ablation()
+    print(text)
+    print(f"({time.perf_counter() - t0:.0f} s)")
+    if a.write_docs and not (a.only or closed):
+        doc = ROOT / "docs" / "inverse-laws.md"
+        src = doc.read_text()
+        if BEGIN not in src:
+            raise SystemExit(f"{doc}: no {BEGIN} marker")
+        doc.write_text(re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _m: BEGIN + "\n" + text + END,
+                              src, flags=re.S))
+        print(f"updated {doc}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

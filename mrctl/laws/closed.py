@@ -1,0 +1,246 @@
+"""``closed``: the smooth inverse as feed-forward, corrected by the load cell.
+
+Every damper differs from its identified model: parameters off by tens of
+per cent, a coil that lags, a structure the model does not have. The
+``smooth`` law inverts the model and cannot see any of it; the load cell
+most benches carry can. Each tick this law
+
+1. **estimates the model error** from the load cell, which reads the force
+   of the previous tick:
+
+       d̂ ← d̂ + g·(F_meas − F_model),     g = 1 − e^(−2π·f_c·dt)
+
+   where F_model is the law's own LuGre model's force at the previous tick
+   *for the current the coil actually carried then* (the command actually
+   sent, through the lag model). That is integral action on the tracking
+   error whose anti-windup knows the damper is semi-active: it compares
+   the measurement with the model at the *applied* current, saturated at
+   0 A or I_max or held by the slew bound, not with the force demanded, so
+   an out-of-reach demand does not wind it up. When the load cell reads a
+   force on the wrong side of the demand, short of what the model expected
+   by more than ``guard_N`` (after a reversal, a damper whose hysteresis
+   swings slower than the model's), no current can help: a semi-active
+   damper cannot push, and more current only stiffens the force it has.
+   Then d̂ holds and the coil's current ramps down at the slew bound.
+   |d̂| ≤ ``correction_max_N``, against a broken load cell;
+2. **solves for the coil's current** as ``smooth`` does, on F_des − d̂, over
+   a short horizon: the current I, held for ``horizon_ticks`` more ticks,
+   that minimises
+
+       Σ_{j=0..H} (F_j(I) − F_des,j)² + ε²·(I − I_coil)²
+
+   with F_j the model's force j ticks ahead (its state advanced with I,
+   velocity and demand extrapolated, linearised in I by a finite
+   difference). H = 0 is ``smooth``'s one-tick solve; looking 2 ms ahead
+   damps the current oscillation after a reversal that the one-tick solve
+   shows at low forces (docs/inverse-laws.md);
+3. **compensates the coil lag** (``lag_s``, default the parameter set's
+   ``tau_input``): commands what brings the coil to that current within
+   ``lag_horizon_s`` (:func:`mrctl.laws.inverse.lag_gains`), inside the
+   slew bound around the previous command and clamped to [0, I_max].
+
+The previous command is read from the measurement (``m.I_cmd``: what the
+controller sent, 0 A during a safety fault) and ticks skipped since the
+last call from ``m.k``, so after a fault the current ramps up from 0 A
+within the slew bound and the lag model follows what the coil got.
+
+A reading identical to the previous one (a sample the safety supervisor
+holds over a link error) says nothing new and leaves d̂ alone.
+
+No load cell (F is NaN): d̂ decays to 0 at the rate g, and the law is
+feed-forward alone. It counts those ticks; :meth:`notices` reports them
+once, after the run (nothing is printed or logged from the 1 kHz path).
+
+Design and measured figures: ``docs/inverse-laws.md``.
+"""
+
+from __future__ import annotations
+
+import math
+
+from mrctl.laws.base import Measurement
+from mrctl.laws.inverse import SmoothInverse
+from mrctl.model.lugre import LuGreModel
+from mrctl.model.params import LuGreParams
+from mrctl.util.schema import Num
+
+__all__ = ["ClosedLoopInverse"]
+
+#: finite-difference step for the horizon's ∂F/∂I (A)
+_DI = 0.02
+#: time constant of the velocity and demand slopes used to extrapolate (s)
+_SLOPE_S = 0.005
+
+
+class ClosedLoopInverse(SmoothInverse):
+    """Smooth inverse + load-cell model-error estimate (integral action with
+    semi-active anti-windup) + short horizon + coil-lag compensation."""
+
+    name = "closed"
+    summary = "smooth inverse as feed-forward plus the model error the load cell measures, coil lag compensated"
+    params = {
+        **SmoothInverse.params,
+        "correction_hz": Num(default=30.0, min=0.0, min_exclusive=True, max=200.0,
+                             doc="bandwidth of the load-cell correction (Hz): faster follows model error "
+                                 "better, passes more load-cell noise"),
+        "correction_max_N": Num(default=25.0, min=0.0, min_exclusive=True, max=1e5,
+                                doc="bound of the correction (N), against a broken or miswired load cell"),
+        "guard_N": Num(default=0.15, min=0.0, max=1e4,
+                       doc="a measured force on the wrong side of the demand, and short of the model's by more "
+                           "than this (N), holds the correction and ramps the current down"),
+        "horizon_ticks": Num(default=2, integer=True, min=0, max=5,
+                             doc="ticks ahead the solve looks, the current held (0 = smooth's one-tick solve)"),
+    }
+
+    def __init__(
+        self,
+        params: LuGreParams,
+        I_max: float,
+        dt: float,
+        eps_N_per_A: float = 3.0,
+        max_slew_A_per_s: float = 50.0,
+        lag_s: float | None = None,
+        lag_horizon_s: float = 0.003,
+        correction_hz: float = 30.0,
+        correction_max_N: float = 25.0,
+        guard_N: float = 0.15,
+        horizon_ticks: int = 2,
+    ) -> None:
+        super().__init__(params, I_max, dt, eps_N_per_A, max_slew_A_per_s, lag_s, lag_horizon_s)
+        if not (correction_hz > 0.0 and correction_max_N > 0.0 and guard_N >= 0.0):
+            raise ValueError("correction_hz and correction_max_N must be > 0, guard_N >= 0")
+        if not 0 <= horizon_ticks <= 5:
+            raise ValueError("horizon_ticks must be in 0..5")
+        self.gain = 1.0 - math.exp(-2.0 * math.pi * correction_hz * self.dt)
+        self.d_max = float(correction_max_N)
+        self.guard_N = float(guard_N)
+        self.horizon = int(horizon_ticks)
+        self._slope = 1.0 - math.exp(-self.dt / _SLOPE_S)
+        # two copies of the model that look ahead with the current held (the horizon)
+        self._probe0, self._probe1 = LuGreModel(params), LuGreModel(params)
+        self.ticks = 0  #: calls since reset
+        self.no_force_ticks = 0  #: calls without a finite load-cell force
+        self.guard_ticks = 0  #: calls on which the measured force opposed the demand
+        self._reset_state(0.0)
+
+    def _reset_state(self, I0: float) -> None:
+        self.d = 0.0  #: the model-error estimate d̂ (N)
+        self.I_coil = self._I_coil0 = self.I_prev = I0
+        self._k = -1
+        self._Fb = 0.0  # previous tick's bench terms F_offset + k_x·x
+        self._Fd = math.nan  # previous tick's demand (N)
+        self._F_seen = math.nan  # previous tick's load-cell reading, as read
+        self._dv = self._dF = 0.0  # smoothed per-tick slopes of v and F_des
+
+    def reset(self, I0: float = 0.0, z0: float = 0.0, v0: float = 0.0) -> None:
+        super().reset(I0, z0, v0)
+        self._reset_state(I0)
+        self.ticks = self.no_force_ticks = self.guard_ticks = 0
+
+    def applied(self, I: float) -> None:
+        """Nothing to do: the next tick reads the command sent from ``m.I_cmd``."""
+
+    def notices(self) -> list[str]:
+        n = self.no_force_ticks
+        if not n:
+            return []
+        return [f"inverse law closed: no load-cell force on {n} of {self.ticks} ticks; "
+                f"it ran on its feed-forward alone there, without the load-cell correction"]
+
+    def _coil(self, m: Measurement) -> tuple[float, int]:
+        """The coil's current over the last interval (the lag model driven by
+        the command actually sent, held over skipped ticks), and the ticks
+        since the last call."""
+        k = m.k
+        dk = k - self._k if self._k >= 0 else 1
+        self._k = k
+        Ic = m.I_cmd
+        if not Ic >= 0.0:  # NaN: fall back on what this law sent
+            Ic = self.I_prev
+        a1, Ia0 = self._a1, self._I_coil0
+        if dk <= 1:
+            return Ia0 + a1 * (Ic - Ia0), 1
+        return Ic + (Ia0 - Ic) * (1.0 - a1) ** dk, dk
+
+    def _correct(self, F: float, Ia: float, dk: int) -> bool:
+        """Update d̂ from the load cell's reading F of the previous tick;
+        True when that force opposed the demand although the model expected
+        it on the demand's side (by more than guard_N): the guard."""
+        d = self.d
+        if not F - F == 0.0:  # NaN or inf: no load cell this tick
+            self.no_force_ticks += 1
+            self.d = d - self.gain * d
+            return False
+        if not (dk == 1 and self._started) or F == self._F_seen:
+            return False  # a gap, or the same reading again (the supervisor holding a sample): nothing new
+        mod = self.model  # still at the previous tick: z, v_prev
+        Fm = F - self._Fb
+        e = Fm - mod.force(mod.v_prev, Ia)
+        Fd = self._Fd
+        if Fd * Fm < 0.0 and e * Fd < -self.guard_N:
+            self.guard_ticks += 1
+            return True  # semi-active: no current can fix this error, hold d̂
+        d += self.gain * (e - d)
+        self.d = d if -self.d_max < d < self.d_max else (self.d_max if d > 0.0 else -self.d_max)
+        return False
+
+    def _look_ahead(self, v: float, I0: float, F_t: float) -> tuple[float, float]:
+        """Σ D_j·(F_t,j − B_j) and Σ D_j² over the horizon: the model's force
+        j ticks ahead, F_j ≈ B_j + D_j·I, from two probes held at I0 and
+        I0 + ΔI (the law's state, at this tick, copied into each)."""
+        p0, p1, mod = self._probe0, self._probe1, self.model
+        p0.z = p1.z = mod.z
+        dv, dF, H = self._dv, self._dF, self.horizon
+        f0 = p0.look_ahead(v, dv, I0, self.dt, H)
+        f1 = p1.look_ahead(v, dv, I0 + _DI, self.dt, H)
+        num = den = 0.0
+        for j in range(H):
+            D = (f1[j] - f0[j]) / _DI
+            num += D * (F_t + (j + 1) * dF - f0[j] + D * I0)
+            den += D * D
+        return num, den
+
+    def current(self, m: Measurement, F_des: float) -> float:
+        v = m.v
+        self.ticks += 1
+        Ia, dk = self._coil(m)
+        F = m.F
+        guard = self._correct(F, Ia, dk)
+        self._F_seen = F
+        Fb = self._Fo + self._kx * m.x if (self._kx != 0.0 or self._Fo != 0.0) else 0.0
+        if self._started:
+            s = self._slope
+            self._dv += s * (v - self.model.v_prev - self._dv)
+            if F_des - self._Fd == F_des - self._Fd:  # both finite
+                self._dF += s * (F_des - self._Fd - self._dF)
+            z = self._adv(v, Ia, self.dt * dk)
+        else:
+            z = self._first(v)
+        zdot = self._zdot(v, Ia)
+        s0B, s1B, s2B = self._B
+        s0A, s1A, s2A = self._A
+        D = s0A * z + s1A * zdot + s2A * v
+        F_t = F_des - Fb - self.d
+        num = D * (F_t - (s0B * z + s1B * zdot + s2B * v))
+        den = D * D
+        if self.horizon:
+            n2, d2 = self._look_ahead(v, Ia, F_t)
+            num += n2
+            den += d2
+        eps2 = self.eps2
+        It = (num + eps2 * Ia) / (den + eps2) if den + eps2 > 0.0 else Ia
+        I = Ia + (It - Ia) * self._inv_ah
+        Ip = m.I_cmd if m.I_cmd >= 0.0 else self.I_prev
+        step = self.max_step_A
+        if guard:
+            I = Ip - step  # ramp down: the damper opposes the demand
+        elif I > Ip + step:
+            I = Ip + step
+        elif I < Ip - step:
+            I = Ip - step
+        I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0  # NaN → 0 A
+        self.I_prev = I
+        self._I_coil0 = Ia
+        self.I_coil = Ia + self._a1 * (I - Ia)
+        self._Fb, self._Fd = Fb, F_des
+        return I

@@ -1,0 +1,95 @@
+"""Loopback HIL with the closed law on benches that are not its model.
+
+hil_sim runs the mismatched damper (Table I off by 15-30 %) or the Bouc–Wen
+damper; the daemon runs the closed law over the serial protocol and over
+Modbus TCP. Here: the loop is closed and corrected over a real link (the
+NRMSE beats what the smooth law reaches on that bench even in simulation),
+0 A reaches the device on the way out, the log is complete. The "within
+1.5x of simulate" figure is measured by bench/hil_robust.py (medians over
+repeated runs; docs/inverse-laws.md).
+"""
+
+from pathlib import Path
+
+import pytest
+
+from hil_util import ROOT, HilSim, hil_tracking, run_daemon
+from mrctl.daemon.recorder import read_run, read_sidecar
+from test_hil_loop import ATTEMPTS, _overloaded
+
+pytestmark = pytest.mark.hil
+EXP = ROOT / "config" / "experiments"
+#: smooth on these benches, in simulation: 5.6 % (mismatch), 2.9 % (Bouc-Wen)
+BOUND = {"mismatch": 0.035, "bouc_wen": 0.025}
+BENCH = {"mismatch": ROOT / "config" / "hil_mismatch_bench.yaml",
+         "bouc_wen": ROOT / "config" / "hil_bouc_wen_bench.yaml"}
+PARAMS = {"mismatch": "parameters: table1", "bouc_wen": "parameters: {tau_input: 0.005}"}
+
+
+def _experiment(d: Path, name: str, bench: str, **replace: str) -> Path:
+    text = (EXP / name).read_text().replace("parameters: table1", PARAMS[bench])
+    for old, new in replace.items():
+        text = text.replace(old, new)
+    p = d / name
+    p.write_text(text)
+    return p
+
+
+def _run_hil(tmp_path, start, make_cfg):
+    """As test_hil_loop's, and a run the feasibility check moved to a lower
+    rate (the link's round trip did not fit 1 kHz just then) is retried too."""
+    reasons = []
+    for attempt in range(ATTEMPTS):
+        d = tmp_path / f"attempt{attempt}"
+        d.mkdir()
+        hil = start(d)
+        cfg = make_cfg(d, hil)
+        out = d / "run.csv"
+        try:
+            res = run_daemon(cfg, out, duration_s=3.5)
+        finally:
+            code = hil.stop()
+        side = read_sidecar(out) if out.with_suffix(".json").exists() else None
+        why = _overloaded(res, side)
+        if why is None and side is not None and any("instead" in m for m in side["summary"]["messages"]):
+            why = next(m for m in side["summary"]["messages"] if "instead" in m)
+        if why is None:
+            return d, cfg, res, code
+        reasons.append(why)
+    pytest.skip(f"machine too loaded for a 1 kHz HIL run in {ATTEMPTS} attempts: {'; '.join(reasons)}")
+
+
+def _check(tmp_path, bench, start, make_cfg):
+    d, cfg, res, code = _run_hil(tmp_path, start, make_cfg)
+    assert res.returncode == 0, res.stderr
+    assert code == 0
+    out = d / "run.csv"
+    side = read_sidecar(out)
+    assert side["complete"] is True and side["summary"]["exit_current_A"] == 0.0
+    assert side["rows_written"] == side["summary"]["ticks"]
+    truth = read_run(d / "truth.csv")
+    tr = hil_tracking(read_run(out), truth)
+    print(f"{bench}/{cfg.name}: HIL force NRMSE {100 * tr['nrmse']:.3f} % over {tr['rows']} ticks, "
+          f"skipped deadlines {side['summary']['timing']['skipped_deadlines']}")
+    assert tr["rows"] > 1500 and tr["nrmse"] < BOUND[bench], tr
+    assert truth["I_cmd"][-1] == 0.0
+    assert not any("no load-cell force" in m for m in side["summary"]["messages"])
+
+
+def test_closed_law_over_serial_against_the_bouc_wen_bench(tmp_path):
+    def start(d):
+        return HilSim("--config", str(BENCH["bouc_wen"]), "--transport", "serial", "--link", str(d / "tty"),
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, "bouc_wen", start, lambda d, hil: _experiment(
+        d, "hil_closed_serial.yaml", "bouc_wen", **{"/tmp/mrctl-sim-tty": str(d / "tty")}))
+
+
+def test_closed_law_over_modbus_tcp_against_the_mismatched_bench(tmp_path):
+    def start(d):
+        return HilSim("--config", str(BENCH["mismatch"]), "--transport", "modbus-tcp", "--bind", "127.0.0.1:0",
+                      "--truth", str(d / "truth.csv"), "--duration", "30")
+
+    _check(tmp_path, "mismatch", start, lambda d, hil: _experiment(
+        d, "hil_closed_modbus_tcp.yaml", "mismatch",
+        **{"port: 5020": f"port: {hil.field('bind').rsplit(':', 1)[1]}"}))
