@@ -232,7 +232,11 @@ def test_tap_without_a_run_log_and_ctrl_c_ends_it_cleanly(tmp_path):
         time.sleep(1.5)
         t.send_signal(signal.SIGINT)
         out, err = t.communicate(timeout=30)
+        deadline = time.monotonic() + 5.0  # the daemon sees the client leave within its poll (0.25 s)
         st = query_status(sock)
+        while st["taps"]["active"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+            st = query_status(sock)
     finally:
         p.communicate(timeout=60)
     assert t.returncode == 0, err
