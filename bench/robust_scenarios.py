@@ -237,16 +237,22 @@ ABLATIONS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("horizon 3 ticks", {"horizon_ticks": 3}),
     ("no guard (guard_N 10⁴)", {"guard_N": 1e4}),
     ("guard_N 1 N", {"guard_N": 1.0}),
-    ("correction 10 Hz", {"correction_hz": 10.0}),
-    ("correction 20 Hz", {"correction_hz": 20.0}),
-    ("correction 40 Hz", {"correction_hz": 40.0}),
+    ("fixed 10 Hz, first order", {"correction_hz": 10.0, "correction_min_hz": 10.0,
+                                                             "correction_ramp": 0.0}),
+    ("fixed 30 Hz, first order (as before)", {"correction_hz": 30.0, "correction_min_hz": 30.0, "correction_ramp": 0.0}),
+    ("fixed 40 Hz, first order", {"correction_hz": 40.0, "correction_min_hz": 40.0, "correction_ramp": 0.0}),
+    ("fixed 40 Hz with the slope term", {"correction_min_hz": 40.0}),
+    ("10-40 Hz, first order (correction_ramp 0)", {"correction_ramp": 0.0}),
+    ("10-30 Hz", {"correction_hz": 30.0}),
+    ("10-60 Hz", {"correction_hz": 60.0}),
     ("no correction (correction_max_N 10⁻⁹)", {"correction_max_N": 1e-9}),
     ("no lag compensation (lag_s 0)", {"lag_s": 0.0}),
     ("lag_horizon_s 1 ms (dead-beat)", {"lag_horizon_s": 0.001}),
 )
 ABLATION_CASES = (("own", 250.0), ("own", 500.0), ("mismatch", 250.0), ("mismatch", 500.0), ("lag10", 250.0),
                   ("noise_observer", 500.0), ("mismatch_lag_noise_observer", 250.0), ("bouc_wen", 250.0),
-                  ("bouc_wen", 500.0), ("displacement_only", 250.0))
+                  ("bouc_wen", 500.0), ("displacement_only", 250.0), ("bouc_wen_displacement_only", 250.0),
+                  ("bouc_wen_displacement_only", 500.0))
 
 
 def ablation() -> str:

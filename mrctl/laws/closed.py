@@ -6,11 +6,21 @@ per cent, a coil that lags, a structure the model does not have. The
 most benches carry can. Each tick this law
 
 1. **estimates the model error** from the load cell, which reads the force
-   of the previous tick:
+   of the previous tick, with an alpha-beta tracker (a level d̂ and its
+   slope ṡ, so an error that ramps is followed without lag):
 
-       d̂ ← d̂ + g·(F_meas − F_model),     g = 1 − e^(−2π·f_c·dt)
+       d̂ ← d̂ + ṡ,  u = (F_meas − F_model) − d̂,  d̂ ← d̂ + g·u,  ṡ ← ṡ + β·u
 
-   where F_model is the law's own LuGre model's force at the previous tick
+   β = ``correction_ramp``·(4 − 2g − 4√(1−g)) (1: critically damped, 0:
+   first order). The gain is g = g_min + (g_max − g_min)·p̂/(p̂ + r̂), with
+   g_min, g_max = 1 − e^(−2π·f·dt) at f = ``correction_min_hz`` (10 Hz) and
+   ``correction_hz`` (40 Hz), and p̂/(p̂ + r̂) the share of the model error in
+   what the load cell says: r̂, the load cell's white
+   noise, is half the mean square of the tick-to-tick difference of
+   F_meas − F_model (a smooth model error hardly adds to it), p̂ the mean
+   square of that error less r̂, both over ~0.5 s. A noisy load cell on a
+   model that is right gets the slow correction; a large model error the
+   fast one. F_model is the law's own LuGre model's force at the previous tick
    *for the current the coil actually carried then* (the command actually
    sent, through the lag model). That is integral action on the tracking
    error whose anti-windup knows the damper is semi-active: it compares
@@ -47,7 +57,7 @@ within the slew bound and the lag model follows what the coil got.
 A reading identical to the previous one (a sample the safety supervisor
 holds over a link error) says nothing new and leaves d̂ alone.
 
-No load cell (F is NaN): d̂ decays to 0 at the rate g, and the law is
+No load cell (F is NaN): d̂ decays to 0 at the rate g_max, and the law is
 feed-forward alone. It counts those ticks; :meth:`notices` reports them
 once, after the run (nothing is printed or logged from the 1 kHz path).
 
@@ -70,6 +80,8 @@ __all__ = ["ClosedLoopInverse"]
 _DI = 0.02
 #: time constant of the velocity and demand slopes used to extrapolate (s)
 _SLOPE_S = 0.005
+#: time constant of the load-cell noise and model-error power estimates (s)
+_NOISE_S = 0.5
 
 
 class ClosedLoopInverse(SmoothInverse):
@@ -80,9 +92,15 @@ class ClosedLoopInverse(SmoothInverse):
     summary = "smooth inverse as feed-forward plus the model error the load cell measures, coil lag compensated"
     params = {
         **SmoothInverse.params,
-        "correction_hz": Num(default=30.0, min=0.0, min_exclusive=True, max=200.0,
-                             doc="bandwidth of the load-cell correction (Hz): faster follows model error "
-                                 "better, passes more load-cell noise"),
+        "correction_hz": Num(default=40.0, min=0.0, min_exclusive=True, max=200.0,
+                             doc="bandwidth of the load-cell correction (Hz) where the model error dominates "
+                                 "the load cell's noise: faster follows model error better"),
+        "correction_min_hz": Num(default=10.0, min=0.0, min_exclusive=True, max=200.0,
+                                 doc="bandwidth of the correction (Hz) where the load cell's noise dominates the "
+                                     "model error (≤ correction_hz)"),
+        "correction_ramp": Num(default=0.5, min=0.0, max=1.0,
+                               doc="slope term of the correction, as a share of the critically damped "
+                                   "alpha-beta gain (0: first order)"),
         "correction_max_N": Num(default=25.0, min=0.0, min_exclusive=True, max=1e5,
                                 doc="bound of the correction (N), against a broken or miswired load cell"),
         "guard_N": Num(default=0.15, min=0.0, max=1e4,
@@ -101,17 +119,26 @@ class ClosedLoopInverse(SmoothInverse):
         max_slew_A_per_s: float = 50.0,
         lag_s: float | None = None,
         lag_horizon_s: float = 0.003,
-        correction_hz: float = 30.0,
+        correction_hz: float = 40.0,
         correction_max_N: float = 25.0,
         guard_N: float = 0.15,
         horizon_ticks: int = 2,
+        correction_min_hz: float = 10.0,
+        correction_ramp: float = 0.5,
     ) -> None:
         super().__init__(params, I_max, dt, eps_N_per_A, max_slew_A_per_s, lag_s, lag_horizon_s)
         if not (correction_hz > 0.0 and correction_max_N > 0.0 and guard_N >= 0.0):
             raise ValueError("correction_hz and correction_max_N must be > 0, guard_N >= 0")
+        if not 0.0 < correction_min_hz <= correction_hz:
+            raise ValueError("correction_min_hz must be in (0, correction_hz]")
+        if not 0.0 <= correction_ramp <= 1.0:
+            raise ValueError("correction_ramp must be in [0, 1]")
         if not 0 <= horizon_ticks <= 5:
             raise ValueError("horizon_ticks must be in 0..5")
-        self.gain = 1.0 - math.exp(-2.0 * math.pi * correction_hz * self.dt)
+        self.gain_max = 1.0 - math.exp(-2.0 * math.pi * correction_hz * self.dt)
+        self.gain_min = 1.0 - math.exp(-2.0 * math.pi * correction_min_hz * self.dt)
+        self.ramp = float(correction_ramp)
+        self._lam = self.dt / _NOISE_S
         self.d_max = float(correction_max_N)
         self.guard_N = float(guard_N)
         self.horizon = int(horizon_ticks)
@@ -125,6 +152,11 @@ class ClosedLoopInverse(SmoothInverse):
 
     def _reset_state(self, I0: float) -> None:
         self.d = 0.0  #: the model-error estimate d̂ (N)
+        self.d_slope = 0.0  #: its slope (N per tick)
+        self.gain = self.gain_min  #: the correction's present gain g
+        self.noise_var = 0.0  #: load-cell noise variance r̂ (N²)
+        self.error_var = 0.0  #: model-error power p̂ (N²)
+        self._e1 = math.nan  # the model error of the last update
         self.I_coil = self._I_coil0 = self.I_prev = I0
         self._k = -1
         self._Fb = 0.0  # previous tick's bench terms F_offset + k_x·x
@@ -169,7 +201,8 @@ class ClosedLoopInverse(SmoothInverse):
         d = self.d
         if not F - F == 0.0:  # NaN or inf: no load cell this tick
             self.no_force_ticks += 1
-            self.d = d - self.gain * d
+            self.d = d - self.gain_max * d
+            self.d_slope = 0.0
             return False
         if not (dk == 1 and self._started) or F == self._F_seen:
             return False  # a gap, or the same reading again (the supervisor holding a sample): nothing new
@@ -180,8 +213,31 @@ class ClosedLoopInverse(SmoothInverse):
         if Fd * Fm < 0.0 and e * Fd < -self.guard_N:
             self.guard_ticks += 1
             return True  # semi-active: no current can fix this error, hold d̂
-        d += self.gain * (e - d)
-        self.d = d if -self.d_max < d < self.d_max else (self.d_max if d > 0.0 else -self.d_max)
+        # the gain: slow where the load cell's noise dominates the model error
+        lam, e1 = self._lam, self._e1
+        self._e1 = e
+        r = self.noise_var
+        if e1 - e1 == 0.0:  # white noise of variance r gives E[(Δe)²] = 2r; a smooth model error little
+            de = e - e1
+            r += lam * (0.5 * de * de - r)
+            self.noise_var = r
+        p = self.error_var
+        p += lam * (e * e - r - p)
+        self.error_var = p
+        g0 = self.gain_min
+        g = g0 + (self.gain_max - g0) * p / (p + r + 1e-6) if p > 0.0 else g0
+        self.gain = g
+        # alpha-beta update of d̂ and its slope
+        s = self.d_slope
+        d += s
+        u = e - d
+        d += g * u
+        if self.ramp:
+            s += self.ramp * (4.0 - 2.0 * g - 4.0 * math.sqrt(1.0 - g)) * u
+        if -self.d_max < d < self.d_max:
+            self.d, self.d_slope = d, s
+        else:
+            self.d, self.d_slope = (self.d_max if d > 0.0 else -self.d_max), 0.0
         return False
 
     def _look_ahead(self, v: float, I0: float, F_t: float) -> tuple[float, float]:
