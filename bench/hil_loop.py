@@ -28,10 +28,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil_sim.testing.harness import HilSim, hil_tracking, run_daemon  # noqa: E402
+from hil_sim.testing.harness import HilSim, scored_run  # noqa: E402
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.runlog.read import read_run, read_sidecar  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
 
 BENCH = str(ROOT / "config" / "hil_fig5_bench.yaml")
@@ -66,16 +65,11 @@ def one(transport: str, pacing: str, seconds: float, tmp: Path, serve: str = "in
             text, n = re.subn(r"^backend: \{", f"backend: {{spin_wait: {flag}, ", text, flags=re.M)
             assert n == 1, "the HIL experiment files carry one 'backend: {...}' line"
     cfg.write_text(text)
-    out = tmp / "run.csv"
-    try:
-        res = run_daemon(cfg, out, seconds)
-    finally:
-        hil.stop()
-    if res.returncode != 0:
-        return {"error": res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}"}
-    side = read_sidecar(out)["summary"]
-    tr = hil_tracking(read_run(out), read_run(truth))
-    return {"nrmse": tr["nrmse"], "skipped": side["timing"]["skipped_deadlines"],
+    r = scored_run(cfg, tmp / "run.csv", seconds, hil, truth)
+    if "error" in r:
+        return r
+    side = r["summary"]
+    return {"nrmse": r["nrmse"], "skipped": side["timing"]["skipped_deadlines"],
             "link_errors": side["link_errors"], "late_p99_us": side["timing"]["lateness_p99_us"]}
 
 

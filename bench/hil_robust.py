@@ -37,9 +37,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil_sim.testing.harness import HilSim, hil_tracking, run_daemon  # noqa: E402
+from hil_sim.testing.harness import HilSim, scored_run  # noqa: E402
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
-from mrctl.daemon.recorder import read_run, read_sidecar  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
 
@@ -100,19 +99,14 @@ def one(bench: str, transport: str, seconds: float, tmp: Path, law: str | None =
         text = text.replace("port: 5020", f"port: {hil.field('bind').rsplit(':', 1)[1]}")
     cfg = tmp / "exp.yaml"
     cfg.write_text(text)
-    out = tmp / "run.csv"
-    try:
-        res = run_daemon(cfg, out, seconds)
-    finally:
-        hil.stop()
-    if res.returncode != 0:
-        return {"error": res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}"}
-    side = read_sidecar(out)["summary"]
-    tr = hil_tracking(read_run(out), read_run(truth))
+    r = scored_run(cfg, tmp / "run.csv", seconds, hil, truth)
+    if "error" in r:
+        return r
+    side = r["summary"]
     t = side["timing"]
     skipped = t["skipped_deadlines"]
     reduced = any("instead" in m for m in side.get("messages", []))  # the link did not fit 1 kHz then
-    return {"nrmse": tr["nrmse"], "skipped": skipped, "ticks": t["ticks"], "link_errors": side["link_errors"],
+    return {"nrmse": r["nrmse"], "skipped": skipped, "ticks": t["ticks"], "link_errors": side["link_errors"],
             "late_p99_us": t["lateness_p99_us"], "messages": side.get("messages", []), "reduced_rate": reduced,
             "overloaded": (reduced or skipped / max(1, skipped + t["ticks"]) > OVERLOADED_SKIP_SHARE
                            or side["link_errors"] > NOISY_LINK_SHARE * t["ticks"])}

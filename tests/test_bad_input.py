@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from fake_devices import Listener
+
 from mrctl.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,36 +47,6 @@ def test_duration_must_be_a_finite_number_above_zero(tmp_path, cmd, value):
 
 
 # -- 5. a bad --out is refused before the link opens ------------------------------------------
-class Listener:
-    def __init__(self) -> None:
-        import socket
-        import threading
-
-        self.sock = socket.socket()
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.listen(4)
-        self.sock.settimeout(0.1)
-        self.port = self.sock.getsockname()[1]
-        self.connections = 0
-        self._stop = threading.Event()
-        self._th = threading.Thread(target=self._run, daemon=True)
-        self._th.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, _ = self.sock.accept()
-            except OSError:
-                continue
-            self.connections += 1
-            conn.close()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._th.join(2)
-        self.sock.close()
-
-
 @pytest.mark.parametrize("where", ["a directory", "under a file", "unwritable"])
 def test_bad_out_is_exit_2_before_the_device_is_touched(tmp_path, capsys, where):
     pytest.importorskip("mrctl.io.registers")

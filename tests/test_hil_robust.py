@@ -13,9 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from hil_util import ROOT, HilSim, hil_tracking, run_daemon
+from hil_util import ROOT, HilSim, hil_tracking, run_hil as _run_hil
 from mrctl.daemon.recorder import read_run, read_sidecar
-from test_hil_loop import ATTEMPTS, _overloaded
 
 pytestmark = pytest.mark.hil
 EXP = ROOT / "config" / "experiments"
@@ -33,30 +32,6 @@ def _experiment(d: Path, name: str, bench: str, **replace: str) -> Path:
     p = d / name
     p.write_text(text)
     return p
-
-
-def _run_hil(tmp_path, start, make_cfg):
-    """As test_hil_loop's, and a run the feasibility check moved to a lower
-    rate (the link's round trip did not fit 1 kHz just then) is retried too."""
-    reasons = []
-    for attempt in range(ATTEMPTS):
-        d = tmp_path / f"attempt{attempt}"
-        d.mkdir()
-        hil = start(d)
-        cfg = make_cfg(d, hil)
-        out = d / "run.csv"
-        try:
-            res = run_daemon(cfg, out, duration_s=3.5)
-        finally:
-            code = hil.stop()
-        side = read_sidecar(out) if out.with_suffix(".json").exists() else None
-        why = _overloaded(res, side)
-        if why is None and side is not None and any("instead" in m for m in side["summary"]["messages"]):
-            why = next(m for m in side["summary"]["messages"] if "instead" in m)
-        if why is None:
-            return d, cfg, res, code
-        reasons.append(why)
-    pytest.skip(f"machine too loaded for a 1 kHz HIL run in {ATTEMPTS} attempts: {'; '.join(reasons)}")
 
 
 def _check(tmp_path, bench, start, make_cfg):

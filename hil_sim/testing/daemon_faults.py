@@ -16,12 +16,11 @@ import json
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any, Iterator
 
-from hil_sim.testing.harness import ROOT, HilSim, env
+from hil_sim.testing.harness import ROOT, HilSim, Run
 
 BENCH = ROOT / "config" / "hil_fig5_bench.yaml"
 EXPERIMENTS = {"serial": "hil_serial.yaml", "modbus-tcp": "hil_modbus_tcp.yaml"}
@@ -33,58 +32,6 @@ ROBUST_SAFETY = {"link_loss_s": 0.5, "auto_resume": True}
 
 
 # -- processes ----------------------------------------------------------------------
-class Run:
-    """``mrctl run CONFIG --out OUT --duration S --quiet [EXTRA...]`` as a subprocess,
-    stderr to a file beside the log."""
-
-    def __init__(self, config: Path, out: Path, duration_s: float, *extra: str,
-                 env_extra: dict[str, str] | None = None, sock: Path | None = None,
-                 err_path: Path | None = None) -> None:
-        self.out = out
-        self.sock = str(sock or out.with_name(out.stem + ".sock"))
-        self.err_path = err_path or out.with_name(out.name + ".stderr")
-        self._err = open(self.err_path, "w")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mrctl", "run", str(config), "--out", str(out), "--duration", str(duration_s),
-             "--quiet", "--status-socket", self.sock, *extra],
-            cwd=ROOT, env={**env(), **(env_extra or {})}, stdout=subprocess.DEVNULL, stderr=self._err)
-        self.pid = self.proc.pid
-
-    def status(self) -> dict[str, Any] | None:
-        from mrctl.daemon.status import query_status
-
-        try:
-            st = query_status(self.sock, timeout_s=1.0)
-        except (OSError, ValueError):
-            return None
-        return st if isinstance(st, dict) else None
-
-    def wait_for(self, pred, timeout_s: float = 30.0) -> dict[str, Any] | None:
-        """Poll the status socket until ``pred(status)``; None if the run ended first."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self.proc.poll() is None:
-            st = self.status()
-            if st and pred(st):
-                return st
-            time.sleep(0.02)
-        return None
-
-    def wait(self, timeout_s: float = 120.0) -> int:
-        try:
-            self.proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._err.close()
-        return self.proc.returncode
-
-    def stderr(self) -> str:
-        try:
-            return self.err_path.read_text()
-        except OSError:
-            return ""
-
-
 def _sidecar(out: Path) -> dict[str, Any]:
     try:
         return json.loads(out.with_suffix(".json").read_text())

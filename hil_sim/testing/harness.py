@@ -15,6 +15,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -85,6 +86,21 @@ def run_daemon(config: Path, out: Path, duration_s: float, timeout_s: float = 60
                           cwd=ROOT, env=env(), capture_output=True, text=True, timeout=timeout_s)
 
 
+def scored_run(config: Path, out: Path, seconds: float, hil: "HilSim", truth: Path) -> dict:
+    """Run the daemon against a started ``hil``, stop the bench, and score the
+    run against its truth log: ``{"error": last stderr line}`` if the daemon
+    failed, else ``{"nrmse", "summary"}`` (the sidecar's summary)."""
+    from mrctl.runlog.read import read_run, read_sidecar
+
+    try:
+        res = run_daemon(config, out, seconds)
+    finally:
+        hil.stop()
+    if res.returncode != 0:
+        return {"error": res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}"}
+    return {"nrmse": hil_tracking(read_run(out), read_run(truth))["nrmse"], "summary": read_sidecar(out)["summary"]}
+
+
 def hil_tracking(run: dict, truth: dict, settle_s: float = 1.0) -> dict:
     """Force NRMSE from ground truth: F_true at device tick k against the F_des
     the daemon computed from that tick's sample (joined on seq = k)."""
@@ -103,3 +119,55 @@ def hil_tracking(run: dict, truth: dict, settle_s: float = 1.0) -> dict:
     e = truth["F_true"][idx][w] - F_des[w]
     return {"nrmse": float(math.sqrt(np.mean(e * e)) / np.ptp(F_des[w])), "rows": int(w.sum()),
             "matched": int(match.sum())}
+
+
+class Run:
+    """``mrctl run CONFIG --out OUT --duration S --quiet [EXTRA...]`` as a subprocess,
+    stderr to a file beside the log."""
+
+    def __init__(self, config: Path, out: Path, duration_s: float, *extra: str,
+                 env_extra: dict[str, str] | None = None, sock: Path | None = None,
+                 err_path: Path | None = None) -> None:
+        self.out = out
+        self.sock = str(sock or out.with_name(out.stem + ".sock"))
+        self.err_path = err_path or out.with_name(out.name + ".stderr")
+        self._err = open(self.err_path, "w")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "mrctl", "run", str(config), "--out", str(out), "--duration", str(duration_s),
+             "--quiet", "--status-socket", self.sock, *extra],
+            cwd=ROOT, env={**env(), **(env_extra or {})}, stdout=subprocess.DEVNULL, stderr=self._err)
+        self.pid = self.proc.pid
+
+    def status(self) -> dict[str, Any] | None:
+        from mrctl.daemon.status import query_status
+
+        try:
+            st = query_status(self.sock, timeout_s=1.0)
+        except (OSError, ValueError):
+            return None
+        return st if isinstance(st, dict) else None
+
+    def wait_for(self, pred, timeout_s: float = 30.0) -> dict[str, Any] | None:
+        """Poll the status socket until ``pred(status)``; None if the run ended first."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            st = self.status()
+            if st and pred(st):
+                return st
+            time.sleep(0.02)
+        return None
+
+    def wait(self, timeout_s: float = 120.0) -> int:
+        try:
+            self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._err.close()
+        return self.proc.returncode
+
+    def stderr(self) -> str:
+        try:
+            return self.err_path.read_text()
+        except OSError:
+            return ""

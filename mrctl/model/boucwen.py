@@ -248,8 +248,8 @@ class BoucWenPlant:
 
     @property
     def tau_s(self) -> float:
-        a = self.driver.alpha
-        return 0.0 if a >= 1.0 else -self.dt / math.log(1.0 - a)
+        """The coil filter's time constant in effect (s)."""
+        return self.driver.tau_s(self.dt)
 
     def tick(self, v: float, I_cmd: float, x: float = 0.0) -> float:
         m = self.model

@@ -34,6 +34,11 @@ class DriverLag:
         self.I += (I_cmd - self.I) * self.alpha
         return self.I
 
+    def tau_s(self, dt: float) -> float:
+        """The time constant (s) back from ``alpha`` at tick ``dt``."""
+        a = self.alpha
+        return 0.0 if a >= 1.0 else -dt / math.log(1.0 - a)
+
 
 class DamperPlant:
     """The damper as the driver sees it: command in, true force out, once per tick.
@@ -67,8 +72,7 @@ class DamperPlant:
     @property
     def tau_s(self) -> float:
         """The input lag in effect (s)."""
-        a = self.driver.alpha
-        return 0.0 if a >= 1.0 else -self.dt / math.log(1.0 - a)
+        return self.driver.tau_s(self.dt)
 
     def tick(self, v: float, I_cmd: float, x: float = 0.0) -> float:
         if self._started:

@@ -5,65 +5,28 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from hil_sim.testing.fault_suite.analysis import analyse
 from hil_sim.testing.fault_suite.scenario import BENCH, Scenario, experiment_config
-from hil_sim.testing.harness import ROOT, HilSim, env
+from hil_sim.testing.harness import HilSim, Run
 
 __all__ = ["Daemon", "warm_up", "run_scenario"]
 
 
-class Daemon:
-    """``mrctl run CONFIG --out OUT --quiet`` as a subprocess."""
+class Daemon(Run):
+    """``mrctl run CONFIG --out OUT --quiet`` as a subprocess (socket and stderr beside the log)."""
 
     def __init__(self, config: Path, out: Path, duration_s: float) -> None:
-        self.out = out
-        self.sock = str(out.with_suffix(".sock"))
-        self.err_path = out.with_suffix(".stderr")
-        self._err = open(self.err_path, "w")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mrctl", "run", str(config), "--out", str(out), "--duration", str(duration_s),
-             "--quiet", "--status-socket", self.sock],
-            cwd=ROOT, env=env(), stdout=subprocess.DEVNULL, stderr=self._err)
-
-    def status(self) -> dict[str, Any] | None:
-        from mrctl.daemon.status import query_status
-
-        try:
-            return query_status(self.sock, timeout_s=1.0)
-        except (OSError, ValueError):
-            return None
+        super().__init__(config, out, duration_s, sock=out.with_suffix(".sock"), err_path=out.with_suffix(".stderr"))
 
     def wait_ticks(self, n: int, timeout_s: float = 30.0, min_current_A: float = 0.0) -> dict[str, Any] | None:
         """Poll the status socket until the loop has run n ticks and commands at
         least ``min_current_A`` (None if it ended first)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self.proc.poll() is None:
-            st = self.status()
-            if st and st.get("ticks", 0) >= n and (st.get("current_A") or 0.0) >= min_current_A:
-                return st
-            time.sleep(0.02)
-        return None
-
-    def wait(self, timeout_s: float = 120.0) -> int:
-        try:
-            self.proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._err.close()
-        return self.proc.returncode
-
-    def stderr(self) -> str:
-        try:
-            return self.err_path.read_text()
-        except OSError:
-            return ""
+        return self.wait_for(lambda st: st.get("ticks", 0) >= n and (st.get("current_A") or 0.0) >= min_current_A,
+                             timeout_s)
 
 
 def _start_bench(sc: Scenario, workdir: Path) -> tuple[HilSim, Path]:
