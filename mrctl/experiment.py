@@ -91,7 +91,8 @@ def make_sim_bench(params: LuGreParams, excitation: Any, dt: float, driver_tau_s
     the road (``plant.bench``)."""
     plant = make_plant(model, params, dt, driver_tau_s)
     if quarter_car is not None:
-        return QuarterCarBench(params, excitation, dt, quarter_car, driver_tau_s, sensors, has_load_cell, plant)
+        return QuarterCarBench(params, excitation, dt, quarter_car, driver_tau_s, sensors, has_load_cell, plant,
+                               has_velocity)
     return SimBench(params, excitation, dt, driver_tau_s, sensors, has_load_cell,
                     plant=plant, has_velocity=has_velocity)
 

@@ -238,3 +238,24 @@ def test_the_run_daemon_hands_the_channels_to_the_laws(tmp_path):
     assert svc.ctl.meas.channels is svc.link.bench.channels
     cols = read_run(tmp_path / "run.csv")
     assert np.nanmax(np.abs(cols["F_des"])) > 1.0 and np.max(cols["I"]) > 0.05
+
+
+def test_displacement_only_quarter_car_runs_on_the_observer():
+    """plant.sensors.velocity: false holds on the quarter car too (the bench
+    reads NaN for v) and sensing.velocity: observer makes the laws' v from x,
+    close to the damper's true stroke rate."""
+    d = copy.deepcopy(BASE)
+    d.update(duration_s=4.0, demand={"type": "skyhook", "c_sky": 600.0}, inverse={"law": "smooth"},
+             sensing={"velocity": "observer"})
+    d["plant"] = {"bench": "quarter_car", "sensors": {"velocity": False, "x_noise_m": 2e-6}}
+    exp = build(validate_experiment(d, ROOT))
+    bench = exp.make_bench()
+    bench.begin_tick(0)
+    assert math.isnan(bench.sample()[1])
+    res = simulate(exp, 4.0)
+    assert res.fault is None
+    c = res.columns
+    w = c["t"] >= 1.0
+    assert np.all(np.isfinite(c["v_meas"][w]))
+    err = np.sqrt(np.mean((c["v_meas"][w] - c["v"][w]) ** 2)) / np.ptp(c["v"][w])
+    assert err < 0.05, err

@@ -113,17 +113,18 @@ def discretise(p: QuarterCarParams, dt: float) -> np.ndarray:
 class QuarterCarBench:
     """The quarter car on a road profile, advanced tick by tick (SimBench's protocol)."""
 
-    __slots__ = ("excitation", "plant", "sensors", "dt", "k", "kp", "I_cmd", "t", "x", "v", "F", "has_load_cell",
+    __slots__ = ("excitation", "plant", "sensors", "dt", "k", "kp", "I_cmd", "t", "x", "v", "F", "has_load_cell", "has_velocity",
                  "qc", "state", "u", "channels", "_T", "a_s", "_ms", "_ks")
 
     def __init__(self, params: LuGreParams, road, dt: float, qc: QuarterCarParams,
                  driver_tau_s: float | None = None, sensors: Sensors | None = None,
-                 has_load_cell: bool = True, plant=None) -> None:
+                 has_load_cell: bool = True, plant=None, has_velocity: bool = True) -> None:
         self.excitation = road  # the road profile x_r(t) (SimBench's name for the input)
         self.plant = DamperPlant(params, dt, driver_tau_s) if plant is None else plant
         self.sensors = sensors
         self.dt = dt
         self.has_load_cell = has_load_cell
+        self.has_velocity = has_velocity
         self.qc = qc
         self._T = [list(map(float, row)) for row in discretise(qc, dt)]
         self._ms, self._ks = qc.m_s_kg, qc.k_s_N_per_m
@@ -200,4 +201,4 @@ class QuarterCarBench:
             x, v, F = self.x, self.v, self.F
         else:
             x, v, F = s.x(self.x), s.v(self.v), s.F(self.F)
-        return x, v, (F if self.has_load_cell else math.nan)
+        return x, (v if self.has_velocity else math.nan), (F if self.has_load_cell else math.nan)

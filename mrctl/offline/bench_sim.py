@@ -59,7 +59,7 @@ def simulate_bench(exp: Experiment, duration_s: float) -> SimResult:
     s["simulated_s"] = (done - 1) * exp.dt
     s["wall_s"] = wall
     s["realtime_factor"] = ((done - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, s, fault)
+    return SimResult(out, wall, s, fault, notices=law.notices())
 
 
 def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
@@ -73,6 +73,7 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
     ct, cx, cv, cfd, cf, ci, cia, cz = (cols[c] for c in ("t", "x", "v", "F_des", "F", "I", "I_applied", "z"))
     cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
     ch = m.channels
+    observe = exp.make_observer()  # sensing.velocity: observer, as the controller applies it
     dname = exp.config.demand.type if exp.demand is not None else ""
     lname = exp.config.inverse.law
     I = 0.0
@@ -81,6 +82,8 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
     for k in range(n):
         bench.begin_tick(k)
         xm, vm, Fm = sample()
+        if observe is not None:
+            vm = observe.update(xm, vm)
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, k * dt, xm, vm, Fm, plant.I_applied, I
         for col, name in ch_cols:
             col[k] = ch[name]
@@ -108,7 +111,7 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
                 applied(I)
         command(I)
         ct[k], cx[k], cv[k], cfd[k], cf[k], ci[k] = k * dt, bench.x, bench.v, Fd, bench.F, I
-        cia[k], cz[k], cxm[k], cvm[k] = plant.I_applied, plant.model.z, xm, vm
+        cia[k], cz[k], cxm[k], cvm[k] = plant.I_applied, plant.z, xm, vm
         cfr[k] = Fm  # what the controller received at this tick
         if k:
             cfm[k - 1] = Fm  # the load cell shows the previous tick's force
