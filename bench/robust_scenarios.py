@@ -233,6 +233,9 @@ def table(rows: list[dict[str, Any]]) -> str:
 #: the closed law's settings, one at a time, on the feasible cases that tell them apart
 ABLATIONS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("`closed` as shipped", {}),
+    ("no reversal learning (reversal_learning false)", {"reversal_learning": False}),
+    ("reversal tables act 1 tick ahead (reversal_lead_ticks 1)", {"reversal_lead_ticks": 1}),
+    ("reversal_rate 0.5", {"reversal_rate": 0.5}),
     ("one-tick solve (horizon_ticks 0)", {"horizon_ticks": 0}),
     ("horizon 3 ticks", {"horizon_ticks": 3}),
     ("no guard (guard_N 10⁴)", {"guard_N": 1e4}),

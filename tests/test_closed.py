@@ -301,3 +301,77 @@ def test_the_slope_term_follows_a_ramping_model_error_without_lag():
 def test_correction_settings_out_of_range_are_refused(kw):
     with pytest.raises(ValueError):
         ClosedLoopInverse(TABLE_I, 0.6, DT, **kw)
+
+
+def test_reversal_learning_acts_ahead_of_a_repeatable_reversal():
+    """On the Bouc–Wen damper the error after each velocity reversal repeats.
+    The guard fires there on the first reversals; from then on the guard table
+    ramps the current down ahead of it, and the reversal table feeds the
+    tracking error of earlier reversals forward: at least 10 % lower NRMSE
+    than without learning, and the tables stay within correction_max_N."""
+    exp = _robust("bouc_wen_c250.yaml")
+    law = exp.law
+    on = simulate(exp, 4.0).summary["force_nrmse"]
+    off = simulate(_robust("bouc_wen_c250.yaml", {"law": "closed", "reversal_learning": False}),
+                   4.0).summary["force_nrmse"]
+    assert on < 0.9 * off
+    assert law.reversals == 8  # 1 Hz for 4 s, detected on the velocity with hysteresis
+    assert max(law.gtable) >= 0.5  # armed
+    assert any(t != 0.0 for t in law.table)
+    assert max(abs(t) for t in law.table) <= law.d_max
+    law.reset()
+    assert law.reversals == 0 and not any(law.table) and not any(law.gtable) and law.ff == 0.0
+
+
+def test_reversal_learning_leaves_the_own_model_alone():
+    """Where the model is right the guard never fires and the load cell sees no
+    error to learn: the Fig 5 figure is the one without learning."""
+    exp = _robust("own_c500.yaml")
+    on = simulate(exp, 4.0).summary["force_nrmse"]
+    off = simulate(_robust("own_c500.yaml", {"law": "closed", "reversal_learning": False}), 4.0)
+    assert not any(exp.law.gtable)
+    assert on == pytest.approx(off.summary["force_nrmse"], abs=2e-5)
+    assert on <= 0.0030
+
+
+def test_without_a_load_cell_nothing_is_learned():
+    """NaN forces: the tables stay empty and the law is its feed-forward, as
+    with reversal learning off."""
+    data = load_yaml(EXP / "robust" / "bouc_wen_c250.yaml")
+    data["plant"].setdefault("sensors", {})["load_cell"] = False
+    exp = build(validate_experiment(data, EXP / "robust"))
+    res = simulate(exp, 4.0)
+    assert exp.law.reversals == 8 and not any(exp.law.table) and not any(exp.law.gtable)
+    data["inverse"] = {"law": "closed", "reversal_learning": False}
+    ref = simulate(build(validate_experiment(data, EXP / "robust")), 4.0)
+    assert res.summary["force_nrmse"] == ref.summary["force_nrmse"]
+
+
+def test_reversals_are_counted_on_motion_that_is_not_periodic():
+    """Reversals are found on the velocity (hysteresis reversal_v_mps), not on
+    a period: a chirp with noise below the hysteresis gives one reversal per
+    sign change, and a broken load cell (a constant 1 kN) keeps the tables
+    within correction_max_N."""
+    law = ClosedLoopInverse(TABLE_I, 0.6, DT)
+    law.reset()
+    rng = np.random.default_rng(3)
+    I, phase, signs = 0.0, 0.0, []
+    for k in range(3000):
+        t = k * DT
+        phase += 2.0 * math.pi * (0.5 + 2.0 * t) * DT  # 0.5 Hz rising to 6.5 Hz
+        v = 0.05 * math.cos(phase)
+        signs.append(v > 0.0)
+        v += float(rng.uniform(-0.0004, 0.0004))
+        m = Measurement(k=k, t=t, x=0.0, v=v, F=1000.0, I_cmd=I)
+        I = law.current(m, 250.0 * v)
+        assert 0.0 <= I <= 0.6
+    changes = sum(a != b for a, b in zip(signs, signs[1:]))
+    assert law.reversals == changes
+    assert max(abs(t) for t in law.table) <= law.d_max
+
+
+@pytest.mark.parametrize("kw", [{"reversal_rate": 0.0}, {"reversal_rate": 1.5},
+                                {"reversal_lead_ticks": 11}, {"reversal_v_mps": -0.001}])
+def test_reversal_settings_out_of_range_are_refused(kw):
+    with pytest.raises(ValueError):
+        ClosedLoopInverse(TABLE_I, 0.6, DT, **kw)

@@ -49,6 +49,32 @@ most benches carry can. Each tick this law
    ``lag_horizon_s`` (:func:`mrctl.laws.inverse.lag_gains`), inside the
    slew bound around the previous command and clamped to [0, I_max].
 
+4. **learns from one velocity reversal to the next** (``reversal_learning``).
+   A damper whose hysteresis differs from the model's errs the same way after
+   every reversal, and a correction that only looks back cannot anticipate
+   it. Reversals are found on the velocity (hysteresis ``reversal_v_mps``,
+   so motion need not be periodic); the ticks around each (8 before it,
+   predicted from the velocity and its slope, and 56 after) index two small
+   tables per direction of the new motion, updated only from the load cell
+   of past reversals:
+
+   - the *reversal table* (N): in each bin, the tracking error F_meas − F_des
+     it saw, added at ``reversal_rate`` × p̂/(p̂ + r̂) to the bin of the
+     command ``reversal_lead_ticks`` before (an iterative-learning update,
+     slowed by the load cell's noise share). Not where the force opposed the
+     demand (no current helps there), nor where the guard or the guard table
+     acted, nor where the command was held at 0 A, I_max or the slew bound
+     with the error asking for more of the same;
+     bounded by ``correction_max_N``. Its value for the present bin is added
+     to d̂ in the solve;
+   - the *guard table*: in each bin, the average of "the guard fired". Where
+     it and the bin before are ≥ 0.5 ``reversal_lead_ticks`` ahead, the
+     current ramps down now, ahead of the guard (kept armed while the force
+     still opposes the demand there).
+
+   Without a load cell nothing is learned and both fade like d̂; ``reset()``
+   empties them. Plain lists, a few float operations per call.
+
 The previous command is read from the measurement (``m.I_cmd``: what the
 controller sent, 0 A during a safety fault) and ticks skipped since the
 last call from ``m.k``, so after a fault the current ramps up from 0 A
@@ -72,7 +98,7 @@ from mrctl.laws.base import Measurement
 from mrctl.laws.inverse import SmoothInverse
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import LuGreParams
-from mrctl.util.schema import Num
+from mrctl.util.schema import Bool, Num
 
 __all__ = ["ClosedLoopInverse"]
 
@@ -82,6 +108,16 @@ _DI = 0.02
 _SLOPE_S = 0.005
 #: time constant of the load-cell noise and model-error power estimates (s)
 _NOISE_S = 0.5
+#: bins of the reversal table (ticks after a velocity reversal), per direction
+_REV_BINS = 64
+#: of which before the reversal (predicted from the velocity and its slope)
+_PRE = 8
+#: length of the ring of the last commands' bins (> the largest reversal_lead_ticks)
+_HIST = 11
+#: learning rate of the guard table (one reversal on which the guard fires arms it)
+_GUARD_RATE = 0.5
+#: a bin acts ahead when it and the bin before it are at least this (noise rarely fires twice in a row)
+_GUARD_ARM = 0.5
 
 
 class ClosedLoopInverse(SmoothInverse):
@@ -108,6 +144,17 @@ class ClosedLoopInverse(SmoothInverse):
                            "than this (N), holds the correction and ramps the current down"),
         "horizon_ticks": Num(default=2, integer=True, min=0, max=5,
                              doc="ticks ahead the solve looks, the current held (0 = smooth's one-tick solve)"),
+        "reversal_learning": Bool(default=True,
+                                  doc="learn, from one velocity reversal to the next, the tracking error "
+                                      "after each and where the guard fires, and act on it ahead of time"),
+        "reversal_rate": Num(default=0.2, min=0.0, min_exclusive=True, max=1.0,
+                             doc="share of a reversal's tracking error added to the reversal table, "
+                                 "times the model error's share of what the load cell says"),
+        "reversal_lead_ticks": Num(default=3, integer=True, min=0, max=10,
+                                   doc="ticks by which the reversal tables act ahead of the force they learned "
+                                       "from"),
+        "reversal_v_mps": Num(default=0.001, min=0.0, max=1.0,
+                              doc="hysteresis of the reversal detector on the velocity (m/s)"),
     }
 
     def __init__(
@@ -125,6 +172,10 @@ class ClosedLoopInverse(SmoothInverse):
         horizon_ticks: int = 2,
         correction_min_hz: float = 10.0,
         correction_ramp: float = 0.5,
+        reversal_learning: bool = True,
+        reversal_rate: float = 0.2,
+        reversal_lead_ticks: int = 3,
+        reversal_v_mps: float = 0.001,
     ) -> None:
         super().__init__(params, I_max, dt, eps_N_per_A, max_slew_A_per_s, lag_s, lag_horizon_s)
         if not (correction_hz > 0.0 and correction_max_N > 0.0 and guard_N >= 0.0):
@@ -142,6 +193,18 @@ class ClosedLoopInverse(SmoothInverse):
         self.d_max = float(correction_max_N)
         self.guard_N = float(guard_N)
         self.horizon = int(horizon_ticks)
+        if not (0.0 < reversal_rate <= 1.0 and 0 <= reversal_lead_ticks <= 10 and reversal_v_mps >= 0.0):
+            raise ValueError("reversal_rate must be in (0, 1], reversal_lead_ticks in 0..10, reversal_v_mps >= 0")
+        self.learn = bool(reversal_learning)
+        self.rev_rate = float(reversal_rate)
+        self.rev_lead = int(reversal_lead_ticks)
+        self.rev_v = float(reversal_v_mps)
+        #: the reversal table (N): per bin, the tracking error learned; bins 0.._REV_BINS-1 around a
+        #: reversal to positive velocity (the first _PRE before it), then the same to negative
+        self.table = [0.0] * (2 * _REV_BINS)
+        #: the guard table: per bin, the average of "the guard fired" (≥ 0.5: the guard acts ahead)
+        self.gtable = [0.0] * (2 * _REV_BINS)
+        self._hist = [-1] * _HIST  # the bins of the last commands
         self._slope = 1.0 - math.exp(-self.dt / _SLOPE_S)
         # two copies of the model that look ahead with the current held (the horizon)
         self._probe0, self._probe1 = LuGreModel(params), LuGreModel(params)
@@ -163,6 +226,21 @@ class ClosedLoopInverse(SmoothInverse):
         self._Fd = math.nan  # previous tick's demand (N)
         self._F_seen = math.nan  # previous tick's load-cell reading, as read
         self._dv = self._dF = 0.0  # smoothed per-tick slopes of v and F_des
+        tab = self.table
+        gt = self.gtable
+        for i in range(len(tab)):
+            tab[i] = gt[i] = 0.0
+        for i in range(_HIST):
+            self._hist[i] = -1
+        self._hpos = 0
+        self._dir = 0  # sign of the motion (hysteresis reversal_v_mps), 0 before the first
+        self._n = _REV_BINS  # ticks since the last reversal (≥ _REV_BINS: outside the table)
+        self._sat = 0  # previous command held at the top (+1: I_max or slew) or bottom (-1: 0 A or slew)
+        self.ff = 0.0  #: the reversal table's feed-forward (N)
+        self._ff_w = 1.0  # its weight: fades like d̂ without a load cell
+        self.reversals = 0  #: reversals seen
+        self._share = 0.0  # p̂/(p̂ + r̂): the model error's share of what the load cell says
+        self._lg = False  # the last command was the learned guard's ramp-down
 
     def reset(self, I0: float = 0.0, z0: float = 0.0, v0: float = 0.0) -> None:
         super().reset(I0, z0, v0)
@@ -203,14 +281,25 @@ class ClosedLoopInverse(SmoothInverse):
             self.no_force_ticks += 1
             self.d = d - self.gain_max * d
             self.d_slope = 0.0
+            self._ff_w -= self.gain_max * self._ff_w
             return False
+        if self._ff_w < 1.0:
+            self._ff_w += self.gain_max * (1.0 - self._ff_w)
         if not (dk == 1 and self._started) or F == self._F_seen:
             return False  # a gap, or the same reading again (the supervisor holding a sample): nothing new
         mod = self.model  # still at the previous tick: z, v_prev
         Fm = F - self._Fb
         e = Fm - mod.force(mod.v_prev, Ia)
         Fd = self._Fd
-        if Fd * Fm < 0.0 and e * Fd < -self.guard_N:
+        gb = self._hist[self._hpos]
+        opp = Fd * Fm < 0.0
+        if gb >= 0 and self.learn:
+            # the guard table: did the guard fire in this bin? Where the table's guard acted (current
+            # ramped down ahead), the force opposing the demand beyond guard_N keeps it armed
+            gt = self.gtable
+            fired = opp and (e * Fd < -self.guard_N or (self._lg and (Fm - Fd) * Fd < -self.guard_N))
+            gt[gb] += _GUARD_RATE * ((1.0 if fired else 0.0) - gt[gb])
+        if opp and e * Fd < -self.guard_N:
             self.guard_ticks += 1
             return True  # semi-active: no current can fix this error, hold d̂
         # the gain: slow where the load cell's noise dominates the model error
@@ -227,10 +316,23 @@ class ClosedLoopInverse(SmoothInverse):
         g0 = self.gain_min
         g = g0 + (self.gain_max - g0) * p / (p + r + 1e-6) if p > 0.0 else g0
         self.gain = g
+        self._share = p / (p + r + 1e-6) if p > 0.0 else 0.0
         # alpha-beta update of d̂ and its slope
         s = self.d_slope
         d += s
         u = e - d
+        # the reversal table learns the tracking error into the bin of the command lead ticks before; not
+        # where the force opposes the demand (no current helps), nor after the guard table's ramp-down,
+        # nor where the command was held at 0 A, I_max or the slew bound with the error asking for more
+        # of the same
+        b = -1 if (opp or self._lg) else self._hist[(self._hpos - self.rev_lead) % _HIST]
+        if b >= 0 and self.learn:
+            ee = Fm - Fd
+            if not ((self._sat > 0 and ee * Fd < 0.0) or (self._sat < 0 and ee * Fd > 0.0)):
+                tab = self.table
+                Tb = tab[b] + self.rev_rate * self._share * ee
+                dm = self.d_max
+                tab[b] = Tb if -dm < Tb < dm else (dm if Tb > 0.0 else -dm)
         d += g * u
         if self.ramp:
             s += self.ramp * (4.0 - 2.0 * g - 4.0 * math.sqrt(1.0 - g)) * u
@@ -276,7 +378,48 @@ class ClosedLoopInverse(SmoothInverse):
         s0B, s1B, s2B = self._B
         s0A, s1A, s2A = self._A
         D = s0A * z + s1A * zdot + s2A * v
-        F_t = F_des - Fb - self.d
+        # the reversal detector and the table's feed-forward for the coming ticks
+        n = self._n + dk
+        dr = self._dir
+        if dr >= 0 and v < -self.rev_v:
+            if dr:
+                n = 0
+                self.reversals += 1
+            dr = self._dir = -1
+        elif dr <= 0 and v > self.rev_v:
+            if dr:
+                n = 0
+                self.reversals += 1
+            dr = self._dir = 1
+        self._n = n
+        ff = 0.0
+        b = -1
+        lg = False
+        if dr:
+            if n < _REV_BINS - _PRE:
+                b = (0 if dr > 0 else _REV_BINS) + _PRE + n
+            else:  # before the next reversal? ticks until the detector sees it, from the velocity's slope
+                dvv = self._dv
+                if dr * dvv < 0.0:
+                    tt = (v + dr * self.rev_v) / -dvv
+                    if tt < _PRE:
+                        b = (_REV_BINS if dr > 0 else 0) + _PRE - 1 - int(tt if tt > 0.0 else 0.0)
+        hp = self._hpos + 1
+        if hp == _HIST:
+            hp = 0
+        self._hpos = hp
+        self._hist[hp] = b
+        if b >= 0 and self.learn:
+            w = self._ff_w
+            ff = self.table[b] * w
+            bl = b + self.rev_lead
+            gt = self.gtable
+            if (0 < bl < _REV_BINS if b < _REV_BINS else _REV_BINS < bl < 2 * _REV_BINS) \
+                    and gt[bl] * w >= _GUARD_ARM and gt[bl - 1] * w >= _GUARD_ARM:
+                guard = lg = True  # the guard fired here on earlier reversals: ramp down ahead of it
+        self._lg = lg
+        self.ff = ff
+        F_t = F_des - Fb - self.d - ff
         num = D * (F_t - (s0B * z + s1B * zdot + s2B * v))
         den = D * D
         if self.horizon:
@@ -288,13 +431,21 @@ class ClosedLoopInverse(SmoothInverse):
         I = Ia + (It - Ia) * self._inv_ah
         Ip = m.I_cmd if m.I_cmd >= 0.0 else self.I_prev
         step = self.max_step_A
+        sat = 0
         if guard:
             I = Ip - step  # ramp down: the damper opposes the demand
+            sat = -1
         elif I > Ip + step:
             I = Ip + step
+            sat = 1
         elif I < Ip - step:
             I = Ip - step
-        I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0  # NaN → 0 A
+            sat = -1
+        if I >= self.I_max:
+            I, sat = self.I_max, 1
+        elif not I > 0.0:  # NaN → 0 A
+            I, sat = 0.0, -1
+        self._sat = sat
         self.I_prev = I
         self._I_coil0 = Ia
         self.I_coil = Ia + self._a1 * (I - Ia)
