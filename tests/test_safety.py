@@ -506,3 +506,22 @@ def test_repeated_seq_while_recovering_does_not_restart_the_resume_count():
     sup2.check_sample(None)
     assert all(sup2.check_sample(ok(7 if i else 6)) is None for i in range(50))
     assert sup2.in_fault
+
+
+def test_a_fault_that_cleared_before_the_poll_is_reported_with_its_kind_and_reason():
+    """The monitor polls the supervisor off the loop; a fault that auto-resumed
+    in between is still reported by kind and reason, not as '?'."""
+    from mrctl.daemon.faultwatch import FaultWatch
+
+    sup = SafetySupervisor(cfg(hold_ticks=0, auto_resume=True, resume_good_ticks=1))
+    f = Feed(sup)
+    f.good()
+    f.bad("missing")
+    assert sup.in_fault
+    f.good()
+    f.good()
+    assert not sup.in_fault and sup.reason == ""
+    said: list[str] = []
+    FaultWatch(sup, lambda msg, prio: said.append(msg), lambda: 5).check()
+    assert said and "FAULT ?" not in said[0] and "no reason given" not in said[0], said
+    assert sup.last_fault.name in said[0] and sup.last_reason and sup.last_reason in said[0]

@@ -31,9 +31,10 @@ class FaultWatch:
         if c.faults_entered > self.entered:
             new = c.faults_entered - self.entered
             self.entered = c.faults_entered
-            fault = self.sup.fault.name if self.sup.fault else "?"
+            # the last fault, also when it cleared (auto-resume) before this poll
+            fault = self.sup.last_fault.name if self.sup.last_fault else "?"
             more = f" ({new} new faults since the last report)" if new > 1 else ""
-            self.report(f"safety: FAULT {fault} near tick {self.ticks()}: {self.sup.reason or 'no reason given'}; "
+            self.report(f"safety: FAULT {fault} near tick {self.ticks()}: {self.sup.last_reason or 'no reason given'}; "
                         f"0 A commanded{more}; faults so far {self.entered}", ERR)
         if c.resumes > self.resumes:
             self.resumes = c.resumes

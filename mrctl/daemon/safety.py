@@ -112,7 +112,7 @@ class SafetySupervisor:
         "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n",
         # state
         "_state", "_last_good", "_last_seq", "_bad_run", "_bad_bits", "_good_run",
-        "_fault", "_latched", "_reason", "_out_ok", "_last_out", "_law_reason",
+        "_fault", "_latched", "_reason", "_last_fault", "_last_reason", "_out_ok", "_last_out", "_law_reason",
         # counters
         "_n_good", "_n_missing", "_n_late", "_n_stale", "_n_non_finite",
         "_n_out_of_range", "_n_status", "_n_holds", "_longest_bad",
@@ -138,6 +138,8 @@ class SafetySupervisor:
         self._n_non_finite = self._n_out_of_range = self._n_status = 0
         self._n_holds = self._longest_bad = self._n_faults = self._n_fault_ticks = 0
         self._n_resumes = self._n_resets = self._n_cmd_nonfinite = 0
+        self._last_fault = 0  # the last fault and its reason, kept after it clears (for reports)
+        self._last_reason = ""
         self._arm()
 
     def _arm(self) -> None:
@@ -296,6 +298,7 @@ class SafetySupervisor:
         self._out_ok = False
         self._last_out = 0.0
         self._reason = self._describe()
+        self._last_fault, self._last_reason = self._fault, self._reason
 
     def _resume(self) -> None:
         self._n_resumes += 1
@@ -363,6 +366,16 @@ class SafetySupervisor:
         """The same bits as a plain int: for the per-tick log (building the
         IntFlag costs ~1 us)."""
         return self._fault
+
+    @property
+    def last_fault(self) -> Fault:
+        """The most recent fault's kinds, also after it cleared (auto-resume)."""
+        return Fault(self._last_fault)
+
+    @property
+    def last_reason(self) -> str:
+        """The most recent fault's reason, also after it cleared."""
+        return self._last_reason
 
     @property
     def reason(self) -> str:
