@@ -347,7 +347,8 @@ def test_device_pacing_without_an_enable_register_exits_2_at_0A(tmp_path, capsys
     port = got[0].rsplit(":", 1)[1]
     text = (ROOT / "config" / "experiments" / "hil_modbus_tcp.yaml").read_text()
     text = text.replace("port: 5020", f"port: {port}").replace("loop: {pacing: host}", "loop: {pacing: device}")
-    text = text.replace("use_fc23: true}", "use_fc23: true, register_map: " + json.dumps({"registers": regs}) + "}")
+    text = text.replace("use_fc23: true", "use_fc23: true, register_map: " + json.dumps({"registers": regs}))
+    assert "register_map" in text
     text = text.replace("probe_exchanges: 100", "probe_exchanges: 0")
     cfg = tmp_path / "exp.yaml"
     cfg.write_text(text)
