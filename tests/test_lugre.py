@@ -99,3 +99,23 @@ def test_substeps_converge_to_reference():
             F.append(m.force(vf(t), 0.0))
         errs.append(np.max(np.abs(np.array(F) - F_ref)))
     assert errs[1] < errs[0] / 4
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-5e-4, 5e-4), st.floats(-0.1, 0.1), st.floats(-2e-3, 2e-3), st.floats(0.0, 0.6),
+       st.sampled_from([0.0, 1e-3, 0.02]), st.integers(1, 5))
+def test_look_ahead_is_advance_then_force_bit_for_bit(z0, v0, dv, I, dI, n):
+    """The closed law's horizon: both fused trajectories are exactly what a
+    model advanced tick by tick at the held current gives, and the state
+    they start from is left as it was."""
+    mod = LuGreModel(TABLE_I, z0=z0, v0=v0)
+    out, out1 = [math.nan] * n, [math.nan] * n
+    mod.look_ahead(v0, dv, I, dI, 1e-3, LuGreModel(TABLE_I), out, out1)
+    assert (mod.z, mod.v_prev) == (z0, v0)
+    for cur, got in ((I, out), (I + dI, out1)):
+        ref = LuGreModel(TABLE_I, z0=z0, v0=v0)
+        v = v0
+        for j in range(n):
+            v = v + dv
+            ref.advance(v, cur, 1e-3)
+            assert got[j] == ref.force(v, cur)

@@ -329,14 +329,19 @@ class Controller:
         that went back (a restart) starts it over."""
         obs = self.observer
         assert obs is not None
-        d = sample.t_dev_s - self._t_obs
+        seq, t_dev, x, v, F, status, I_app = sample
+        d = t_dev - self._t_obs
         if d == 0.0:
-            return sample._replace(v_mps=obs.v)
-        if d < 0.0:
-            obs.reset()
-        self._t_obs = sample.t_dev_s
-        n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
-        return sample._replace(v_mps=obs.update(sample.x_m, sample.v_mps, n if n > 0 else 1))
+            v = obs.v
+        else:
+            if d < 0.0:
+                obs.reset()
+            self._t_obs = t_dev
+            n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
+            v = obs.update(x, v, n if n > 0 else 1)
+        # the constructor, not _replace(), which builds a dict and a map per call: the link
+        # makes one Sample per tick anyway, this is one more small tuple from the free list
+        return Sample(seq, t_dev, x, v, F, status, I_app)
 
     def _write(self, I: float) -> bool:
         for _ in range(self.driver_retries + 1):

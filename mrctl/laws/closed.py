@@ -207,7 +207,10 @@ class ClosedLoopInverse(SmoothInverse):
         self._hist = [-1] * _HIST  # the bins of the last commands
         self._slope = 1.0 - math.exp(-self.dt / _SLOPE_S)
         # two copies of the model that look ahead with the current held (the horizon)
-        self._probe0, self._probe1 = LuGreModel(params), LuGreModel(params)
+        # the model's coefficients at I + ΔI (the horizon's finite difference), and the two
+        # force trajectories, reused every tick
+        self._probe = LuGreModel(params)
+        self._f0, self._f1 = [0.0] * self.horizon, [0.0] * self.horizon
         self.ticks = 0  #: calls since reset
         self.no_force_ticks = 0  #: calls without a finite load-cell force
         self.guard_ticks = 0  #: calls on which the measured force opposed the demand
@@ -344,15 +347,13 @@ class ClosedLoopInverse(SmoothInverse):
 
     def _look_ahead(self, v: float, I0: float, F_t: float) -> tuple[float, float]:
         """Σ D_j·(F_t,j − B_j) and Σ D_j² over the horizon: the model's force
-        j ticks ahead, F_j ≈ B_j + D_j·I, from two probes held at I0 and
-        I0 + ΔI (the law's state, at this tick, copied into each)."""
-        p0, p1, mod = self._probe0, self._probe1, self.model
-        p0.z = p1.z = mod.z
-        dv, dF, H = self._dv, self._dF, self.horizon
-        f0 = p0.look_ahead(v, dv, I0, self.dt, H)
-        f1 = p1.look_ahead(v, dv, I0 + _DI, self.dt, H)
+        j ticks ahead, F_j ≈ B_j + D_j·I, from the law's state at this tick
+        carried ahead with the current held at I0 and at I0 + ΔI."""
+        f0, f1, dF = self._f0, self._f1, self._dF
+        # the law's model is at I0 already (its coefficients cached): the probe only at I0 + ΔI
+        self.model.look_ahead(v, self._dv, I0, _DI, self.dt, self._probe, f0, f1)
         num = den = 0.0
-        for j in range(H):
+        for j in range(self.horizon):
             D = (f1[j] - f0[j]) / _DI
             num += D * (F_t + (j + 1) * dF - f0[j] + D * I0)
             den += D * D

@@ -128,34 +128,53 @@ class LuGreModel:
         self.z = z
         return z
 
-    def look_ahead(self, v: float, dv: float, I: float, dt: float, n: int) -> list[float]:
-        """The forces (N) of the next ``n`` ticks with the current held at I
-        and the velocity going on by dv per tick, from the present state,
-        which is left as it is (the closed law's horizon; one call instead of
-        2n method calls per current)."""
+    def look_ahead(self, v: float, dv: float, I: float, dI: float, dt: float, probe: LuGreModel,
+                   out: list[float], out1: list[float]) -> None:
+        """The forces (N) of the next ``len(out)`` ticks from the present state
+        (left as it is), the velocity going on by dv per tick: into ``out``
+        with the current held at I, into ``out1`` at I + dI (``probe`` holds
+        the coefficients for it). The closed law's horizon and its finite
+        difference in I: one call and no list per tick; each trajectory is
+        bit for bit what ``advance`` then ``force`` give tick by tick."""
         if I != self._I:
             self._set_current(I)
         Fc = self._Fc
         dFs = self._Fs - Fc
         s0, s1, s2, vs = self._s0, self._s1, self._s2, self._vs
         z = self.z
-        out = []
-        for j in range(1, n + 1):
+        I1 = I + dI
+        if I1 != probe._I:
+            probe._set_current(I1)
+        Fc1 = probe._Fc
+        dFs1 = probe._Fs - Fc1
+        t0, t1, t2, ws = probe._s0, probe._s1, probe._s2, probe._vs
+        y = z
+        for j in range(len(out)):
             v1 = v + dv
             vm = 0.5 * (v + v1)
+            avm = abs(vm)
+            av1 = abs(v1)
             r = vm / vs
-            a = s0 * abs(vm) / (Fc + dFs * math.exp(-r * r))
+            a = s0 * avm / (Fc + dFs * math.exp(-r * r))
             x = a * dt
             if x < _SMALL_AH:
                 z = z * (1.0 - x) + vm * dt * (1.0 - 0.5 * x)
             else:
                 e = math.exp(-x)
                 z = z * e + vm * (1.0 - e) / a
+            r = vm / ws
+            a = t0 * avm / (Fc1 + dFs1 * math.exp(-r * r))
+            x = a * dt
+            if x < _SMALL_AH:
+                y = y * (1.0 - x) + vm * dt * (1.0 - 0.5 * x)
+            else:
+                e = math.exp(-x)
+                y = y * e + vm * (1.0 - e) / a
             r = v1 / vs
-            zdot = v1 - s0 * abs(v1) * z / (Fc + dFs * math.exp(-r * r))
-            out.append(s0 * z + s1 * zdot + s2 * v1)
+            out[j] = s0 * z + s1 * (v1 - s0 * av1 * z / (Fc + dFs * math.exp(-r * r))) + s2 * v1
+            r = v1 / ws
+            out1[j] = t0 * y + t1 * (v1 - t0 * av1 * y / (Fc1 + dFs1 * math.exp(-r * r))) + t2 * v1
             v = v1
-        return out
 
     def zdot(self, v: float, I: float) -> float:
         """ż (m/s) from eq (2) at the present z, velocity v and current I."""
