@@ -20,17 +20,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mrctl.laws.base import LawFault, Measurement, clamp_current
+from mrctl.laws.base import LawFault, Measurement
+from mrctl.laws.guard import GuardedLaws
 from mrctl.runlog.metrics import tracking_summary
 from mrctl.runlog.ride import ride_summary
 
 if TYPE_CHECKING:
     from mrctl.experiment import Experiment
     from mrctl.offline.simulate import SimResult
-
-class _NonFinite(Exception):
-    """A law returned NaN or inf (inside the loop only)."""
-
 
 _BASE = ("F_des", "F", "I", "I_applied", "z", "x_meas", "v_meas", "F_meas", "F_rx")
 
@@ -65,19 +62,17 @@ def simulate_bench(exp: Experiment, duration_s: float) -> SimResult:
 def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
           ) -> tuple[LawFault | None, int, float]:
     """The per-tick loop; returns (law fault or None, ticks done, start time)."""
-    I_max, dt = exp.I_max, exp.dt
-    demand = exp.demand.force if exp.demand is not None else None
-    current, applied = exp.law.current, exp.law.applied
+    dt = exp.dt
+    laws = GuardedLaws(exp.law, exp.demand, exp.I_max, exp.config.inverse.law,
+                       exp.config.demand.type if exp.demand is not None else "")
+    step = laws.step
     sample, command, plant = bench.sample, bench.command, bench.plant
     ch_cols = [(cols[c], c) for c in m.channels]
     ct, cx, cv, cfd, cf, ci, cia, cz = (cols[c] for c in ("t", "x", "v", "F_des", "F", "I", "I_applied", "z"))
     cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
     ch = m.channels
     observe = exp.make_observer()  # sensing.velocity: observer, as the controller applies it
-    dname = exp.config.demand.type if exp.demand is not None else ""
-    lname = exp.config.inverse.law
     I = 0.0
-    fault = None
     t0 = time.perf_counter()
     for k in range(n):
         bench.begin_tick(k)
@@ -87,28 +82,8 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, k * dt, xm, vm, Fm, plant.I_applied, I
         for col, name in ch_cols:
             col[k] = ch[name]
-        Fd = math.nan
-        who = dname
-        try:
-            if demand is not None:
-                Fd = demand(m)
-                if Fd - Fd != 0.0:
-                    raise _NonFinite(f"F_des = {Fd!r}")
-            who = lname
-            I = current(m, Fd)
-            if I - I != 0.0:
-                raise _NonFinite(f"I = {I!r}")
-        except _NonFinite as exc:
-            fault = LawFault("non-finite", who, k, k * dt, str(exc))
-        except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
-            fault = LawFault("raised", who, k, k * dt, f"{type(exc).__name__}: {exc}")
-        if fault is not None:
-            I = 0.0
-        else:
-            Ic = clamp_current(I, I_max)
-            if Ic != I:
-                I = Ic
-                applied(I)
+        I = step(m)  # 0 A on a law fault: the run ends at this tick
+        Fd = laws.F_des
         command(I)
         ct[k], cx[k], cv[k], cfd[k], cf[k], ci[k] = k * dt, bench.x, bench.v, Fd, bench.F, I
         cia[k], cz[k], cxm[k], cvm[k] = plant.I_applied, plant.z, xm, vm
@@ -118,6 +93,6 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
         cfm[k] = bench.F
         if "a_sprung" in ch:
             cols["a_sprung"][k] = bench.a_s
-        if fault is not None:
-            return fault, k + 1, t0
+        if laws.fault is not None:
+            return laws.fault, k + 1, t0
     return None, n, t0
