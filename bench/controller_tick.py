@@ -6,6 +6,13 @@ exactly as ``mrctl run`` builds it.
     python bench/loop_timing.py --tick controller_tick:make_plugin_tick    # the example plugin's laws
     python bench/loop_timing.py --tick controller_tick:make_skyhook_tick   # skyhook on the quarter car
     python bench/loop_timing.py --tick controller_tick:make_tick_robust   # closed law + velocity observer
+    python bench/loop_timing.py --tick controller_tick:make_tick_robust_replay   # the same, plant excluded
+
+The ``_replay`` ticks run the controller on a link that replays the samples
+``mrctl simulate`` recorded for the same file, one exchange per tick as the
+serial and Modbus links do: the controller's compute (safety, observer,
+laws, record) without the in-process plant, which on a real bench is the
+DAQ's and the damper's, not the host's.
 
 ``make_plugin_tick`` runs the example plugin (examples/mrctl-law-example:
 ``sine_force`` demand, ``force_pi`` inverse law) named as module:Class,
@@ -15,6 +22,7 @@ the same classes its entry points name, on fig5's shaker.
 from __future__ import annotations
 
 import atexit
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -28,6 +36,8 @@ from mrctl.daemon.controller import Controller  # noqa: E402
 from mrctl.daemon.recorder import Recorder  # noqa: E402
 from mrctl.daemon.safety import SafetyConfig, SafetySupervisor  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
+from mrctl.io.base import Link, Sample, Status  # noqa: E402
+from mrctl.offline.simulate import run_duration, simulate  # noqa: E402
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
@@ -87,3 +97,81 @@ def make_tick_robust(period_s: float) -> tuple[Callable[[int, int], object], Cal
     """The closed law with the velocity observer (``sensing.velocity: observer``)
     on a displacement-only sim bench: ``--tick controller_tick:make_tick_robust``."""
     return make_tick(period_s, config=ROBUST)
+
+
+class ReplayLink(Link):
+    """An exchange-shaped link that returns recorded samples in turn (and
+    wraps around): what the controller sees of a real DAQ, at the cost of a
+    tuple per tick, with no plant behind it."""
+
+    kinds = ("replay",)
+
+    def __init__(self, samples: list[Sample]) -> None:
+        super().__init__(timeout_s=1.0)
+        self.samples, self.i, self._open = samples, 0, False
+
+    @classmethod
+    def from_config(cls, cfg, context=None) -> "ReplayLink":
+        raise NotImplementedError("built by bench/controller_tick.py only")
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def _open_transport(self) -> None:
+        self._open = True
+
+    def _close_transport(self) -> None:
+        self._open = False
+
+    def describe(self) -> str:
+        return f"replay of {len(self.samples)} recorded samples"
+
+    def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
+        i = self.i
+        s = self.samples[i % len(self.samples)]
+        self.i = i + 1
+        n = i // len(self.samples)  # keep seq and device time moving on every lap
+        if n:
+            s = Sample(s.seq + n * len(self.samples), s.t_dev_s + n * len(self.samples) * 1e-3, *s[2:])
+        return s
+
+    @property
+    def true_force_N(self) -> float:
+        return math.nan
+
+
+def make_replay_tick(period_s: float, config: Path = CONFIG
+                     ) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """(tick, background) as ``mrctl run`` builds them, on a :class:`ReplayLink`
+    of ``mrctl simulate``'s samples for ``config``."""
+    sys.setswitchinterval(2e-4)
+    exp = build(load_experiment(config))
+    res = simulate(exp, run_duration(exp))
+    c = res.columns
+    has_v = exp.config.plant.sensors.velocity
+    status = int(Status.OUTPUT_ENABLED)
+    samples = [Sample(k, k * exp.dt, x, (v if has_v else math.nan), F, status, Ia)
+               for k, (x, v, F, Ia) in enumerate(zip(c["x_meas"].tolist(), c["v_meas"].tolist(),
+                                                     c["F_rx"].tolist(), c["I_applied"].tolist()))]
+    exp = build(load_experiment(config))  # fresh laws and observer
+    link = ReplayLink(samples)
+    link.open()
+    sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
+    tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
+    rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
+                   fmt=RUN_FORMATS, defer_format=True)
+    ctl = Controller(link, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(link),
+                     observer=exp.make_observer())
+    atexit.register(rec.close)
+    return ctl.tick, rec.format_pending
+
+
+def make_tick_replay(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """fig5 (the smooth law) on a replay of its samples: the baseline of the next."""
+    return make_replay_tick(period_s, CONFIG)
+
+
+def make_tick_robust_replay(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """The closed law with the velocity observer, displacement-only samples replayed."""
+    return make_replay_tick(period_s, ROBUST)
