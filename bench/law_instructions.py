@@ -1,0 +1,93 @@
+#!/usr/bin/env python3
+"""Instructions per call of a config's inverse law, counted by callgrind.
+
+Why instructions: on a shared VM a timing moves by 2x from one minute to the
+next, an instruction count does not (the same total twice, whatever else
+the machine does). The law is called on the samples ``mrctl simulate``
+recorded for the same file, ``--calls`` times in all; the count of a run
+with no calls is subtracted, so start-up does not count.
+
+    python bench/law_instructions.py [--config config/experiments/fig5_robust.yaml] [--set KEY=VALUE]
+    python bench/law_instructions.py --config config/experiments/fig5.yaml      # the smooth law
+
+Needs valgrind (Debian package ``valgrind``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _calls(config: str, reps: int, sets: list[str]) -> None:
+    """The measured body: simulate once, then call a fresh law on the record ``reps`` times."""
+    sys.path.insert(0, str(ROOT))
+    from mrctl.config import load_yaml, validate_experiment
+    from mrctl.experiment import build
+    from mrctl.laws.base import Measurement
+    from mrctl.offline.simulate import log_columns, run_duration, simulate
+
+    path = Path(config)
+    data = load_yaml(path)
+    for kv in sets:
+        k, v = kv.split("=", 1)
+        data["inverse"][k] = load_yaml_value(v)
+    exp = build(validate_experiment(data, path.parent))
+    c = log_columns(simulate(exp, run_duration(exp)))
+    rows = list(zip(*(c[k].tolist() for k in ("k", "t", "x", "v", "F", "I_applied", "F_des"))))
+    law, m = exp.law, Measurement()
+    for _ in range(reps):
+        law.reset(0.0)
+        I = 0.0
+        for k, t, x, v, F, Ia, Fd in rows:
+            m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = int(k), t, x, v, F, Ia, I
+            I = law.current(m, Fd)
+    print(len(rows))
+
+
+def load_yaml_value(text: str):
+    import yaml
+
+    return yaml.safe_load(text)
+
+
+def _count(config: str, reps: int, sets: list[str]) -> tuple[int, int]:
+    with tempfile.TemporaryDirectory() as d:
+        out = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={d}/cg.out", sys.executable,
+                              __file__, "--inner", str(reps), "--config", config, *sum((["--set", s] for s in sets), [])],
+                             capture_output=True, text=True, env={**os.environ, "PYTHONHASHSEED": "0"})
+    m = re.search(r"Collected : (\d+)", out.stderr)
+    if out.returncode or m is None:
+        raise SystemExit(f"callgrind failed: {out.stderr[-500:]}")
+    return int(m.group(1)), int(out.stdout.split()[-1])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", default=str(ROOT / "config" / "experiments" / "fig5_robust.yaml"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override an inverse-law key")
+    ap.add_argument("--reps", type=int, default=2, help="passes over the record")
+    ap.add_argument("--inner", type=int, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.inner is not None:
+        _calls(a.config, a.inner, a.set)
+        return 0
+    if shutil.which("valgrind") is None:
+        raise SystemExit("valgrind not found (apt-get install -y valgrind)")
+    base, _ = _count(a.config, 0, a.set)
+    total, n = _count(a.config, a.reps, a.set)
+    print(f"{a.config}: {(total - base) / (a.reps * n):,.0f} instructions per call of the inverse law "
+          f"({a.reps} x {n} calls, callgrind)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
