@@ -106,9 +106,9 @@ class ReplayLink(Link):
 
     kinds = ("replay",)
 
-    def __init__(self, samples: list[Sample]) -> None:
+    def __init__(self, samples: list[Sample], dt: float) -> None:
         super().__init__(timeout_s=1.0)
-        self.samples, self.i, self._open = samples, 0, False
+        self.samples, self.dt, self.i, self._open = samples, dt, 0, False
 
     @classmethod
     def from_config(cls, cfg, context=None) -> "ReplayLink":
@@ -133,7 +133,7 @@ class ReplayLink(Link):
         self.i = i + 1
         n = i // len(self.samples)  # keep seq and device time moving on every lap
         if n:
-            s = Sample(s.seq + n * len(self.samples), s.t_dev_s + n * len(self.samples) * 1e-3, *s[2:])
+            s = Sample(s.seq + n * len(self.samples), s.t_dev_s + n * len(self.samples) * self.dt, *s[2:])
         return s
 
     @property
@@ -151,11 +151,14 @@ def make_replay_tick(period_s: float, config: Path = CONFIG
     c = res.columns
     has_v = exp.config.plant.sensors.velocity
     status = int(Status.OUTPUT_ENABLED)
+    # what the DAQ reported at tick k: the load cell's reading as received, the driver's current
+    # of the tick before (the run log's I_applied)
+    I_seen = [res.I_applied0, *c["I_applied"].tolist()[:-1]]
     samples = [Sample(k, k * exp.dt, x, (v if has_v else math.nan), F, status, Ia)
                for k, (x, v, F, Ia) in enumerate(zip(c["x_meas"].tolist(), c["v_meas"].tolist(),
-                                                     c["F_rx"].tolist(), c["I_applied"].tolist()))]
+                                                     c["F_rx"].tolist(), I_seen))]
     exp = build(load_experiment(config))  # fresh laws and observer
-    link = ReplayLink(samples)
+    link = ReplayLink(samples, exp.dt)
     link.open()
     sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")

@@ -4,8 +4,9 @@
 Why instructions: on a shared VM a timing moves by 2x from one minute to the
 next, an instruction count does not (the same total twice, whatever else
 the machine does). The law is called on the samples ``mrctl simulate``
-recorded for the same file, ``--calls`` times in all; the count of a run
-with no calls is subtracted, so start-up does not count.
+recorded for the same file, ``--reps`` passes over it; the count of a run
+with no calls is subtracted, so start-up does not count. The figure includes
+the loop's own work per call (1 600 instructions with the ``constant`` law).
 
     python bench/law_instructions.py [--config config/experiments/fig5_robust.yaml] [--set KEY=VALUE]
     python bench/law_instructions.py --config config/experiments/fig5.yaml      # the smooth law
@@ -37,6 +38,8 @@ def _calls(config: str, reps: int, sets: list[str]) -> None:
 
     path = Path(config)
     data = load_yaml(path)
+    if sets and not isinstance(data.get("inverse"), dict):
+        raise SystemExit(f"{path}: no inverse section to --set keys in")
     for kv in sets:
         k, v = kv.split("=", 1)
         data["inverse"][k] = load_yaml_value(v)
@@ -77,6 +80,9 @@ def main() -> int:
     ap.add_argument("--reps", type=int, default=2, help="passes over the record")
     ap.add_argument("--inner", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    for kv in a.set:
+        if "=" not in kv:
+            ap.error(f"--set {kv!r}: expected KEY=VALUE")
     if a.inner is not None:
         _calls(a.config, a.inner, a.set)
         return 0

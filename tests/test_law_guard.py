@@ -126,52 +126,29 @@ def test_simulate_nan_is_a_fault_on_the_quarter_car_too(tmp_path, capsys):
     assert "returned a non-finite value at tick 50" in capsys.readouterr().err
 
 
-class _Demand:
-    def __init__(self, value: float) -> None:
-        self.value = value
 
-    def force(self, m) -> float:
-        return self.value
+def test_offline_fault_kinds_name_the_law_and_tick():
+    """mrctl/laws/guard.py: what both offline loops turn a caught exception into."""
+    from mrctl.laws.base import NonFiniteOutput
+    from mrctl.laws.guard import law_fault
 
-
-class _Law:
-    def __init__(self, I: float, applied_raises: bool = False) -> None:
-        self.I, self.applied_raises, self.told = I, applied_raises, []
-
-    def current(self, m, F_des: float) -> float:
-        return self.I
-
-    def applied(self, I: float) -> None:
-        if self.applied_raises:
-            raise RuntimeError("state lost")
-        self.told.append(I)
+    f = law_fault(NonFiniteOutput("I = nan"), "lawname", 7, 0.007)
+    assert (f.kind, f.law, f.k, f.t, f.detail) == ("non-finite", "lawname", 7, 0.007, "I = nan")
+    f = law_fault(KeyError("x"), "demandname", 3, 0.003)
+    assert (f.kind, f.law, f.detail) == ("raised", "demandname", "KeyError: 'x'")
 
 
-def _meas(k: int = 7):
-    from mrctl.laws.base import Measurement
-
-    m = Measurement()
-    m.k, m.t = k, k * 1e-3
-    return m
-
-
-def test_offline_guard_clamps_tells_the_law_and_names_who_failed():
-    """The guard both offline loops share (mrctl/laws/guard.py)."""
-    from mrctl.laws.guard import GuardedLaws
-
-    law = _Law(0.9)
-    g = GuardedLaws(law, _Demand(12.0), 0.6, "lawname", "demandname")
-    assert g.step(_meas()) == 0.6 and law.told == [0.6] and g.F_des == 12.0 and g.fault is None
-    law.I = 0.3
-    assert g.step(_meas()) == 0.3 and law.told == [0.6]  # told only when the clamp acted
-
-    g = GuardedLaws(_Law(0.3), _Demand(float("nan")), 0.6, "lawname", "demandname")
-    assert g.step(_meas(7)) == 0.0
-    assert (g.fault.kind, g.fault.law, g.fault.k) == ("non-finite", "demandname", 7)
-
-    g = GuardedLaws(_Law(float("inf")), None, 0.6, "lawname")
-    assert g.step(_meas()) == 0.0 and (g.fault.kind, g.fault.law) == ("non-finite", "lawname")
-
-    # a law whose applied() raises is a fault too, at 0 A, not a crash of the simulation
-    g = GuardedLaws(_Law(0.9, applied_raises=True), None, 0.6, "lawname")
-    assert g.step(_meas()) == 0.0 and g.fault.kind == "raised" and "state lost" in g.fault.detail
+@pytest.mark.parametrize("bench", ["shaker", "quarter_car"])
+def test_simulate_a_law_whose_applied_raises_is_a_fault_not_a_crash(tmp_path, capsys, bench):
+    """The clamp tells the law what was commanded (applied); if that raises,
+    the run ends at 0 A with a law fault in both offline loops."""
+    text = _cfg(tmp_path, "{law: 'bad_laws:AppliedRaises', after_ticks: 40}").read_text()
+    if bench == "quarter_car":
+        text = text.replace("plant: {driver_tau_s: 0.0}", "plant: {bench: quarter_car}")
+    (tmp_path / "exp.yaml").write_text(text)
+    out = tmp_path / "sim.csv"
+    assert main(["simulate", str(tmp_path / "exp.yaml"), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "raised at tick 40" in err and "RuntimeError: applied() lost its state" in err
+    data = np.genfromtxt(out, delimiter=",", names=True)
+    assert len(data) == 41 and data["I"][-1] == 0.0

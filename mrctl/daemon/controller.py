@@ -339,8 +339,8 @@ class Controller:
             self._t_obs = t_dev
             n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
             v = obs.update(x, v, n if n > 0 else 1)
-        # the constructor, not _replace(), which builds a dict and a map per call: the link
-        # makes one Sample per tick anyway, this is one more small tuple from the free list
+        # the constructor, not _replace(), which builds a dict and a map per call: one more
+        # small object per tick, as the link's own Sample
         return Sample(seq, t_dev, x, v, F, status, I_app)
 
     def _write(self, I: float) -> bool:

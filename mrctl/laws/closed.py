@@ -206,7 +206,6 @@ class ClosedLoopInverse(SmoothInverse):
         self.gtable = [0.0] * (2 * _REV_BINS)
         self._hist = [-1] * _HIST  # the bins of the last commands
         self._slope = 1.0 - math.exp(-self.dt / _SLOPE_S)
-        # two copies of the model that look ahead with the current held (the horizon)
         # the model's coefficients at I + ΔI (the horizon's finite difference), and the two
         # force trajectories, reused every tick
         self._probe = LuGreModel(params)

@@ -133,9 +133,11 @@ class LuGreModel:
         """The forces (N) of the next ``len(out)`` ticks from the present state
         (left as it is), the velocity going on by dv per tick: into ``out``
         with the current held at I, into ``out1`` at I + dI (``probe`` holds
-        the coefficients for it). The closed law's horizon and its finite
-        difference in I: one call and no list per tick; each trajectory is
-        bit for bit what ``advance`` then ``force`` give tick by tick."""
+        the coefficients for it; ``out1`` as long as ``out``). The closed
+        law's horizon and its finite difference in I: one call and no list
+        per tick; each trajectory is bit for bit what ``advance`` then
+        ``force`` give tick by tick with ``substeps`` 1 (the laws' models;
+        this one step per tick whatever ``substeps`` says)."""
         if I != self._I:
             self._set_current(I)
         Fc = self._Fc

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mrctl.laws.base import LawFault, Measurement
-from mrctl.laws.guard import GuardedLaws
+from mrctl.laws.base import LawFault, Measurement, NonFiniteOutput, clamp_current
+from mrctl.laws.guard import law_fault
 from mrctl.runlog.metrics import tracking_summary
 from mrctl.runlog.ride import ride_summary
 
@@ -62,17 +62,19 @@ def simulate_bench(exp: Experiment, duration_s: float) -> SimResult:
 def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
           ) -> tuple[LawFault | None, int, float]:
     """The per-tick loop; returns (law fault or None, ticks done, start time)."""
-    dt = exp.dt
-    laws = GuardedLaws(exp.law, exp.demand, exp.I_max, exp.config.inverse.law,
-                       exp.config.demand.type if exp.demand is not None else "")
-    step = laws.step
+    I_max, dt = exp.I_max, exp.dt
+    demand = exp.demand.force if exp.demand is not None else None
+    current, applied = exp.law.current, exp.law.applied
     sample, command, plant = bench.sample, bench.command, bench.plant
     ch_cols = [(cols[c], c) for c in m.channels]
     ct, cx, cv, cfd, cf, ci, cia, cz = (cols[c] for c in ("t", "x", "v", "F_des", "F", "I", "I_applied", "z"))
     cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
     ch = m.channels
     observe = exp.make_observer()  # sensing.velocity: observer, as the controller applies it
+    dname = exp.config.demand.type if exp.demand is not None else ""
+    lname = exp.config.inverse.law
     I = 0.0
+    fault = None
     t0 = time.perf_counter()
     for k in range(n):
         bench.begin_tick(k)
@@ -82,8 +84,24 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, k * dt, xm, vm, Fm, plant.I_applied, I
         for col, name in ch_cols:
             col[k] = ch[name]
-        I = step(m)  # 0 A on a law fault: the run ends at this tick
-        Fd = laws.F_des
+        Fd = math.nan
+        who = dname
+        try:  # the law guard (docs/laws.md, mrctl/laws/guard.py)
+            if demand is not None:
+                Fd = demand(m)
+                if Fd - Fd != 0.0:
+                    raise NonFiniteOutput(f"F_des = {Fd!r}")
+            who = lname
+            I = current(m, Fd)
+            if I - I != 0.0:
+                raise NonFiniteOutput(f"I = {I!r}")
+            Ic = clamp_current(I, I_max)
+            if Ic != I:
+                I = Ic
+                applied(I)
+        except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
+            fault = law_fault(exc, who, k, k * dt)
+            I = 0.0
         command(I)
         ct[k], cx[k], cv[k], cfd[k], cf[k], ci[k] = k * dt, bench.x, bench.v, Fd, bench.F, I
         cia[k], cz[k], cxm[k], cvm[k] = plant.I_applied, plant.z, xm, vm
@@ -93,6 +111,6 @@ def _loop(exp: Experiment, bench, m: Measurement, cols: dict[str, array], n: int
         cfm[k] = bench.F
         if "a_sprung" in ch:
             cols["a_sprung"][k] = bench.a_s
-        if laws.fault is not None:
-            return laws.fault, k + 1, t0
+        if fault is not None:
+            return fault, k + 1, t0
     return None, n, t0

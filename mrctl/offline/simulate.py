@@ -25,8 +25,8 @@ import numpy as np
 
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
-from mrctl.laws.base import LawFault, Measurement
-from mrctl.laws.guard import GuardedLaws
+from mrctl.laws.base import LawFault, Measurement, NonFiniteOutput, clamp_current
+from mrctl.laws.guard import law_fault
 from mrctl.runlog import files
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, RUN_UNITS
 from mrctl.runlog.metrics import tracking_summary
@@ -117,15 +117,17 @@ def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], co
     plant, sensors = exp.make_plant(), exp.make_sensors()
     cfd, cf, ci, cia, cz = cols["F_des"], cols["F"], cols["I"], cols["I_applied"], cols["z"]
     cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
-    laws = GuardedLaws(exp.law, exp.demand, I_max, exp.config.inverse.law,
-                       exp.config.demand.type if exp.demand is not None else "")
-    step = laws.step  # local bindings: attribute lookups cost as much as the physics here
+    # local bindings: attribute lookups cost as much as the physics here
+    demand = exp.demand.force if exp.demand is not None else None
+    current, applied = exp.law.current, exp.law.applied
+    dname, lname = (exp.config.demand.type if demand is not None else ""), exp.config.inverse.law
     ptick = plant.tick
     observe = exp.make_observer()
     has_F, has_v = exp.config.plant.sensors.load_cell, exp.config.plant.sensors.velocity
     m = Measurement()
     F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
-    I = 0.0
+    I, nan = 0.0, math.nan
+    fault: LawFault | None = None
     for k in range(n):
         x, v = xs[k], vs[k]
         if sensors is None:
@@ -142,14 +144,31 @@ def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], co
         if observe is not None:
             vm = observe.update(xm, vm)
         m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
-        I = step(m)  # 0 A on a law fault: the run ends at this tick
+        Fd = nan
+        who = dname
+        try:  # the law guard (docs/laws.md, mrctl/laws/guard.py): zero cost on the good path
+            if demand is not None:
+                Fd = demand(m)
+                if Fd - Fd != 0.0:  # NaN or inf
+                    raise NonFiniteOutput(f"F_des = {Fd!r}")
+            who = lname
+            I = current(m, Fd)
+            if I - I != 0.0:
+                raise NonFiniteOutput(f"I = {I!r}")
+            Ic = clamp_current(I, I_max)
+            if Ic != I:  # tell the law only when the clamp changed its output
+                I = Ic
+                applied(I)
+        except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
+            fault = law_fault(exc, who, k, ts[k])
+            I = 0.0  # the run ends at this tick, at 0 A
         F_prev = cf[k] = ptick(v, I, x)
-        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, laws.F_des, I, plant.I_applied, plant.z
-        if laws.fault is not None:
+        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, Fd, I, plant.I_applied, plant.z
+        if fault is not None:
             n = k + 1
             break
     cfm[n - 1] = (F_prev if sensors is None else sensors.F(F_prev)) if has_F else math.nan
-    return n, laws.fault
+    return n, fault
 
 
 def log_columns(result: SimResult) -> dict[str, np.ndarray]:

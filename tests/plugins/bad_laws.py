@@ -47,6 +47,16 @@ class Sleeps(_Bad):
         return 0.2
 
 
+class AppliedRaises(_Bad):
+    """Asks for more than I_max after ``after_ticks``; told the clamped value, it raises."""
+
+    def bad(self) -> float:
+        return 2.0 * self.I_max
+
+    def applied(self, I: float) -> None:
+        raise RuntimeError("applied() lost its state")
+
+
 class DemandRaises(DemandLaw):
     params = _AFTER
 
