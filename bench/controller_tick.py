@@ -35,9 +35,9 @@ from mrctl.config import load_experiment  # noqa: E402
 from mrctl.daemon.controller import Controller  # noqa: E402
 from mrctl.daemon.recorder import Recorder  # noqa: E402
 from mrctl.daemon.safety import SafetyConfig, SafetySupervisor  # noqa: E402
-from mrctl.experiment import build  # noqa: E402
+from mrctl.experiment import Experiment, build  # noqa: E402
 from mrctl.io.base import Link, Sample, Status  # noqa: E402
-from mrctl.offline.simulate import run_duration, simulate  # noqa: E402
+from mrctl.offline.simulate import log_columns, run_duration, simulate  # noqa: E402
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "fig5.yaml"
@@ -50,15 +50,22 @@ def make_tick(period_s: float, defer_format: bool = True, config: Path = CONFIG
               ) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
     """(tick, background): as ``mrctl run`` builds them; with ``defer_format``
     the loop formats the log in its idle time (the background hook)."""
-    sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
     exp = build(load_experiment(config))
     backend = exp.make_link()
     backend.open()
+    return _controller(exp, backend, defer_format)
+
+
+def _controller(exp: Experiment, link: Link, defer_format: bool = True
+                ) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
+    """The controller on ``link`` with the supervisor and the recorder (a temp
+    file), as ``mrctl run`` builds them; (tick, background)."""
+    sys.setswitchinterval(2e-4)  # as mrctl run does: the writer thread must not hold the GIL for 5 ms
     sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
     tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
     rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
                    fmt=RUN_FORMATS, defer_format=defer_format)
-    ctl = Controller(backend, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(backend),
+    ctl = Controller(link, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(link),
                      observer=exp.make_observer())
     atexit.register(rec.close)
     return ctl.tick, (rec.format_pending if defer_format else None)
@@ -145,29 +152,18 @@ def make_replay_tick(period_s: float, config: Path = CONFIG
                      ) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
     """(tick, background) as ``mrctl run`` builds them, on a :class:`ReplayLink`
     of ``mrctl simulate``'s samples for ``config``."""
-    sys.setswitchinterval(2e-4)
     exp = build(load_experiment(config))
-    res = simulate(exp, run_duration(exp))
-    c = res.columns
-    has_v = exp.config.plant.sensors.velocity
+    c = log_columns(simulate(exp, run_duration(exp)))  # x, F, I_applied as the controller received them
+    vs = c["v"].tolist() if exp.config.plant.sensors.velocity else [math.nan] * len(c["v"])  # no channel: NaN
     status = int(Status.OUTPUT_ENABLED)
-    # what the DAQ reported at tick k: the load cell's reading as received, the driver's current
-    # of the tick before (the run log's I_applied)
-    I_seen = [res.I_applied0, *c["I_applied"].tolist()[:-1]]
-    samples = [Sample(k, k * exp.dt, x, (v if has_v else math.nan), F, status, Ia)
-               for k, (x, v, F, Ia) in enumerate(zip(c["x_meas"].tolist(), c["v_meas"].tolist(),
-                                                     c["F_rx"].tolist(), I_seen))]
-    exp = build(load_experiment(config))  # fresh laws and observer
+    samples = [Sample(k, k * exp.dt, x, v, F, status, Ia)
+               for k, (x, v, F, Ia) in enumerate(zip(c["x"].tolist(), vs, c["F"].tolist(), c["I_applied"].tolist()))]
+    exp.law.reset()  # the laws start afresh; the controller makes its own observer
+    if exp.demand is not None:
+        exp.demand.reset()
     link = ReplayLink(samples, exp.dt)
     link.open()
-    sup = SafetySupervisor(SafetyConfig.from_config(exp.config.safety, exp.dt))
-    tmp = tempfile.mkdtemp(prefix="mrctl-bench-")
-    rec = Recorder(Path(tmp) / "run.csv", RUN_COLUMNS, {"bench": "loop_timing"}, capacity_ticks=65536,
-                   fmt=RUN_FORMATS, defer_format=True)
-    ctl = Controller(link, exp.law, exp.demand, sup, exp.dt, record=rec.record, lead=exp.make_lead(link),
-                     observer=exp.make_observer())
-    atexit.register(rec.close)
-    return ctl.tick, rec.format_pending
+    return _controller(exp, link)
 
 
 def make_tick_replay(period_s: float) -> tuple[Callable[[int, int], object], Callable[[int], object] | None]:
