@@ -30,6 +30,7 @@ from typing import Any, Callable
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gendoc import replace_block  # noqa: E402
 from hil_sim.testing.daemon_faults import disk_full, log_path_symlink, ownership  # noqa: E402
 
 DOC = ROOT / "docs" / "reliability.md"
@@ -137,12 +138,7 @@ def markdown(rows: list[tuple[str, ...]], meta: dict[str, Any]) -> str:
 
 
 def write_doc(text: str) -> None:
-    src = DOC.read_text()
-    if BEGIN not in src:
-        raise SystemExit(f"{DOC}: no {BEGIN!r} block")
-    head = src[: src.index(BEGIN) + len(BEGIN)]
-    tail = src[src.index(END):]
-    DOC.write_text(head + "\n" + text + "\n" + tail)
+    replace_block(DOC, BEGIN, END, text)
 
 
 def main(argv: list[str] | None = None) -> int:

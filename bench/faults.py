@@ -37,6 +37,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gendoc import replace_block  # noqa: E402
 from hil_sim.testing.fault_suite import (  # noqa: E402
     Scenario,
     deviations,
@@ -203,10 +204,7 @@ def markdown(scenarios: list[Scenario], results: list[dict[str, Any]], meta: dic
 
 
 def write_doc(text: str) -> None:
-    src = DOC.read_text()
-    head = src[: src.index(BEGIN) + len(BEGIN)]
-    tail = src[src.index(END):] if END in src else END + "\n"
-    DOC.write_text(head + "\n" + text + "\n" + tail)
+    replace_block(DOC, BEGIN, END, text)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,15 +19,16 @@ docs/inverse-laws.md. Figures are deterministic (no timing involved).
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gendoc import replace_block  # noqa: E402
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
+from mrctl.laws.base import Measurement  # noqa: E402
 from mrctl.laws.inverse import SmoothInverse, _ModelBasedLaw  # noqa: E402
 from mrctl.model.lugre import force  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
@@ -41,7 +42,8 @@ class FullRoot(_ModelBasedLaw):
 
     name = "full-root"
 
-    def current(self, v: float, F_des: float) -> float:
+    def current(self, m: Measurement, F_des: float) -> float:
+        v = m.v
         z = self._advance(v)
         p = self.p
 
@@ -70,7 +72,8 @@ class ImplicitZdot(SmoothInverse):
 
     name = "implicit-zdot"
 
-    def current(self, v: float, F_des: float) -> float:
+    def current(self, m: Measurement, F_des: float) -> float:
+        v = m.v
         p = self.p
         Ip = self.I_prev
         z = self._advance(v)
@@ -94,7 +97,10 @@ def run(c_des: float, law: str = "paper", make=None, **inverse) -> dict[str, flo
     exp = build(validate_experiment(data, EXP))
     if make is not None:
         exp.law = make(exp)
-    return simulate(exp, 4.0).summary
+    res = simulate(exp, 4.0)
+    if res.fault is not None:  # a table of NaN is no measurement
+        raise SystemExit(f"c_des {c_des:g}, {exp.law.name}: {res.fault}")
+    return res.summary
 
 
 def _row(label: str, results: list[dict[str, float]]) -> str:
@@ -151,9 +157,7 @@ def main() -> int:
     print(text)
     if args.write_docs:
         doc = ROOT / "docs" / "inverse-laws.md"
-        src = doc.read_text()
-        new = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), BEGIN + "\n" + text + END, src, flags=re.S)
-        doc.write_text(new)
+        replace_block(doc, BEGIN, END, text)
         print(f"updated {doc}")
     return 0
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gendoc import replace_block  # noqa: E402
 from mrctl.estimation import KinematicObserver  # noqa: E402
 from mrctl.model.plant import Sensors  # noqa: E402
 
@@ -101,9 +101,7 @@ def main() -> int:
     print(text)
     if a.write_docs:
         doc = ROOT / "docs" / "robust-tracking.md"
-        src = doc.read_text()
-        doc.write_text(re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _m: BEGIN + "\n" + text + END,
-                              src, flags=re.S))
+        replace_block(doc, BEGIN, END, text)
         print(f"updated {doc}")
     return 0
 

@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import argparse
 import copy
-import re
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gendoc import replace_block  # noqa: E402
 from mrctl.config import validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.model.quarter_car import QuarterCarParams  # noqa: E402
@@ -148,10 +148,7 @@ def figure(res: dict, path: Path) -> None:
 
 def write_docs(text: str) -> None:
     doc = ROOT / "docs" / "quarter-car.md"
-    src = doc.read_text()
-    b, e = "<!-- BEGIN GENERATED: bench/quarter_car.py -->", "<!-- END GENERATED -->"
-    new = re.sub(re.escape(b) + ".*?" + re.escape(e), lambda _m: f"{b}\n{text}\n{e}", src, flags=re.S)
-    doc.write_text(new)
+    replace_block(doc, "<!-- BEGIN GENERATED: bench/quarter_car.py -->", "<!-- END GENERATED -->", text)
 
 
 def main() -> int:

@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import time
 from pathlib import Path
@@ -43,6 +42,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gendoc import replace_block  # noqa: E402
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
@@ -295,11 +295,7 @@ def main() -> int:
     print(f"({time.perf_counter() - t0:.0f} s)")
     if a.write_docs and not (a.only or closed):
         doc = ROOT / "docs" / "inverse-laws.md"
-        src = doc.read_text()
-        if BEGIN not in src:
-            raise SystemExit(f"{doc}: no {BEGIN} marker")
-        doc.write_text(re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _m: BEGIN + "\n" + text + END,
-                              src, flags=re.S))
+        replace_block(doc, BEGIN, END, text)
         print(f"updated {doc}")
     return 0
 

@@ -1,0 +1,23 @@
+"""Replace a generated block of a doc: the one way every bench script writes its table.
+
+    from gendoc import replace_block     # bench/ is on sys.path when a bench script runs
+    replace_block(ROOT / "docs" / "x.md", BEGIN, END, text)
+
+The block between the two marker lines is replaced by ``text`` (one newline
+before and after it); the rest of the file is kept byte for byte. A doc
+without both markers, in order, is an error (exit with a message), never
+a doc cut short. ``text`` is written as it is: no regex escapes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def replace_block(doc: Path, begin: str, end: str, text: str) -> None:
+    src = doc.read_text()
+    i = src.find(begin)
+    j = src.find(end, i + len(begin)) if i >= 0 else -1
+    if i < 0 or j < 0:
+        raise SystemExit(f"{doc}: no block between {begin!r} and {end!r}")
+    doc.write_text(src[: i + len(begin)] + "\n" + text.rstrip("\n") + "\n" + src[j:])
