@@ -30,8 +30,8 @@ from typing import Any, Callable
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gendoc import replace_block  # noqa: E402
 from hil_sim.testing.daemon_faults import disk_full, log_path_symlink, ownership  # noqa: E402
+from mrctl.util.gendoc import replace_block  # noqa: E402
 
 DOC = ROOT / "docs" / "reliability.md"
 BEGIN = "<!-- BEGIN GENERATED: bench/daemon_faults.py -->"

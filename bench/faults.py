@@ -37,7 +37,6 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gendoc import replace_block  # noqa: E402
 from hil_sim.testing.fault_suite import (  # noqa: E402
     Scenario,
     deviations,
@@ -45,6 +44,7 @@ from hil_sim.testing.fault_suite import (  # noqa: E402
     table_row,
     usable,
 )
+from mrctl.util.gendoc import replace_block  # noqa: E402
 
 DOC = ROOT / "docs" / "reliability.md"
 BEGIN = "<!-- BEGIN GENERATED -->"

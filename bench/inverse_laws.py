@@ -25,13 +25,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gendoc import replace_block  # noqa: E402
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.laws.base import Measurement  # noqa: E402
 from mrctl.laws.inverse import SmoothInverse, _ModelBasedLaw  # noqa: E402
 from mrctl.model.lugre import force  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
+from mrctl.util.gendoc import replace_block  # noqa: E402
 
 C_VALUES = (100.0, 250.0, 500.0, 1000.0)
 EXP = ROOT / "config" / "experiments"
@@ -157,7 +157,7 @@ def main() -> int:
     print(text)
     if args.write_docs:
         doc = ROOT / "docs" / "inverse-laws.md"
-        replace_block(doc, BEGIN, END, text)
+        replace_block(doc, BEGIN, END, text.rstrip("\n"))  # the table ends in a newline
         print(f"updated {doc}")
     return 0
 

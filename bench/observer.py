@@ -32,9 +32,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gendoc import replace_block  # noqa: E402
 from mrctl.estimation import KinematicObserver  # noqa: E402
 from mrctl.model.plant import Sensors  # noqa: E402
+from mrctl.util.gendoc import replace_block  # noqa: E402
 
 DT = 1e-3
 MOTIONS = ((1.0, 0.010), (5.0, 0.002))
@@ -101,7 +101,7 @@ def main() -> int:
     print(text)
     if a.write_docs:
         doc = ROOT / "docs" / "robust-tracking.md"
-        replace_block(doc, BEGIN, END, text)
+        replace_block(doc, BEGIN, END, text.rstrip("\n"))  # the table ends in a newline
         print(f"updated {doc}")
     return 0
 

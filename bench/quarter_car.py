@@ -32,11 +32,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gendoc import replace_block  # noqa: E402
 from mrctl.config import validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.model.quarter_car import QuarterCarParams  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
+from mrctl.util.gendoc import replace_block  # noqa: E402
 
 QC = QuarterCarParams()
 I_MAX = 0.6

@@ -42,10 +42,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gendoc import replace_block  # noqa: E402
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
+from mrctl.util.gendoc import replace_block  # noqa: E402
 
 DIR = ROOT / "config" / "experiments" / "robust"
 C_VALUES = (250.0, 500.0, 750.0)
@@ -295,7 +295,7 @@ def main() -> int:
     print(f"({time.perf_counter() - t0:.0f} s)")
     if a.write_docs and not (a.only or closed):
         doc = ROOT / "docs" / "inverse-laws.md"
-        replace_block(doc, BEGIN, END, text)
+        replace_block(doc, BEGIN, END, text.rstrip("\n"))  # the table ends in a newline
         print(f"updated {doc}")
     return 0
 

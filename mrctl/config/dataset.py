@@ -311,9 +311,9 @@ def dataset_markdown() -> str:
 if __name__ == "__main__":  # python -m mrctl.config.dataset: regenerate docs/identification.md's table
     import sys
 
+    from mrctl.util.gendoc import replace_block
+
     _doc = Path(__file__).resolve().parents[2] / "docs" / "identification.md"
-    _b, _e = "<!-- BEGIN GENERATED: mrctl.config.dataset.dataset_markdown -->", "<!-- END GENERATED -->"
-    _src = _doc.read_text()
-    _i = _src.index(_b) + len(_b)
-    _doc.write_text(_src[:_i] + "\n" + dataset_markdown() + "\n" + _src[_src.index(_e, _i):])
+    replace_block(_doc, "<!-- BEGIN GENERATED: mrctl.config.dataset.dataset_markdown -->", "<!-- END GENERATED -->",
+                  dataset_markdown())
     print(f"updated {_doc}", file=sys.stderr)

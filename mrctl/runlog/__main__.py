@@ -4,9 +4,9 @@ import sys
 from pathlib import Path
 
 from mrctl.runlog.format import columns_markdown
+from mrctl.util.gendoc import replace_block
 
 _doc = Path(__file__).resolve().parents[2] / "docs" / "runlog.md"
 _b, _e = "<!-- BEGIN GENERATED: mrctl.runlog.format.columns_markdown -->", "<!-- END GENERATED -->"
-_src = _doc.read_text()
-_doc.write_text(_src[: _src.index(_b) + len(_b)] + "\n" + columns_markdown() + "\n" + _src[_src.index(_e):])
+replace_block(_doc, _b, _e, columns_markdown())
 print(f"updated {_doc}", file=sys.stderr)

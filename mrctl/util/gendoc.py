@@ -1,10 +1,12 @@
-"""Replace a generated block of a doc: the one way every bench script writes its table.
+"""Replace a generated block of a doc: the one way the package's
+``python -m`` doc generators and the bench scripts write their tables.
 
-    from gendoc import replace_block     # bench/ is on sys.path when a bench script runs
+    from mrctl.util.gendoc import replace_block
     replace_block(ROOT / "docs" / "x.md", BEGIN, END, text)
 
-The block between the two marker lines is replaced by ``text`` (one newline
-before and after it); the rest of the file is kept byte for byte. A doc
+The block between the two markers becomes ``begin``, a newline, ``text``, a
+newline, ``end`` (what tests/test_docs.py reads back); the rest of the file
+is kept byte for byte. A doc
 without both markers, in order, is an error (exit with a message), never
 a doc cut short. ``text`` is written as it is: no regex escapes.
 """
@@ -15,9 +17,10 @@ from pathlib import Path
 
 
 def replace_block(doc: Path, begin: str, end: str, text: str) -> None:
+    """Write ``text`` between ``begin`` and ``end`` in ``doc`` (the rest kept)."""
     src = doc.read_text()
     i = src.find(begin)
     j = src.find(end, i + len(begin)) if i >= 0 else -1
     if i < 0 or j < 0:
         raise SystemExit(f"{doc}: no block between {begin!r} and {end!r}")
-    doc.write_text(src[: i + len(begin)] + "\n" + text.rstrip("\n") + "\n" + src[j:])
+    doc.write_text(src[: i + len(begin)] + "\n" + text + "\n" + src[j:])
