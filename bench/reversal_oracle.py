@@ -18,7 +18,7 @@ bins −8..63: ``bouc_wen`` c_des 250 0.762 % (``closed`` 0.822 %; the 3x
 target is 0.753 %), ``bouc_wen_displacement_only`` c_des 250 0.909 %
 (``closed`` 1.054 %; the 3x target is 0.780 %).
 
-    python bench/reversal_oracle.py [--scenario bouc_wen_c250] [--search] [--evals 900]
+    python bench/reversal_oracle.py [--scenario bouc_wen_c250] [--search] [--evals 900] [--set KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -66,8 +66,8 @@ class _Imposed(ClosedLoopInverse):
         return I
 
 
-def nrmse(scenario: str, knots_A: np.ndarray | None) -> float:
-    exp = _experiment(DIR / f"{scenario}.yaml")
+def nrmse(scenario: str, knots_A: np.ndarray | None, sets: dict | None = None) -> float:
+    exp = _experiment(DIR / f"{scenario}.yaml", inverse={"law": "closed", **sets} if sets else None)
     if knots_A is not None:
         exp.law.__class__ = _Imposed
         _Imposed.profile = [float(v) for v in np.interp(np.arange(LO, HI), KNOTS, np.clip(knots_A, 0.0, 0.6))]
@@ -79,15 +79,31 @@ def main() -> int:
     ap.add_argument("--scenario", default="bouc_wen_c250", help="a file of config/experiments/robust/ (no .yaml)")
     ap.add_argument("--search", action="store_true", help="Nelder-Mead from the stored (or a plain) profile")
     ap.add_argument("--evals", type=int, default=900, help="simulations per search")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of the closed law (e.g. horizon_ticks=0)")
     a = ap.parse_args()
+    import yaml
+
+    sets = {}
+    for kv in a.set:
+        key, eq, val = kv.partition("=")
+        if not eq or not key:
+            ap.error(f"--set {kv!r}: expected KEY=VALUE")
+        sets[key] = yaml.safe_load(val)
     x0 = np.array(BEST.get(a.scenario, (0.0, 0.0, 0.05, 0.15, 0.25, 0.35, 0.3, 0.2, 0.1, 0.11, 0.12, 0.12, 0.12,
                                          0.13, 0.13)))
-    print(f"{a.scenario}: closed {nrmse(a.scenario, None):.3f} %, with the profile {nrmse(a.scenario, x0):.3f} %")
+    from mrctl.util.schema import ConfigError
+
+    try:
+        plain = nrmse(a.scenario, None, sets)
+    except ConfigError as exc:  # a --set key or value the closed law does not take
+        raise SystemExit(str(exc)) from None
+    print(f"{a.scenario}: closed {plain:.3f} %, with the profile {nrmse(a.scenario, x0, sets):.3f} %")
     if a.search:
         from scipy.optimize import minimize
 
         t0 = time.perf_counter()
-        r = minimize(lambda x: nrmse(a.scenario, x), x0, method="Nelder-Mead",
+        r = minimize(lambda x: nrmse(a.scenario, x, sets), x0, method="Nelder-Mead",
                      options={"maxfev": a.evals, "xatol": 0.002, "fatol": 2e-5, "adaptive": True})
         print(f"searched: {r.fun:.3f} % ({time.perf_counter() - t0:.0f} s)")
         print("knots", KNOTS)
