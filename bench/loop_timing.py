@@ -19,6 +19,9 @@ and cyclictest's p50/p99/max with the ratio loop p99 / cyclictest p99.
 ``tick(k, now_ns) -> bool``; from Python call :func:`run_bench` with
 ``tick_factory=``. The default tick is a plain-float LuGre-style model step
 plus a PI current law (~a few µs), optionally padded by ``--tick-cost-us``.
+``--tick-work-us W`` runs a tick of fixed float work instead, W µs back to
+back: what this machine makes of a tick of that cost, the baseline to read
+a real tick's compute p99 against.
 
 cyclictest comes from the Debian package rt-tests
 (``apt-get install -y rt-tests``); without it the loop columns are still
@@ -88,6 +91,38 @@ def lugre_like_tick(period_s: float, extra_cost_us: float = 0.0) -> Callable[[in
         if pad_ns:
             while clock() - t0 < pad_ns:
                 pass
+        return True
+
+    return tick
+
+
+def fixed_work_tick(period_s: float, work_us: float) -> Callable[[int, int], object]:
+    """A tick of fixed *work*: the same number of plain-float iterations every
+    tick, that many as take ``work_us`` back to back (calibrated here, median
+    of 200 timings). The baseline for a real tick's p99: unlike
+    ``--tick-cost-us``, which pads to a wall-clock time and so hides any
+    preemption shorter than the pad, it shows what the machine does to a
+    tick of this cost when the loop paces it (caches and the vCPU cooling
+    while it sleeps, preemption). Its working set is tiny, a real tick's is
+    not: read it as a lower bound."""
+    exp = math.exp
+
+    def body(n: int) -> float:
+        s, x = 0.0, 1.0001
+        for _ in range(n):
+            s += x * 1.5 - exp(-x)
+        return s
+
+    clock, m, times = time.perf_counter_ns, 1000, []
+    for _ in range(200):
+        t0 = clock()
+        body(m)
+        times.append(clock() - t0)
+    times.sort()
+    n = max(1, round(work_us * 1e3 * m / times[len(times) // 2]))
+
+    def tick(k: int, now_ns: int) -> bool:
+        body(n)
         return True
 
     return tick
@@ -291,6 +326,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tick", help="MODULE:FACTORY, FACTORY(period_s) -> tick(k, now_ns)")
     ap.add_argument("--tick-cost-us", type=float, default=0.0,
                     help="busy-pad the default tick to at least this compute time (µs)")
+    ap.add_argument("--tick-work-us", type=float,
+                    help="instead, a tick of fixed float work that takes this long back to back (µs): "
+                         "the baseline for a real tick's p99")
     ap.add_argument("--rt-prio", type=int, help="SCHED_FIFO priority for loop and cyclictest")
     ap.add_argument("--mlock", action="store_true", help="mlockall the loop process")
     ap.add_argument("--cpus", help="pin the loop thread to these CPUs, e.g. 1 or 0,1")
@@ -304,8 +342,17 @@ def main(argv: list[str] | None = None) -> int:
     for s in strategies:
         if s not in WAIT_STRATEGIES:
             ap.error(f"unknown strategy {s!r}; choose from {WAIT_STRATEGIES}")
+    if a.tick and a.tick_work_us is not None:
+        ap.error("--tick and --tick-work-us are two ticks: give one")
+    if a.tick_work_us is not None and not 0.0 < a.tick_work_us < 1e6 / a.rate:
+        ap.error(f"--tick-work-us must be > 0 and shorter than the period ({1e6 / a.rate:g} µs)")
     if a.tick:
         factory = load_tick_factory(a.tick)
+    elif a.tick_work_us is not None:
+        work = a.tick_work_us
+
+        def factory(period_s: float) -> Callable[[int, int], object]:
+            return fixed_work_tick(period_s, work)
     else:
         cost = a.tick_cost_us
 
