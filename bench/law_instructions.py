@@ -45,13 +45,14 @@ def _calls(config: str, reps: int, sets: list[str]) -> None:
     from mrctl.laws.base import Measurement
     from mrctl.offline.simulate import log_columns, run_duration, simulate
 
+    sys.path.insert(0, str(ROOT / "bench"))
+    from robust_scenarios import parse_sets
+
     path = Path(config)
     data = load_yaml(path)
     if sets and not isinstance(data.get("inverse"), dict):
         raise SystemExit(f"{path}: no inverse section to --set keys in")
-    for kv in sets:
-        k, v = kv.split("=", 1)
-        data["inverse"][k] = load_yaml_value(v)
+    data.get("inverse", {}).update(parse_sets(sets))
     exp = build(validate_experiment(data, path.parent))
     c = log_columns(simulate(exp, run_duration(exp)))
     rows = list(zip(*(c[k].tolist() for k in ("k", "t", "x", "v", "F", "I_applied", "F_des"))))
@@ -63,12 +64,6 @@ def _calls(config: str, reps: int, sets: list[str]) -> None:
             m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = int(k), t, x, v, F, Ia, I
             I = law.current(m, Fd)
     print(len(rows))
-
-
-def load_yaml_value(text: str):
-    import yaml
-
-    return yaml.safe_load(text)
 
 
 def _ticks(name: str, reps: int) -> None:
@@ -108,9 +103,12 @@ def main() -> int:
     ap.add_argument("--tick", help="count a whole tick of this bench/controller_tick.py factory instead")
     ap.add_argument("--inner", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
-    for kv in a.set:
-        if "=" not in kv:
-            ap.error(f"--set {kv!r}: expected KEY=VALUE")
+    from robust_scenarios import parse_sets  # this script's directory is on the path
+
+    try:
+        parse_sets(a.set)  # a malformed one fails here, not under valgrind
+    except ValueError as exc:
+        ap.error(str(exc))
     if a.tick is not None:
         import controller_tick  # fail early on a wrong name, not under valgrind
 

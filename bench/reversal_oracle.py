@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.robust_scenarios import DIR, _experiment  # noqa: E402
+from bench.robust_scenarios import DIR, _experiment, parse_sets  # noqa: E402
 from mrctl.laws.closed import ClosedLoopInverse  # noqa: E402
 from mrctl.offline.simulate import simulate  # noqa: E402
 
@@ -82,14 +82,10 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of the closed law (e.g. horizon_ticks=0)")
     a = ap.parse_args()
-    import yaml
-
-    sets = {}
-    for kv in a.set:
-        key, eq, val = kv.partition("=")
-        if not eq or not key:
-            ap.error(f"--set {kv!r}: expected KEY=VALUE")
-        sets[key] = yaml.safe_load(val)
+    try:
+        sets = parse_sets(a.set)
+    except ValueError as exc:
+        ap.error(str(exc))
     x0 = np.array(BEST.get(a.scenario, (0.0, 0.0, 0.05, 0.15, 0.25, 0.35, 0.3, 0.2, 0.1, 0.11, 0.12, 0.12, 0.12,
                                          0.13, 0.13)))
     from mrctl.util.schema import ConfigError

@@ -85,6 +85,28 @@ SCENARIOS: dict[str, tuple[str, Any, dict[str, Any], dict[str, Any] | None]] = {
 }
 
 
+def parse_sets(items: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` options (this script, bench/reversal_oracle.py,
+    bench/law_instructions.py) as {KEY: VALUE}. VALUE is read as YAML, as
+    in the config files (``3``, ``0.5``, ``false``), and a number YAML
+    leaves as text (``1e4``) as a float. ValueError names a malformed one."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for kv in items:
+        key, eq, text = kv.partition("=")
+        if not eq or not key.strip():
+            raise ValueError(f"--set {kv!r}: expected KEY=VALUE")
+        value = yaml.safe_load(text)
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        out[key.strip()] = value
+    return out
+
+
 def config_dict(name: str, c_des: float) -> dict[str, Any]:
     what, params, plant, sensing = SCENARIOS[name]
     d: dict[str, Any] = {
@@ -283,7 +305,10 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a setting of the closed law (ablation; no docs)")
     a = ap.parse_args()
-    closed = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.set)}
+    try:
+        closed = parse_sets(a.set)
+    except ValueError as exc:
+        ap.error(str(exc))
     if a.write_configs:
         print(f"wrote {len(write_configs())} files in {DIR.relative_to(ROOT)}")
     t0 = time.perf_counter()
