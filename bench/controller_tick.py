@@ -32,9 +32,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
-from mrctl.daemon.controller import Controller  # noqa: E402
+from mrctl.core.controller import Controller  # noqa: E402
 from mrctl.daemon.recorder import Recorder  # noqa: E402
-from mrctl.daemon.safety import SafetyConfig, SafetySupervisor  # noqa: E402
+from mrctl.core.safety import SafetyConfig, SafetySupervisor  # noqa: E402
 from mrctl.experiment import Experiment, build  # noqa: E402
 from mrctl.io.base import Link, Sample, Status  # noqa: E402
 from mrctl.offline.simulate import log_columns, run_duration, simulate  # noqa: E402

@@ -30,8 +30,8 @@ def main() -> int:
     a = ap.parse_args()
     sys.path.insert(0, a.root)
     from mrctl.config import load_experiment
-    from mrctl.daemon.controller import Controller
-    from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+    from mrctl.core.controller import Controller
+    from mrctl.core.safety import SafetyConfig, SafetySupervisor
     from mrctl.experiment import build
 
     exp = build(load_experiment(a.config or Path(a.root) / "config" / "experiments" / "fig5.yaml"))

@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mrctl.config import load_yaml, validate_experiment
-from mrctl.daemon.controller import Controller
+from mrctl.core.controller import Controller
 from mrctl.daemon.recorder import read_sidecar
-from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+from mrctl.core.safety import SafetyConfig, SafetySupervisor
 from mrctl.daemon.service import RunOptions, Service
 from mrctl.experiment import build
 from mrctl.io.base import Sample

@@ -4,12 +4,12 @@ import math
 
 import pytest
 
-from mrctl.daemon.controller import Controller
+from mrctl.core.controller import Controller
 from mrctl.laws.demand import Viscous
 from mrctl.io.base import Disconnected, LinkTimeout, Sample
 from mrctl.laws.inverse import SmoothInverse
 from mrctl.model.params import TABLE_I
-from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+from mrctl.core.safety import SafetyConfig, SafetySupervisor
 
 
 class FakeExchangeLink:

@@ -32,7 +32,7 @@ from hil_sim.testing.fault_suite import Scenario, run_scenario, usable
 from hil_sim.faults import FaultBit, FaultSchedule, check_fault_list, check_transport, parse_fault_arg
 from hil_sim.state import DeviceState
 from mrctl.io.base import Disconnected, Sample, Status
-from mrctl.daemon.safety import Fault
+from mrctl.core.safety import Fault
 
 pytestmark = pytest.mark.hil
 

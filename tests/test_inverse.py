@@ -11,7 +11,7 @@ from mrctl.laws.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, S
 from mrctl.model.lugre import LuGreModel
 from mrctl.model.params import TABLE_I
 from mrctl.model.plant import DamperPlant
-from mrctl.daemon.safety import clamp_current
+from mrctl.core.safety import clamp_current
 
 
 def _m(v: float, x: float = 0.0) -> Measurement:

@@ -8,7 +8,7 @@ import numpy as np
 from mrctl.config import validate_experiment
 from mrctl.util.jsonutil import jsonable
 from mrctl.model.params import TABLE_I
-from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+from mrctl.core.safety import SafetyConfig, SafetySupervisor
 
 
 def test_types_and_nonfinite_policies():

@@ -12,7 +12,7 @@ import pytest
 
 from mrctl.cli import main
 from mrctl.daemon.recorder import read_run, read_sidecar
-from mrctl.daemon.safety import Fault
+from mrctl.core.safety import Fault
 from mrctl.daemon.service import RunOptions, Service
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,10 +72,10 @@ def test_run_a_demand_law_that_raises_is_named(tmp_path):
 
 
 def test_run_a_slow_law_faults_after_three_overruns(tmp_path):
-    svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: 'bad_laws:Sleeps', after_ticks: 100}"))
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: 'bad_laws:Spins', after_ticks: 100}"))
     assert code == 1
     fault = svc.ctl.law_fault
-    assert fault.kind == "slow" and "3 ticks in a row" in fault.detail
+    assert fault.kind == "slow" and "3 ticks in a row" in fault.detail and "CPU time" in fault.detail
     # three slow ticks (5 ms each) after 100 good ones: the third one commands 0 A and ends the run
     assert len(cols["t"]) == 103
     assert cols["I"][-1] == 0.0 and int(cols["fault"][-1]) & LAW
@@ -83,30 +83,69 @@ def test_run_a_slow_law_faults_after_three_overruns(tmp_path):
     assert svc.exit_current_A == 0.0
 
 
-def test_one_slow_tick_is_not_a_fault(tmp_path):
-    """A single overrun (a preempted tick) does not stop the run."""
+def _virtual_cpu_controller(tmp_path, cpu_ms_at):
+    """A controller on the sim bench whose law takes ``cpu_ms_at[k]`` ms of
+    (virtual) CPU time at tick k; the wall clock is virtual too."""
     from mrctl.config import load_experiment
-    from mrctl.daemon.controller import Controller
-    from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+    from mrctl.core.controller import Controller
+    from mrctl.core.safety import SafetyConfig, SafetySupervisor
     from mrctl.experiment import build
+    from mrctl.laws.inverse import SmoothInverse
 
     exp = build(load_experiment(_cfg(tmp_path, "{law: smooth}")))
     link = exp.make_link()
     link.open()
     now = [0]
-    ctl = Controller(link, exp.law, exp.demand, SafetySupervisor(SafetyConfig(I_max=0.6)), exp.dt,
-                     clock_ns=lambda: now[0])
-    real = exp.law.current
 
-    def slow_once(m, F):
-        if m.k == 10 or m.k in (20, 21):
-            now[0] += 2_000_000  # 2 ms inside the law
-        return real(m, F)
+    class CostsCpu(SmoothInverse):  # an interpreted subclass of a built-in (compiled) law
+        def current(self, m, F_des):
+            now[0] += cpu_ms_at.get(m.k, 0) * 1_000_000
+            return super().current(m, F_des)
 
-    exp.law.current = slow_once
+    law = CostsCpu(exp.params, 0.6, exp.dt)
+    ctl = Controller(link, law, exp.demand, SafetySupervisor(SafetyConfig(I_max=0.6)), exp.dt,
+                     clock_ns=lambda: now[0], cpu_clock_ns=lambda: now[0])
+    return ctl, now
+
+
+def test_one_slow_tick_is_not_a_fault(tmp_path):
+    """A single overrun (a preempted tick) does not stop the run."""
+    ctl, now = _virtual_cpu_controller(tmp_path, {10: 2, 20: 2, 21: 2})
     for k in range(40):
         assert ctl.tick(k, now[0]) is True
     assert ctl.law_fault is None
+
+
+def test_three_ticks_over_the_cpu_budget_are_a_fault_at_the_third(tmp_path):
+    ctl, now = _virtual_cpu_controller(tmp_path, {30: 2, 31: 2, 32: 2})
+    ends = [ctl.tick(k, now[0]) for k in range(40)]
+    assert ends.index(False) == 32
+    assert ctl.law_fault.kind == "slow" and ctl.law_fault.k == 32
+    assert ctl.sup.last_fault_tick == 32  # one tick number for the one event
+
+
+def test_a_law_that_waits_is_not_faulted_slow(tmp_path):
+    """5 ms of wall time per tick spent waiting (as under preemption by another
+    process) is an overrun for the loop, not a law fault: the budget is CPU time."""
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: 'bad_laws:Sleeps', after_ticks: 100}"))
+    assert svc.ctl.law_fault is None, svc.ctl.law_fault
+    assert code == 0
+    assert svc.loop.stats.summary()["overruns"] >= 3
+
+
+@pytest.mark.parametrize("law, what", [
+    ("ExitsProcess", "SystemExit"), ("GeneratorExits", "GeneratorExit"), ("Interrupts", "KeyboardInterrupt"),
+    ("ReturnsComplex", "complex"), ("ReturnsArray", "ndarray"),
+])
+def test_run_a_law_raising_a_base_exception_or_returning_a_non_float_is_a_law_fault(tmp_path, law, what):
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, f"{{law: 'bad_laws:{law}', after_ticks: 100}}"))
+    assert code == 1
+    fault = svc.ctl.law_fault
+    assert fault is not None and fault.kind == "raised" and fault.k == int(cols["k"][-1])
+    assert what in fault.detail
+    assert len(cols["t"]) == 101 and cols["I"][-1] == 0.0 and int(cols["fault"][-1]) & LAW
+    assert svc.exit_current_A == 0.0
+    assert read_sidecar(tmp_path / "run.csv")["complete"] is True
 
 
 def test_simulate_a_law_that_raises_exits_1_at_zero_amps(tmp_path, capsys):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mrctl.config import load_yaml, validate_experiment
-from mrctl.daemon.controller import Controller
-from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+from mrctl.core.controller import Controller
+from mrctl.core.safety import SafetyConfig, SafetySupervisor
 from mrctl.estimation import KinematicObserver
 from mrctl.estimation.observer import steady_state_gain
 from mrctl.experiment import build

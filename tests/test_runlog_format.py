@@ -69,7 +69,7 @@ def test_run_and_simulate_write_the_same_plain_csv(tmp_path):
 
 
 def test_sidecar_describes_every_column_the_fault_bits_and_the_exit_code(tmp_path):
-    from mrctl.daemon.safety import Fault
+    from mrctl.core.safety import Fault
     from mrctl.runlog.format import RUN_COLUMNS
 
     sim, run = _both(tmp_path, 0.5)

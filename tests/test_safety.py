@@ -10,7 +10,7 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from mrctl.daemon.safety import (
+from mrctl.core.safety import (
     Fault,
     SafetyConfig,
     SafetyCounters,

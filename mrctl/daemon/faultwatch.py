@@ -1,6 +1,6 @@
 """Safety faults, reported while the run goes on (the monitor thread polls this).
 
-The supervisor (:mod:`mrctl.daemon.safety`) acts within the tick: 0 A on a
+The supervisor (:mod:`mrctl.core.safety`) acts within the tick: 0 A on a
 fault. Saying so is slower work, so it happens here, off the loop, at the
 monitor's 50 ms poll: each new entry into FAULT is reported once at error
 priority (``<3>`` in the journal, :mod:`mrctl.util.journal`), with the
@@ -34,7 +34,9 @@ class FaultWatch:
             # the last fault, also when it cleared (auto-resume) before this poll
             fault = self.sup.last_fault.name if self.sup.last_fault else "?"
             more = f" ({new} new faults since the last report)" if new > 1 else ""
-            self.report(f"safety: FAULT {fault} near tick {self.ticks()}: {self.sup.last_reason or 'no reason given'}; "
+            k = self.sup.last_fault_tick  # the tick the fault was entered at, as the law fault and the log say
+            self.report(f"safety: FAULT {fault} at tick {k if k >= 0 else self.ticks()}: "
+                        f"{self.sup.last_reason or 'no reason given'}; "
                         f"0 A commanded{more}; faults so far {self.entered}", ERR)
         if c.resumes > self.resumes:
             self.resumes = c.resumes

@@ -3,7 +3,7 @@
 What runs where:
 
 - the **main thread** runs the fixed-rate loop (:class:`mrctl.daemon.loop.FixedRateLoop`)
-  with :class:`mrctl.daemon.controller.Controller` as its tick. Signal
+  with :class:`mrctl.core.controller.Controller` as its tick. Signal
   handlers run here too, so they only set flags (``loop.stop()``, a reload
   event);
 - the **monitor thread** (:mod:`mrctl.daemon.monitor`): live line, systemd
@@ -46,7 +46,7 @@ from typing import Any, Callable, TextIO
 
 from mrctl import __version__
 from mrctl.config import ConfigError, Node, load_experiment
-from mrctl.daemon.controller import Controller, safe_zero
+from mrctl.core.controller import Controller, safe_zero
 from mrctl.daemon import ownership
 from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
@@ -56,7 +56,7 @@ from mrctl.daemon.monitor import Monitor, live_line
 from mrctl.daemon.notify import Notifier
 from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
-from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
+from mrctl.core.safety import SafetyConfig, SafetySupervisor
 from mrctl.daemon.status import StatusServer, default_status_socket
 from mrctl.daemon.timing import format_summary as format_timing
 from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlError

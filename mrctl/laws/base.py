@@ -1,7 +1,7 @@
 """The law API: what a control law sees each tick, what it must return.
 
 Every law, built in or a plugin, is a class on this API (ros2_control's
-controllers-as-plugins, python's ABCs):
+controllers-as-plugins):
 
 - a :class:`DemandLaw` says what force the damper should produce now
   (``force(m) -> F_des`` in N);
@@ -16,6 +16,12 @@ state, declares the keys of its YAML section as schema fields (``params``:
 validated with key paths, listed by ``docs/config.md`` and ``mrctl check``),
 and is built by :meth:`Law.from_config`.
 
+These classes are compiled with mypyc (mrctl/build.py) and allow
+interpreted subclasses, so a plugin subclasses them as ordinary Python. They
+are not ``abc.ABC`` (isinstance checks on compiled ABCs share one cache):
+the registry refuses a class that leaves ``force`` or ``current``
+unimplemented.
+
 In the 1 kHz path a law must not block, sleep, do I/O or log, allocate
 what it can avoid, or use numpy scalars (plain floats are ~10x faster per
 call). A law that raises or returns NaN is a safety fault: 0 A. The rules
@@ -24,11 +30,12 @@ and what happens then are in docs/laws.md.
 
 from __future__ import annotations
 
-import abc
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
+
+from mypy_extensions import mypyc_attr
 
 from mrctl.model.params import LuGreParams
 
@@ -53,6 +60,7 @@ def clamp_current(I: float, I_max: float) -> float:
     return 0.0  # negative, zero, or NaN
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class Measurement:
     """The whole sample a law sees at one tick (SI units).
 
@@ -93,7 +101,8 @@ class LawContext:
     extra: Mapping[str, Any] = field(default_factory=dict)  #: bench facts a law may use (e.g. masses)
 
 
-class Law(abc.ABC):
+@mypyc_attr(allow_interpreted_subclasses=True)
+class Law:
     """What every law shares: a name, a parameter schema, a lifecycle."""
 
     #: the name written in YAML (``demand.type`` or ``inverse.law``)
@@ -103,8 +112,8 @@ class Law(abc.ABC):
     #: one line for the reference docs
     summary: ClassVar[str] = ""
     #: extra channels (``Measurement.channels`` keys) the law reads; a link
-    #: that does not provide them is refused at start-up (may be set per instance)
-    channels: tuple[str, ...] = ()
+    #: that does not provide them is refused at start-up (a plugin may set it per instance)
+    channels: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def from_config(cls, cfg: Any, ctx: LawContext) -> "Law":
@@ -130,14 +139,16 @@ class Law(abc.ABC):
         return []
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class DemandLaw(Law):
     """Decides the force the damper should produce."""
 
-    @abc.abstractmethod
     def force(self, m: Measurement) -> float:
-        """Desired force (N) at this tick."""
+        """Desired force (N) at this tick. Every demand law implements it."""
+        raise NotImplementedError(f"{type(self).__name__}.force")
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class CurrentLaw(Law):
     """Decides the coil current (A). Must return a value in [0, I_max]."""
 
@@ -145,21 +156,23 @@ class CurrentLaw(Law):
     needs_demand: ClassVar[bool] = False
     I_max: float
 
-    @abc.abstractmethod
     def current(self, m: Measurement, F_des: float) -> float:
-        """Current (A) in [0, I_max] for this tick."""
+        """Current (A) in [0, I_max] for this tick. Every current law implements it."""
+        raise NotImplementedError(f"{type(self).__name__}.current")
 
     def applied(self, I: float) -> None:
         """The current actually commanded (after safety), when it differs
         from what :meth:`current` returned: the law's state follows it."""
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class InverseLaw(CurrentLaw):
     """A current law that makes the damper produce the demanded force."""
 
     needs_demand = True
 
 
+@mypyc_attr(native_class=False)
 class NonFiniteOutput(ArithmeticError):
     """A law returned NaN or inf: raised and caught by the law guard within a tick."""
 

@@ -94,6 +94,8 @@ from __future__ import annotations
 
 import math
 
+from mypy_extensions import mypyc_attr
+
 from mrctl.laws.base import Measurement
 from mrctl.laws.inverse import SmoothInverse
 from mrctl.model.lugre import LuGreModel
@@ -120,6 +122,7 @@ _GUARD_RATE = 0.5
 _GUARD_ARM = 0.5
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class ClosedLoopInverse(SmoothInverse):
     """Smooth inverse + load-cell model-error estimate (integral action with
     semi-active anti-windup) + short horizon + coil-lag compensation."""

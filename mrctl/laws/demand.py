@@ -7,6 +7,8 @@ current for it.
 
 from __future__ import annotations
 
+from mypy_extensions import mypyc_attr
+
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +18,7 @@ from mrctl.util.csvtable import load_series
 from mrctl.util.schema import FilePath, Num
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class Viscous(DemandLaw):
     """F_des = c_des·v, eq (13): make the MR damper behave as a viscous one."""
 
@@ -34,6 +37,7 @@ class Viscous(DemandLaw):
         return self.c_des * m.v
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class ConstantForce(DemandLaw):
     """F_des = F (N), whatever the motion (identification, friction tests)."""
 
@@ -52,6 +56,7 @@ class ConstantForce(DemandLaw):
         return self.F_N
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class FromFile(DemandLaw):
     """F_des(t) from a CSV with columns ``t,F_des`` (s, N), linearly interpolated
     and held at the ends."""

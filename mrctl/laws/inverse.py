@@ -4,7 +4,7 @@ Each law keeps its own copy of the LuGre state z, advanced with the current it
 commanded on the previous tick (the tick protocol of
 :class:`mrctl.model.lugre.LuGreModel`), and is called once per tick with the
 measured velocity and the desired force. All laws return a current already in
-[0, I_max]; :mod:`mrctl.daemon.safety` clamps again, independently.
+[0, I_max]; :mod:`mrctl.core.safety` clamps again, independently.
 
 Laws, by the name used in YAML (``inverse.law``):
 
@@ -31,6 +31,8 @@ Laws, by the name used in YAML (``inverse.law``):
 """
 
 from __future__ import annotations
+
+from mypy_extensions import mypyc_attr
 
 import math
 from typing import Any
@@ -63,6 +65,7 @@ _LAG_PARAMS = {
 }
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class _ModelBasedLaw(InverseLaw):
     """Shared state handling: the law's own LuGre model and previous current."""
 
@@ -110,6 +113,7 @@ class _ModelBasedLaw(InverseLaw):
         return self.model.z
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class PaperInverse(_ModelBasedLaw):
     """Eq (12) as published (Palka & Maślanka 2013), then clamped to [0, I_max]."""
 
@@ -138,6 +142,7 @@ class PaperInverse(_ModelBasedLaw):
         return I
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class SmoothInverse(_ModelBasedLaw):
     """Regularised, slew-bounded eq (12): the spike-free law.
 
@@ -264,6 +269,7 @@ class SmoothInverse(_ModelBasedLaw):
         return I
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class ConstantCurrent(CurrentLaw):
     """Open loop: always the same current (identification runs)."""
 
@@ -303,6 +309,7 @@ def _current_list(value: Any, path: str) -> tuple[Any, list[str]]:
     return out, errors
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class ScheduleCurrent(CurrentLaw):
     """Open-loop staircase: ``currents_A[i]`` for ticks in [i·step, (i+1)·step), then 0 A.
 

@@ -63,6 +63,19 @@ class LawInfo:
     target: str = ""  #: an entry point's ``module:Class``
 
 
+def _unimplemented(obj: type) -> list[str]:
+    """The per-tick methods of the law API that ``obj`` leaves to the base
+    class (which raises): ``force`` for a demand law, ``current`` for a
+    current law. Looked up in the classes' own dicts, compiled or not."""
+    missing = []
+    for name, owner in (("force", DemandLaw), ("current", CurrentLaw)):
+        if issubclass(obj, owner):
+            mro = obj.__mro__
+            if not any(name in vars(c) for c in mro[:mro.index(owner)]):
+                missing.append(name)
+    return missing
+
+
 def check_law_class(obj: Any, kind: str) -> str | None:
     """Why ``obj`` is not a usable law of ``kind``, or None if it is."""
     base = BASES[kind]
@@ -72,9 +85,9 @@ def check_law_class(obj: Any, kind: str) -> str | None:
         other = "DemandLaw" if issubclass(obj, DemandLaw) else type(obj).__name__
         return (f"{obj.__module__}.{obj.__qualname__} is a {other}; {KEYS[kind]} needs a "
                 f"subclass of mrctl.laws.base.{base.__name__}")
-    if inspect.isabstract(obj):
-        missing = ", ".join(sorted(getattr(obj, "__abstractmethods__", ())))
-        return f"{obj.__module__}.{obj.__qualname__} is abstract (implement {missing})"
+    missing = _unimplemented(obj)
+    if missing:
+        return f"{obj.__module__}.{obj.__qualname__} is abstract (implement {', '.join(missing)})"
     params = getattr(obj, "params", None)
     if not isinstance(params, Mapping):
         return f"{obj.__qualname__}.params must be a mapping of schema fields, got {type(params).__name__}"

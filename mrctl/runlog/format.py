@@ -60,7 +60,7 @@ CORE_COLUMNS: tuple[str, ...] = RUN_COLUMNS[:6]
 RUN_FORMATS = {c: "%.9g" for c in RUN_COLUMNS} | {"t": "%.10g", "k": "%.10g", "seq": "%.10g", "t_dev": "%.10g"}
 
 #: The ``fault`` column's bits: (name, value, meaning). The supervisor's
-#: :class:`mrctl.daemon.safety.Fault` has exactly these (tests/test_runlog_format.py).
+#: :class:`mrctl.core.safety.Fault` has exactly these (tests/test_runlog_format.py).
 FAULT_BITS: tuple[tuple[str, int, str], ...] = (
     ("MISSING", 1 << 0, "no sample this tick (timeout, link error)"),
     ("LATE", 1 << 1, "the sample was older than safety.max_age_s"),

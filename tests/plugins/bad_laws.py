@@ -41,10 +41,49 @@ class ReturnsNaN(_Bad):
         return math.nan
 
 
+class Spins(_Bad):
+    """Computes (burns the loop thread's CPU) for 5 ms per call."""
+
+    def bad(self) -> float:
+        end = time.thread_time() + 0.005
+        while time.thread_time() < end:
+            pass
+        return 0.2
+
+
 class Sleeps(_Bad):
+    """Waits 5 ms per call without computing: what preemption looks like to a law."""
+
     def bad(self) -> float:
         time.sleep(0.005)
         return 0.2
+
+
+class ExitsProcess(_Bad):
+    def bad(self) -> float:
+        raise SystemExit(0)
+
+
+class GeneratorExits(_Bad):
+    def bad(self) -> float:
+        raise GeneratorExit
+
+
+class Interrupts(_Bad):
+    def bad(self) -> float:
+        raise KeyboardInterrupt
+
+
+class ReturnsComplex(_Bad):
+    def bad(self) -> float:
+        return complex(0.2, 0.0)  # type: ignore[return-value]
+
+
+class ReturnsArray(_Bad):
+    def bad(self) -> float:
+        import numpy as np
+
+        return np.array([0.2])  # type: ignore[return-value]
 
 
 class AppliedRaises(_Bad):

@@ -21,22 +21,30 @@ then commands 0 A where it still can and exits non-zero. On exchange links
 the setpoint shares the link with the samples, so ``link_loss_ticks``
 consecutive failed exchanges mean the driver is lost too; a ``Disconnected``
 link is reopened at most every ``reconnect_every_ticks`` before that.
+
+The whole good path of a tick (sample checks, observer, demand, built-in
+law, clamp and slew, the log row) is compiled with mypyc (mrctl/build.py):
+one call per tick from the loop, native calls inside. Rare paths (faults,
+reloads, reconnects) are the same code, and a plugin law is called back as
+ordinary Python.
+
+The law guard judges a law's time on the loop thread's CPU clock (time the
+thread actually computed), not on the wall clock: a tick preempted by
+another process is an overrun the loop counts, not the law's fault.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Callable
+from typing import Any, Callable
 
-from mrctl.daemon.safety import SafetySupervisor
-from mrctl.estimation import KinematicObserver, VelocityLead
+from mrctl.core.safety import SafetySupervisor
+from mrctl.estimation.lead import VelocityLead
+from mrctl.estimation.observer import KinematicObserver
 from mrctl.io.base import Disconnected, Link, LinkError, Sample
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawFault, Measurement, NonFiniteOutput
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: F401 - re-exported for callers
-
-if TYPE_CHECKING:
-    from mrctl.daemon.loop import FixedRateLoop
 
 NAN = math.nan
 
@@ -60,6 +68,7 @@ class Controller:
         law_budget_s: float | None = None,
         law_overrun_ticks: int = 3,
         observer: KinematicObserver | None = None,
+        cpu_clock_ns: Callable[[], int] = time.thread_time_ns,
     ) -> None:
         self.backend = backend
         self.law = law
@@ -68,6 +77,8 @@ class Controller:
         self.dt = dt
         self.record = record
         self.clock_ns = clock_ns
+        #: the loop thread's CPU clock: the law guard's budget is CPU time, not wall time
+        self.cpu_clock_ns = cpu_clock_ns
         self.driver_retries = driver_retries
         self.link_loss_ticks = link_loss_ticks
         self.reconnect_every_ticks = max(1, reconnect_every_ticks)
@@ -80,12 +91,12 @@ class Controller:
         #: v before the safety checks, so they judge the velocity the laws see
         self.observer = observer
         self._t_obs = NAN
-        self.split = backend.split
-        self._begin = backend.begin_tick if backend.host_clocked else None
+        self.split: bool = backend.split
+        self._host_clocked: bool = backend.host_clocked
         #: what the laws see, rewritten in place every tick; the link's
         #: extra channels are its own dict, updated in place by the link
         self.meas = Measurement(channels=getattr(backend, "channels", None))
-        #: the law guard (docs/laws.md): a law whose calls take longer than
+        #: the law guard (docs/laws.md): a law whose calls take more CPU time than
         #: the budget (default one period) on this many ticks in a row is a fault
         self.law_budget_ns = round((dt if law_budget_s is None else law_budget_s) * 1e9)
         self.law_overrun_ticks = max(1, law_overrun_ticks)
@@ -97,13 +108,17 @@ class Controller:
         self.link_errors = 0
         self.ticks = 0
         self.stopped_reason: str | None = None
-        self.loop: FixedRateLoop | None = None  # for the per-row lateness column
+        #: the loop (its ``t_start_ns`` and ``period_ns`` give each row's lateness); None offline
+        self.loop: Any = None
         self.pending: tuple[CurrentLaw, DemandLaw | None] | None = None  # (law, demand) from a reload
         # live values for the status socket (plain attribute stores per tick)
         self.last_x = self.last_v = self.last_F_des = NAN
+        # this tick's sample (None: none), set by _acquire
+        self._sample: Sample | None = None
+        self._go_on = True
         # device pacing state (acquire / tick_paced)
-        self._acq: tuple[Sample | None, bool] = (None, True)
-        self._seq0: int | None = None
+        self._seq0 = 0
+        self._have_seq0 = False
         self._k0 = 0
         self._k_paced = -1
         self._prev_now = 0
@@ -137,21 +152,22 @@ class Controller:
             self.pending = None
             try:
                 self.swap_laws(law, demand)
-            except Exception as exc:  # noqa: BLE001 - a plugin's reset may raise
+            except BaseException as exc:  # noqa: BLE001 - a plugin's reset may raise anything
                 self.law = law  # the new law failed: it is the one to blame, 0 A follows
                 self._law_failed("raised", law.name, self.ticks, NAN, f"in reset(): {type(exc).__name__}: {exc}")
 
     def tick(self, k: int, now_ns: int) -> bool:
         """One control period; returns False to end the run (driver lost)."""
-        self._take_reload()
-        if self._begin is not None:
-            self._begin(k)
+        if self.pending is not None:
+            self._take_reload()
+        if self._host_clocked:
+            self.backend.begin_tick(k)
         t0 = self.clock_ns()
-        sample, go_on = self._acquire()
+        self._acquire()
         t1 = self.clock_ns()
         lp = self.loop  # lateness: wake-up minus deadline
         late_us = (now_ns - lp.t_start_ns - k * lp.period_ns) * 1e-3 if lp is not None else NAN
-        return self._finish(k, now_ns, sample, (t1 - t0) * 1e-9, go_on, late_us, t1)
+        return self._finish(k, now_ns, (t1 - t0) * 1e-9, late_us)
 
     # -- device pacing (FixedRateLoop.run_device_paced) -------------------------
     def acquire(self) -> Controller:
@@ -159,9 +175,10 @@ class Controller:
         returns at the device's next tick (the SYNC flag). Never None: a
         failed exchange is a tick too, for the safety hold and link loss,
         and comes no sooner than one period after the previous tick."""
-        self._take_reload()
-        self._acq = self._acquire()
-        if self._acq[0] is None and self._prev_now and self.loop is not None:
+        if self.pending is not None:
+            self._take_reload()
+        self._acquire()
+        if self._sample is None and self._prev_now and self.loop is not None:
             # No reply, so no device clock: a link that fails at once (closed,
             # refused) must not run ticks back to back, or link_loss_s, held
             # in ticks, would pass in a fraction of its time. Pace by the host.
@@ -173,28 +190,29 @@ class Controller:
         the device's sample counter, so device ticks with no reply leave a gap
         as host-paced skipped deadlines do. The sample's age is not checked
         (the wait is the pacing); lateness is the jitter of reply arrivals."""
-        sample, go_on = self._acq
+        sample = self._sample
         k = self._k_paced + 1 if n else 0  # k always advances (a stale seq too)
         if sample is not None:
-            d = (sample.seq - self._seq0) & 0xFFFFFFFF if self._seq0 is not None else 0x80000000
+            seq = int(sample[0])
+            d = (seq - self._seq0) & 0xFFFFFFFF if self._have_seq0 else 0x80000000
             if d >= 0x80000000:  # first sample, or the device's counter went back (a restart)
-                self._seq0, self._k0 = sample.seq, k
+                self._seq0, self._k0, self._have_seq0 = seq, k, True
             elif self._k0 + d > k:  # device ticks with no reply: leave the gap
                 k = self._k0 + d
         prev, self._prev_now = self._prev_now, now_ns
         late_us = (now_ns - prev - self._period_ns) * 1e-3 if n else 0.0
         self._k_paced = k
-        return self._finish(k, now_ns, sample, 0.0, go_on, late_us, self.clock_ns())
+        return self._finish(k, now_ns, 0.0, late_us)
 
-    def _acquire(self) -> tuple[Sample | None, bool]:
-        """Read (split) or exchange; (sample or None, go on)."""
+    def _acquire(self) -> None:
+        """Read (split) or exchange: ``_sample`` (None on a failure), ``_go_on``."""
         backend = self.backend
-        sample = None
+        self._sample = None
         try:
             if self.split:
-                sample = backend.read()
+                self._sample = backend.read()
             else:
-                sample = backend.exchange(self.I_next)
+                self._sample = backend.exchange(self.I_next)
                 self.I_last = self.I_next
             self.consecutive_failures = 0
         except Disconnected:
@@ -205,27 +223,38 @@ class Controller:
         except LinkError:
             self.link_errors += 1
             self.consecutive_failures += 1
-        go_on = True
+        self._go_on = True
         if not self.split and self.consecutive_failures > self.link_loss_ticks:
             # the setpoint travels on the same link: the driver is unreachable
             self.sup.driver_failed()
             self.stopped_reason = (f"link lost: no successful exchange for {self.consecutive_failures} ticks "
                                    f"(the device's own watchdog applies 0 A)")
-            go_on = False
-        return sample, go_on
+            self._go_on = False
 
-    def _finish(self, k: int, now_ns: int, sample: Sample | None, age_s: float, go_on: bool, late_us: float,
-                t1: int) -> bool:
-        """Safety check, laws, command, record: the non-blocking part of a tick.
-        ``t1`` is the clock when the sample was in hand (the law's budget runs from it)."""
+    def _finish(self, k: int, now_ns: int, age_s: float, late_us: float) -> bool:
+        """Safety check, laws, command, record: the non-blocking part of a tick."""
+        c1 = self.cpu_clock_ns()  # the sample is in hand: the law's CPU budget runs from here
         sup = self.sup
-        if self.observer is not None and sample is not None:
-            sample = self._observe(sample)
-        s = sup.check_sample(sample, age_s)
+        sample = self._sample
+        go_on = self._go_on
         t = k * self.dt
-        if s is not None:
-            x = s.x_m
-            v = s.v_mps
+        if sample is not None:
+            seq = int(sample[0])
+            t_dev = float(sample[1])
+            x = float(sample[2])
+            v = float(sample[3])
+            F = float(sample[4])
+            I_app = float(sample[6])
+            if self.observer is not None:
+                v = self._observe(t_dev, x, v)
+            ok = sup.check(k, seq, x, v, F, int(sample[5]), I_app, age_s)
+        else:
+            ok = sup.check_missing(k)
+            seq = -1
+            t_dev = F = I_app = NAN
+        if ok:
+            x = sup.x
+            v = sup.v
             lead = self.lead
             if lead is not None:  # the state when this current will act
                 v = lead.update(v, k - self._k_prev if self._k_prev >= 0 else 1)
@@ -235,11 +264,11 @@ class Controller:
             m.t = t
             m.x = x
             m.v = v
-            m.F = s.F_N
-            m.I_applied = s.current_A
+            m.F = sup.F
+            m.I_applied = sup.I_applied
             m.I_cmd = self.I_last
-            m.status = s.status
-            I_law = self._laws(m, k, t, t1)
+            m.status = sup.status
+            I_law = self._laws(m, k, t, c1)
             F_des = self.last_F_des
         else:
             x = v = F_des = NAN
@@ -248,7 +277,7 @@ class Controller:
         if I != I_law and self.law_fault is None:
             try:
                 self.law.applied(I)  # the law's state follows what is commanded
-            except Exception as exc:  # noqa: BLE001
+            except BaseException as exc:  # noqa: BLE001
                 I = I_law = self._law_raised(exc, self.law, k, t)
         if self.law_fault is not None:
             go_on = False
@@ -262,86 +291,78 @@ class Controller:
         else:
             self.I_next = I
         self.ticks += 1
-        self.last_x, self.last_v, self.last_F_des = x, v, F_des
+        self.last_x = x
+        self.last_v = v
+        self.last_F_des = F_des
         rec = self.record
         if rec is not None:
-            if sample is not None:
-                seq, t_dev, F, I_app = sample.seq, sample.t_dev_s, sample.F_N, sample.current_A
-            else:
-                seq = t_dev = F = I_app = NAN
             end = self.clock_ns()
-            rec(t, x, v, F_des, F, I, k, seq, t_dev, I_app, self.backend.true_force_N, late_us,
-                (end - now_ns) * 1e-3, sup.fault_bits, self.link_errors)
+            rec(t, x, v, F_des, F, I, k, NAN if seq < 0 else float(seq), t_dev, I_app,
+                self.backend.true_force_N, late_us, (end - now_ns) * 1e-3, float(sup.fault_bits),
+                float(self.link_errors))
         return go_on  # even the tick that ends the run is logged
 
-    def _laws(self, m: Measurement, k: int, t: float, t1: int) -> float:
+    def _laws(self, m: Measurement, k: int, t: float, c1: int) -> float:
         """The demand and current laws on this tick's measurement, guarded:
-        an exception, a NaN/inf, or ``law_overrun_ticks`` ticks in a row over
-        the budget is a law fault (docs/laws.md). Sets ``last_F_des``."""
+        an exception (any, ``SystemExit`` too), a result that is not a real
+        number, a NaN/inf, or ``law_overrun_ticks`` ticks in a row over the
+        CPU budget is a law fault (docs/laws.md). Sets ``last_F_des``."""
         F_des = NAN
         who: Law | None = self.demand
         try:  # zero cost on the good path (3.11); a law's failure is a fault, never a crash
-            if who is not None:
-                F_des = who.force(m)  # type: ignore[union-attr]
-                if F_des - F_des != 0.0:  # NaN or inf
-                    raise NonFiniteOutput(f"F_des = {F_des!r}")
+            demand = self.demand
+            if demand is not None:
+                F_des = _real(demand.force(m), "F_des")
             who = law = self.law
-            I_law = law.current(m, F_des)
-            if I_law - I_law != 0.0:
-                raise NonFiniteOutput(f"I = {I_law!r}")
-        except Exception as exc:  # noqa: BLE001
+            I_law = _real(law.current(m, F_des), "I")
+        except BaseException as exc:  # noqa: BLE001 - SystemExit, KeyboardInterrupt from a law too
             I_law = self._law_raised(exc, who, k, t)
         else:
-            if self.clock_ns() - t1 > self.law_budget_ns:
-                self._law_slow_tick(k, t, t1)  # the fault sets the supervisor's 0 A
+            if self.cpu_clock_ns() - c1 > self.law_budget_ns:
+                self._law_slow_tick(k, t, c1)  # the fault sets the supervisor's 0 A
             elif self._law_slow:
                 self._law_slow = 0
         self.last_F_des = F_des
         return I_law
 
     # -- the law guard: the fault path only ----------------------------------------
-    def _law_raised(self, exc: Exception, who: Law | None, k: int, t: float) -> float:
+    def _law_raised(self, exc: BaseException, who: Law | None, k: int, t: float) -> float:
         name = (who.name or type(who).__name__) if who is not None else ""
         if isinstance(exc, NonFiniteOutput):
             self._law_failed("non-finite", name, k, t, str(exc))
         else:
-            self._law_failed("raised", name, k, t, f"{type(exc).__name__}: {exc}")
+            self._law_failed("raised", name, k, t, f"{type(exc).__name__}: {_short(exc)}")
         return 0.0
 
-    def _law_slow_tick(self, k: int, t: float, t1: int) -> None:
+    def _law_slow_tick(self, k: int, t: float, c1: int) -> None:
         """One more tick over the budget; the fault (0 A) after ``law_overrun_ticks``."""
         self._law_slow += 1
         if self._law_slow >= self.law_overrun_ticks:
-            us = (self.clock_ns() - t1) * 1e-3
-            self._law_failed("slow", self.law.name, k, t, f"its calls took {us:.0f} us, over the budget of "
-                             f"{self.law_budget_ns * 1e-3:.0f} us, on {self._law_slow} ticks in a row")
+            us = (self.cpu_clock_ns() - c1) * 1e-3
+            self._law_failed("slow", self.law.name, k, t, f"its calls took {us:.0f} us of CPU time, over the "
+                             f"budget of {self.law_budget_ns * 1e-3:.0f} us, on {self._law_slow} ticks in a row")
 
     def _law_failed(self, kind: str, name: str, k: int, t: float, detail: str) -> None:
         if self.law_fault is None:
             self.law_fault = LawFault(kind, name or type(self.law).__name__, k, t, detail)
             self.stopped_reason = str(self.law_fault)
-            self.sup.law_failed(f"{self.law_fault.law} {kind}")
+            self.sup.law_failed(f"{self.law_fault.law} {kind}", k)
 
-    def _observe(self, sample: Sample) -> Sample:
-        """The sample with v from the observer. Its time step is the device's
-        (t_dev), so skipped ticks and a reduced rate keep it on the right
-        clock; a repeated sample (stale) does not update it, a device clock
-        that went back (a restart) starts it over."""
+    def _observe(self, t_dev: float, x: float, v: float) -> float:
+        """v from the observer. Its time step is the device's (t_dev), so
+        skipped ticks and a reduced rate keep it on the right clock; a
+        repeated sample (stale) does not update it, a device clock that
+        went back (a restart) starts it over."""
         obs = self.observer
         assert obs is not None
-        seq, t_dev, x, v, F, status, I_app = sample
         d = t_dev - self._t_obs
         if d == 0.0:
-            v = obs.v
-        else:
-            if d < 0.0:
-                obs.reset()
-            self._t_obs = t_dev
-            n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
-            v = obs.update(x, v, n if n > 0 else 1)
-        # the constructor, not _replace(), which builds a dict and a map per call: one more
-        # small object per tick, as the link's own Sample
-        return Sample(seq, t_dev, x, v, F, status, I_app)
+            return obs.v
+        if d < 0.0:
+            obs.reset()
+        self._t_obs = t_dev
+        n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
+        return obs.update(x, v, n if n > 0 else 1)
 
     def _write(self, I: float) -> bool:
         for _ in range(self.driver_retries + 1):
@@ -372,6 +393,25 @@ class Controller:
             self.I_last = 0.0
             self.I_next = 0.0
         return err
+
+
+def _real(value: object, what: str) -> float:
+    """A law's result as a float: a real number (int or float) that is finite;
+    anything else (NaN, inf, a complex, an array) raises for the law guard."""
+    if isinstance(value, float):
+        if value - value == 0.0:
+            return value
+    elif isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    else:
+        raise TypeError(f"{what} = {_short(value)} is a {type(value).__name__}, not a float")
+    raise NonFiniteOutput(f"{what} = {value!r}")
+
+
+def _short(value: object, limit: int = 200) -> str:
+    """``str(value)`` cut to ``limit`` characters: a message must not carry a huge value."""
+    text = str(value)
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
 
 
 def safe_zero(link: Link, budget_s: float = 0.25, min_attempts: int = 3,

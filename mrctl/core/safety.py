@@ -22,17 +22,20 @@ exceptions on the good path).
 
 Per-tick protocol (once per tick, in this order)::
 
-    s = sup.check_sample(sample_or_None, age_s)   # None → skip the law
-    I = law(s) if s is not None else 0.0
-    driver.command(sup.limit(I))                   # 0.0 whenever s is None
+    ok = sup.check(k, seq, x, v, F, status, I_applied, age_s)   # or check_missing(k)
+    I = law(sup.x, sup.v, ...) if ok else 0.0
+    driver.command(sup.limit(I))                   # 0.0 whenever ok is False
+
+It is part of the compiled core (mrctl/build.py): plain ints and floats,
+no enum or object on the per-tick path.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol
 
-from mrctl.daemon.safety_config import Fault, SafetyConfig, SafetyCounters, SafetyState, _range
+from mrctl.core.safety_config import Fault, SafetyConfig, SafetyCounters, SafetyState, _range
 from mrctl.laws.base import clamp_current
 
 __all__ = [
@@ -68,9 +71,6 @@ class SampleLike(Protocol):
     def F_N(self) -> float: ...
 
 
-S = TypeVar("S", bound=SampleLike)
-
-
 _KIND_LABELS = (
     (Fault.MISSING, "missing"),
     (Fault.LATE, "late"),
@@ -89,35 +89,24 @@ _DEVICE_STATUS = int(Fault.DEVICE_STATUS)
 _DRIVER = int(Fault.DRIVER)
 _LAW = int(Fault.LAW)
 
-_STARTING = SafetyState.STARTING
-_OK = SafetyState.OK
-_HOLDING = SafetyState.HOLDING
-_FAULT = SafetyState.FAULT
-
-_isfinite = math.isfinite
+# plain ints on the per-tick path (an IntEnum compares as an object); ``state`` gives the enum
+_STARTING = int(SafetyState.STARTING)
+_OK = int(SafetyState.OK)
+_HOLDING = int(SafetyState.HOLDING)
+_FAULT = int(SafetyState.FAULT)
 
 
 class SafetySupervisor:
     """Per-tick safety rules: sample checks with hold-over, FAULT → 0 A, clamp + slew.
 
-    Call :meth:`check_sample` then :meth:`limit` once per tick (see the module
-    docstring). Status (``state``, ``fault``, ``reason``, ``counters()``) may be
-    read between ticks from the loop thread; it is not locked.
+    Call :meth:`check` (or :meth:`check_missing`) then :meth:`limit` once per
+    tick (see the module docstring). After a ``True`` from :meth:`check`, the
+    sample the law runs on (this one, or the last good one held over) is in
+    ``x``, ``v``, ``F``, ``I_applied`` and ``status``: plain fields, so a tick
+    builds no object. Status (``state``, ``fault``, ``reason``,
+    ``counters()``) may be read between ticks from the loop thread; it is not
+    locked.
     """
-
-    __slots__ = (
-        "config",
-        # precomputed config (locals on the hot path)
-        "_I_max", "_step", "_hold", "_max_age", "_xlo", "_xhi", "_vlo", "_vhi",
-        "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n",
-        # state
-        "_state", "_last_good", "_last_seq", "_bad_run", "_bad_bits", "_good_run",
-        "_fault", "_latched", "_reason", "_last_fault", "_last_reason", "_out_ok", "_last_out", "_law_reason",
-        # counters
-        "_n_good", "_n_missing", "_n_late", "_n_stale", "_n_non_finite",
-        "_n_out_of_range", "_n_status", "_n_holds", "_longest_bad",
-        "_n_faults", "_n_fault_ticks", "_n_resumes", "_n_resets", "_n_cmd_nonfinite",
-    )
 
     def __init__(self, config: SafetyConfig) -> None:
         self.config = config
@@ -125,7 +114,7 @@ class SafetySupervisor:
         slew = config.max_slew_A_per_s
         # inf step == no slew limit, so limit() has a single code path
         self._step = math.inf if slew is None else float(slew) * float(config.dt_s)
-        self._hold = config.hold_ticks
+        self._hold: int = config.hold_ticks
         self._max_age = math.inf if config.max_age_s is None else float(config.max_age_s)
         self._xlo, self._xhi = _range(config.x_range_m, "x_range_m")
         self._vlo, self._vhi = _range(config.v_range_mps, "v_range_mps")
@@ -133,22 +122,29 @@ class SafetySupervisor:
         self._req_F = bool(config.require_force)
         self._status_mask = int(config.status_fault_mask)
         self._auto = bool(config.auto_resume)
-        self._resume_n = config.resume_good_ticks
+        self._resume_n: int = config.resume_good_ticks
         self._n_good = self._n_missing = self._n_late = self._n_stale = 0
         self._n_non_finite = self._n_out_of_range = self._n_status = 0
         self._n_holds = self._longest_bad = self._n_faults = self._n_fault_ticks = 0
         self._n_resumes = self._n_resets = self._n_cmd_nonfinite = 0
         self._last_fault = 0  # the last fault and its reason, kept after it clears (for reports)
         self._last_reason = ""
+        self._k = -1  # the tick being checked (the fault's tick in every message)
+        self._fault_tick = -1
+        self._held: Any = None  # check_sample's object API: the last good sample object
+        #: the sample the law runs on (valid after check() returned True)
+        self.x = self.v = self.F = self.I_applied = math.nan
+        self.status = 0
         self._arm()
 
     def _arm(self) -> None:
         """Back to STARTING: no fault, no reference sample, 0 A output."""
         self._state = _STARTING
-        self._last_good = None
+        self._have_good = False
         # forget the sequence reference too: a reconnected DAQ may restart its
         # counter, which would otherwise look stale (backwards) forever
-        self._last_seq: int | None = None
+        self._have_seq = False
+        self._last_seq = 0
         self._bad_run = 0
         self._bad_bits = 0
         self._good_run = 0
@@ -161,66 +157,68 @@ class SafetySupervisor:
 
     # ------------------------------------------------------------------ per tick
 
-    def _classify(self, sample: Any, age_s: float) -> int:
+    def _classify(self, seq: int, x: float, v: float, F: float, status: int, age_s: float) -> int:
         """0 if good, else the first bad kind found (one kind per sample)."""
-        if sample is None:
-            return _MISSING
         if not age_s <= self._max_age:  # NaN age counts as late
             return _LATE
-        last = self._last_seq
-        if last is not None:
-            d = (sample.seq - last) % _U32
+        if self._have_seq:
+            d = (seq - self._last_seq) % _U32
             if d == 0 or d >= _U32_HALF:
                 return _STALE
-        x = sample.x_m
-        v = sample.v_mps
-        F = sample.F_N
-        if not (_isfinite(x) and _isfinite(v)):
+        if not (-math.inf < x < math.inf and -math.inf < v < math.inf):
             return _NON_FINITE
-        F_ok = _isfinite(F)
+        F_ok = -math.inf < F < math.inf
         if not F_ok and (self._req_F or F == F):  # inf always bad; NaN only if required
             return _NON_FINITE
         if not (self._xlo <= x <= self._xhi and self._vlo <= v <= self._vhi):
             return _OUT_OF_RANGE
         if F_ok and not self._Flo <= F <= self._Fhi:
             return _OUT_OF_RANGE
-        if self._status_mask and getattr(sample, "status", 0) & self._status_mask:
+        if status & self._status_mask:
             return _DEVICE_STATUS
         return 0
 
-    def check_sample(self, sample: S | None, age_s: float = 0.0) -> S | None:
-        """Check this tick's sample; return what the law should use, or None.
-
-        ``sample`` is None when the read timed out or the link failed this
-        tick; ``age_s`` is the sample's measured age (ignored unless
-        ``max_age_s`` is set). Returns the sample itself if good, the last
-        good sample during a hold, or None (FAULT, or no good sample yet):
-        the loop then skips the law, and :meth:`limit` outputs 0 A.
-        """
-        kind = self._classify(sample, age_s)
+    def check(self, k: int, seq: int, x: float, v: float, F: float, status: int, I_applied: float,
+              age_s: float = 0.0) -> bool:
+        """Check tick ``k``'s sample (its fields); True: the law runs on
+        ``self.x`` … ``self.status`` (this sample, or the last good one
+        during a hold); False: FAULT or no good sample yet, the loop skips
+        the law and :meth:`limit` outputs 0 A. ``age_s`` is the sample's
+        measured age (ignored unless ``max_age_s`` is set)."""
+        self._k = k
+        kind = self._classify(seq, x, v, F, status, age_s)
         if kind == 0:
             self._n_good += 1
-            self._last_good = sample
-            self._last_seq = sample.seq  # type: ignore[union-attr]
+            self._have_good = True
+            self.x, self.v, self.F, self.I_applied, self.status = x, v, F, I_applied, status
+            self._have_seq = True
+            self._last_seq = seq
             self._bad_run = 0
             self._bad_bits = 0
-            if self._state is _FAULT:
+            if self._state == _FAULT:
                 self._good_run += 1
                 if self._latched or self._good_run < self._resume_n:
                     self._n_fault_ticks += 1
                     self._out_ok = False
-                    return None
+                    return False
                 self._resume()
             self._state = _OK
             self._out_ok = True
-            return sample
+            return True
+        return self._bad(kind)
 
+    def check_missing(self, k: int) -> bool:
+        """No sample this tick (read timeout, link error): as :meth:`check`."""
+        self._k = k
+        return self._bad(_MISSING)
+
+    def _bad(self, kind: int) -> bool:
         self._count_bad(kind)
         self._bad_run += 1
         self._bad_bits |= kind
         if self._bad_run > self._longest_bad:
             self._longest_bad = self._bad_run
-        if kind != _STALE or self._state is not _FAULT:
+        if kind != _STALE or self._state != _FAULT:
             # A repeated sequence number while recovering is no evidence either
             # way: an exchange link polls faster than the device publishes now
             # and then (~7 % of ticks on the HIL bench). It must not restart
@@ -229,20 +227,33 @@ class SafetySupervisor:
             self._good_run = 0
         self._out_ok = False
 
-        if self._state is _FAULT:
+        if self._state == _FAULT:
             self._n_fault_ticks += 1
-            return None
+            return False
         if self._bad_run > self._hold:
             self._enter_fault(self._bad_bits, False)
             self._n_fault_ticks += 1
-            return None
+            return False
         self._n_holds += 1
-        last = self._last_good
-        if last is None:  # nothing to hold yet (STARTING): 0 A, not yet a fault
-            return None
+        if not self._have_good:  # nothing to hold yet (STARTING): 0 A, not yet a fault
+            return False
         self._state = _HOLDING
         self._out_ok = True
-        return last
+        return True
+
+    def check_sample(self, sample: Any, age_s: float = 0.0, k: int = -1) -> Any:
+        """The object form of :meth:`check`: returns the sample the law should
+        use (``sample`` itself, or the last good sample during a hold), or
+        None. ``sample`` is None when the read failed; any object with
+        ``seq``, ``x_m``, ``v_mps``, ``F_N`` (and optionally ``status``,
+        ``current_A``) fits (tests, tools)."""
+        if sample is None:
+            return self._held if self.check_missing(k) else None
+        ok = self.check(k, sample.seq, sample.x_m, sample.v_mps, sample.F_N, getattr(sample, "status", 0),
+                        getattr(sample, "current_A", math.nan), age_s)
+        if self._bad_run == 0:  # a good sample (also one that does not yet end a FAULT)
+            self._held = sample
+        return self._held if ok else None
 
     def _count_bad(self, kind: int) -> None:
         """Count a bad sample by its kind (the bad path only)."""
@@ -269,9 +280,9 @@ class SafetySupervisor:
         if not self._out_ok:
             self._last_out = 0.0
             return 0.0
-        if not _isfinite(I_cmd):
+        if not -math.inf < I_cmd < math.inf:
             self._n_cmd_nonfinite += 1
-        I = float(clamp_current(I_cmd, self._I_max))
+        I = clamp_current(I_cmd, self._I_max)
         last = self._last_out
         step = self._step
         if I > last + step:
@@ -289,8 +300,9 @@ class SafetySupervisor:
     # ----------------------------------------------------------- state changes
 
     def _enter_fault(self, bits: int, latch: bool) -> None:
-        if self._state is not _FAULT:
+        if self._state != _FAULT:
             self._n_faults += 1
+            self._fault_tick = self._k
         self._state = _FAULT
         self._fault |= bits
         self._latched = self._latched or latch or not self._auto
@@ -331,9 +343,11 @@ class SafetySupervisor:
         """
         self._enter_fault(_DRIVER, True)
 
-    def law_failed(self, why: str) -> None:
-        """A law raised, returned NaN/inf or overran its budget: FAULT, 0 A,
-        latched (its state can no longer be trusted; docs/laws.md)."""
+    def law_failed(self, why: str, k: int = -1) -> None:
+        """A law raised, returned NaN/inf or overran its budget at tick ``k``:
+        FAULT, 0 A, latched (its state can no longer be trusted; docs/laws.md)."""
+        if k >= 0:
+            self._k = k
         self._law_reason = why
         self._enter_fault(_LAW, True)
 
@@ -350,11 +364,17 @@ class SafetySupervisor:
 
     @property
     def state(self) -> SafetyState:
-        return self._state
+        return SafetyState(self._state)
 
     @property
     def in_fault(self) -> bool:
-        return self._state is _FAULT
+        return self._state == _FAULT
+
+    @property
+    def last_fault_tick(self) -> int:
+        """The tick at which the most recent fault was entered (-1: none yet):
+        the one tick number every report of that fault names."""
+        return self._fault_tick
 
     @property
     def fault(self) -> Fault:

@@ -1,5 +1,5 @@
 """What the safety supervisor is configured with and reports: its settings,
-states, fault kinds and counters (the supervisor is :mod:`mrctl.daemon.safety`).
+states, fault kinds and counters (the supervisor is :mod:`mrctl.core.safety`).
 
 ``Fault`` is also the legend of the run log's ``fault`` bit field.
 """
