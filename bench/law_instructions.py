@@ -14,7 +14,10 @@ the loop's own work per call (1 600 instructions with the ``constant`` law).
 ``--reps`` × 2000 times back to back, GC frozen and off, the law's time
 budget lifted (under callgrind the law runs ~50x slower and would fault as
 slow). The recorder's rows are not formatted (in the loop that happens in
-idle time, outside the tick).
+idle time, outside the tick): the process exits without formatting them.
+
+Run it once with ``MRCTL_PURE_PYTHON=1`` for the interpreted build of the
+same tick (docs/performance.md gives both).
 
     python bench/law_instructions.py [--config config/experiments/fig5_robust.yaml] [--set KEY=VALUE]
     python bench/law_instructions.py --config config/experiments/fig5.yaml      # the smooth law
@@ -80,7 +83,10 @@ def _ticks(name: str, reps: int) -> None:
     n = reps * 2000
     for k in range(n):
         tick(k, 0)
-    print(n)
+    print(n, flush=True)
+    # the rows wait in the recorder: formatting them (the loop's idle time, or the
+    # writer thread at close) is not the tick's work, and exiting here skips it
+    os._exit(0)
 
 
 def _count(config: str, reps: int, sets: list[str], tick: str | None = None) -> tuple[int, int]:

@@ -26,7 +26,9 @@ from typing import Sequence
 COMPILED_MODULES: tuple[str, ...] = (
     "mrctl.model.params",
     "mrctl.model.lugre",
-    # "mrctl.model.plant",
+    "mrctl.model.plant",
+    "mrctl.model.bench",
+    "mrctl.laws.guard",
     "mrctl.laws.base",
     "mrctl.laws.inverse",
     "mrctl.laws.closed",
@@ -35,7 +37,7 @@ COMPILED_MODULES: tuple[str, ...] = (
     "mrctl.estimation.lead",
     "mrctl.core.safety",
     "mrctl.core.controller",
-    # "mrctl.core.shaker",
+    "mrctl.core.offline",
 )
 
 #: the environment switch that forces the interpreted build
@@ -77,7 +79,7 @@ def module_build(module: ModuleType) -> str:
     return COMPILED if f.endswith(tuple(importlib.machinery.EXTENSION_SUFFIXES)) else PURE
 
 
-def build() -> str:
+def tick_build() -> str:
     """The build of the tick that runs in this process (the controller's module decides)."""
     from mrctl.core import controller
 
@@ -87,7 +89,7 @@ def build() -> str:
 def build_notice() -> str | None:
     """One line for stderr at start when the compiled build was wanted but is
     not installed (no compiler or headers at install); None otherwise."""
-    if pure_requested() or build() == COMPILED:
+    if pure_requested() or tick_build() == COMPILED:
         return None
     return (f"mrctl: running the pure-Python build (the compiled tick was not built at install: "
             f"no C compiler or Python headers?); it is correct but ~5x slower per tick "

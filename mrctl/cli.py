@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mrctl import __version__
+from mrctl.build import build_notice, tick_build
 from mrctl.errors import BadInput, ExitCode, LogIncomplete, MrctlError
 from mrctl.util.jsonutil import jsonable
 
@@ -53,8 +54,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     s = res.summary
     if args.out:
         side = {**sidecar_header("simulate", Path(args.out).name, {
-                    "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
-                    "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
+                    "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(),
+                    "host": platform.node(), "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
                     "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
                     "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
                     "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
@@ -283,13 +284,14 @@ def cmd_check(args: argparse.Namespace) -> int:
         else:
             print(f.message)
     print("\n".join(laws_report(cfg)))
+    print(f"tick: {tick_build()} build")
     print(f"{args.config}: OK")
     return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
-    ap.add_argument("--version", action="version", version=f"mrctl {__version__}")
+    ap.add_argument("--version", action="version", version=f"mrctl {__version__} ({tick_build()})")
     sub = ap.add_subparsers(dest="command", required=True)
 
     sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)")
@@ -378,6 +380,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command in ("run", "simulate"):
+        notice = build_notice()  # the compiled tick was wanted but not built at install
+        if notice is not None:
+            print(notice, file=sys.stderr)
     try:
         return int(args.func(args))
     except MrctlError as exc:

@@ -82,19 +82,20 @@ def make_plant(model: Node | None, params: LuGreParams, dt: float, driver_tau_s:
 
 def make_sim_bench(params: LuGreParams, excitation: Any, dt: float, driver_tau_s: float | None = None,
                    sensors: Sensors | None = None, has_load_cell: bool = True, model: Node | None = None,
-                   has_velocity: bool = True, quarter_car: QuarterCarParams | None = None
-                   ) -> SimBench | QuarterCarBench:
+                   has_velocity: bool = True, quarter_car: QuarterCarParams | None = None,
+                   trajectory: tuple[list[float], list[float]] | None = None) -> SimBench | QuarterCarBench:
     """The simulated bench (shaker + damper + driver + sensors) both the
     in-process link and ``hil_sim`` run; ``model`` is the validated
     ``plant.model`` section (None: LuGre with ``params``); with
     ``quarter_car`` the damper sits in a quarter car and the excitation is
-    the road (``plant.bench``)."""
+    the road (``plant.bench``); ``trajectory``: the shaker's motion computed
+    up front (:class:`SimBench`)."""
     plant = make_plant(model, params, dt, driver_tau_s)
     if quarter_car is not None:
         return QuarterCarBench(params, excitation, dt, quarter_car, driver_tau_s, sensors, has_load_cell, plant,
                                has_velocity)
     return SimBench(params, excitation, dt, driver_tau_s, sensors, has_load_cell,
-                    plant=plant, has_velocity=has_velocity)
+                    plant=plant, has_velocity=has_velocity, trajectory=trajectory)
 
 
 def make_observer(sensing: Node, dt: float) -> KinematicObserver | None:
@@ -134,11 +135,12 @@ class Experiment:
         """Sensor model, or None when it would be the identity (fast path)."""
         return make_sensors(self.config.plant.sensors)
 
-    def make_bench(self) -> SimBench | QuarterCarBench:
-        """The in-process simulated bench (backend sim)."""
+    def make_bench(self, trajectory: tuple[list[float], list[float]] | None = None) -> SimBench | QuarterCarBench:
+        """The in-process simulated bench (backend sim; ``trajectory``: the
+        shaker's motion by tick, computed up front)."""
         p = self.config.plant
         return make_sim_bench(self.plant_params, self.excitation, self.dt, p.driver_tau_s, self.make_sensors(),
-                              p.sensors.load_cell, p.model, p.sensors.velocity, quarter_car_params(p))
+                              p.sensors.load_cell, p.model, p.sensors.velocity, quarter_car_params(p), trajectory)
 
     def make_observer(self) -> KinematicObserver | None:
         """The velocity observer (``sensing.velocity: observer``), None when off."""

@@ -37,16 +37,17 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Final
 
 from mrctl.core.safety import SafetySupervisor
 from mrctl.estimation.lead import VelocityLead
 from mrctl.estimation.observer import KinematicObserver
 from mrctl.io.base import Disconnected, Link, LinkError, Sample
-from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawFault, Measurement, NonFiniteOutput
+from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawFault, Measurement
+from mrctl.laws.guard import LawCall, law_fault, law_name
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: F401 - re-exported for callers
 
-NAN = math.nan
+NAN: Final = math.nan
 
 
 class Controller:
@@ -101,6 +102,7 @@ class Controller:
         self.law_budget_ns = round((dt if law_budget_s is None else law_budget_s) * 1e9)
         self.law_overrun_ticks = max(1, law_overrun_ticks)
         self._law_slow = 0
+        self._call = LawCall()  # the guarded call of the demand and current laws
         #: the law fault that ended the run (reported after it), or None
         self.law_fault: LawFault | None = None
         self.I_next = 0.0  # exchange shape: the current to send on the next tick
@@ -307,31 +309,23 @@ class Controller:
         an exception (any, ``SystemExit`` too), a result that is not a real
         number, a NaN/inf, or ``law_overrun_ticks`` ticks in a row over the
         CPU budget is a law fault (docs/laws.md). Sets ``last_F_des``."""
-        F_des = NAN
-        who: Law | None = self.demand
+        call = self._call
         try:  # zero cost on the good path (3.11); a law's failure is a fault, never a crash
-            demand = self.demand
-            if demand is not None:
-                F_des = _real(demand.force(m), "F_des")
-            who = law = self.law
-            I_law = _real(law.current(m, F_des), "I")
+            I_law = call.run(self.law, self.demand, m)
         except BaseException as exc:  # noqa: BLE001 - SystemExit, KeyboardInterrupt from a law too
-            I_law = self._law_raised(exc, who, k, t)
+            I_law = self._law_raised(exc, call.who, k, t)
         else:
             if self.cpu_clock_ns() - c1 > self.law_budget_ns:
                 self._law_slow_tick(k, t, c1)  # the fault sets the supervisor's 0 A
             elif self._law_slow:
                 self._law_slow = 0
-        self.last_F_des = F_des
+        self.last_F_des = call.F_des
         return I_law
 
     # -- the law guard: the fault path only ----------------------------------------
     def _law_raised(self, exc: BaseException, who: Law | None, k: int, t: float) -> float:
-        name = (who.name or type(who).__name__) if who is not None else ""
-        if isinstance(exc, NonFiniteOutput):
-            self._law_failed("non-finite", name, k, t, str(exc))
-        else:
-            self._law_failed("raised", name, k, t, f"{type(exc).__name__}: {_short(exc)}")
+        f = law_fault(exc, law_name(who), k, t)
+        self._law_failed(f.kind, f.law, k, t, f.detail)
         return 0.0
 
     def _law_slow_tick(self, k: int, t: float, c1: int) -> None:
@@ -393,25 +387,6 @@ class Controller:
             self.I_last = 0.0
             self.I_next = 0.0
         return err
-
-
-def _real(value: object, what: str) -> float:
-    """A law's result as a float: a real number (int or float) that is finite;
-    anything else (NaN, inf, a complex, an array) raises for the law guard."""
-    if isinstance(value, float):
-        if value - value == 0.0:
-            return value
-    elif isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    else:
-        raise TypeError(f"{what} = {_short(value)} is a {type(value).__name__}, not a float")
-    raise NonFiniteOutput(f"{what} = {value!r}")
-
-
-def _short(value: object, limit: int = 200) -> str:
-    """``str(value)`` cut to ``limit`` characters: a message must not carry a huge value."""
-    text = str(value)
-    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
 
 
 def safe_zero(link: Link, budget_s: float = 0.25, min_attempts: int = 3,

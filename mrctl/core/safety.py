@@ -33,7 +33,7 @@ no enum or object on the per-tick path.
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol
+from typing import Any, Final, Protocol
 
 from mrctl.core.safety_config import Fault, SafetyConfig, SafetyCounters, SafetyState, _range
 from mrctl.laws.base import clamp_current
@@ -48,8 +48,9 @@ __all__ = [
     "SampleLike",
 ]
 
-_U32 = 1 << 32
-_U32_HALF = 1 << 31
+_INF: Final = math.inf
+_U32: Final = 1 << 32
+_U32_HALF: Final = 1 << 31
 
 
 
@@ -80,20 +81,20 @@ _KIND_LABELS = (
     (Fault.DEVICE_STATUS, "device status"),
 )
 
-_MISSING = int(Fault.MISSING)
-_LATE = int(Fault.LATE)
-_STALE = int(Fault.STALE)
-_NON_FINITE = int(Fault.NON_FINITE)
-_OUT_OF_RANGE = int(Fault.OUT_OF_RANGE)
-_DEVICE_STATUS = int(Fault.DEVICE_STATUS)
-_DRIVER = int(Fault.DRIVER)
-_LAW = int(Fault.LAW)
+_MISSING: Final = int(Fault.MISSING)
+_LATE: Final = int(Fault.LATE)
+_STALE: Final = int(Fault.STALE)
+_NON_FINITE: Final = int(Fault.NON_FINITE)
+_OUT_OF_RANGE: Final = int(Fault.OUT_OF_RANGE)
+_DEVICE_STATUS: Final = int(Fault.DEVICE_STATUS)
+_DRIVER: Final = int(Fault.DRIVER)
+_LAW: Final = int(Fault.LAW)
 
 # plain ints on the per-tick path (an IntEnum compares as an object); ``state`` gives the enum
-_STARTING = int(SafetyState.STARTING)
-_OK = int(SafetyState.OK)
-_HOLDING = int(SafetyState.HOLDING)
-_FAULT = int(SafetyState.FAULT)
+_STARTING: Final = int(SafetyState.STARTING)
+_OK: Final = int(SafetyState.OK)
+_HOLDING: Final = int(SafetyState.HOLDING)
+_FAULT: Final = int(SafetyState.FAULT)
 
 
 class SafetySupervisor:
@@ -165,9 +166,9 @@ class SafetySupervisor:
             d = (seq - self._last_seq) % _U32
             if d == 0 or d >= _U32_HALF:
                 return _STALE
-        if not (-math.inf < x < math.inf and -math.inf < v < math.inf):
+        if not (-_INF < x < _INF and -_INF < v < _INF):
             return _NON_FINITE
-        F_ok = -math.inf < F < math.inf
+        F_ok = -_INF < F < _INF
         if not F_ok and (self._req_F or F == F):  # inf always bad; NaN only if required
             return _NON_FINITE
         if not (self._xlo <= x <= self._xhi and self._vlo <= v <= self._vhi):
@@ -280,7 +281,7 @@ class SafetySupervisor:
         if not self._out_ok:
             self._last_out = 0.0
             return 0.0
-        if not -math.inf < I_cmd < math.inf:
+        if not -_INF < I_cmd < _INF:
             self._n_cmd_nonfinite += 1
         I = clamp_current(I_cmd, self._I_max)
         last = self._last_out

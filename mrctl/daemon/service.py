@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from mrctl import __version__
+from mrctl.build import tick_build
 from mrctl.config import ConfigError, Node, load_experiment
 from mrctl.core.controller import Controller, safe_zero
 from mrctl.daemon import ownership
@@ -336,8 +337,8 @@ class Service:
         exp, link = self.exp, self.link
         assert exp is not None and link is not None
         return {
-            "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
-            "config_file": str(Path(self.opts.config_path).resolve()), "config": jsonable(exp.config),
+            "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(),
+            "host": platform.node(), "config_file": str(Path(self.opts.config_path).resolve()), "config": jsonable(exp.config),
             "parameters": exp.params.as_dict(), "backend": link.describe(), "law": exp.config.inverse.law,
             "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz, "settle_s": exp.excitation.settle_s,
             # the in-process bench's load cell reads the previous tick's force; hardware: taken as simultaneous

@@ -40,7 +40,7 @@ class VelocityLead:
         """Feed this tick's velocity (m/s); ``ticks`` since the last update.
         Returns the predicted velocity (m/s). A non-finite v passes through
         (the safety supervisor deals with it) without corrupting the state."""
-        if not math.isfinite(v):
+        if not -math.inf < v < math.inf:
             return v
         if self._started:
             a = (v - self.v_prev) / (self.dt * ticks)

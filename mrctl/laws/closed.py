@@ -93,6 +93,7 @@ Design and measured figures: ``docs/inverse-laws.md``.
 from __future__ import annotations
 
 import math
+from typing import Final
 
 from mypy_extensions import mypyc_attr
 
@@ -105,21 +106,21 @@ from mrctl.util.schema import Bool, Num
 __all__ = ["ClosedLoopInverse"]
 
 #: finite-difference step for the horizon's ∂F/∂I (A)
-_DI = 0.02
+_DI: Final = 0.02
 #: time constant of the velocity and demand slopes used to extrapolate (s)
-_SLOPE_S = 0.005
+_SLOPE_S: Final = 0.005
 #: time constant of the load-cell noise and model-error power estimates (s)
-_NOISE_S = 0.5
+_NOISE_S: Final = 0.5
 #: bins of the reversal table (ticks after a velocity reversal), per direction
-_REV_BINS = 64
+_REV_BINS: Final = 64
 #: of which before the reversal (predicted from the velocity and its slope)
-_PRE = 8
+_PRE: Final = 8
 #: length of the ring of the last commands' bins (> the largest reversal_lead_ticks)
-_HIST = 11
+_HIST: Final = 11
 #: learning rate of the guard table (one reversal on which the guard fires arms it)
-_GUARD_RATE = 0.5
+_GUARD_RATE: Final = 0.5
 #: a bin acts ahead when it and the bin before it are at least this (noise rarely fires twice in a row)
-_GUARD_ARM = 0.5
+_GUARD_ARM: Final = 0.5
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)
@@ -374,10 +375,10 @@ class ClosedLoopInverse(SmoothInverse):
             self._dv += s * (v - self.model.v_prev - self._dv)
             if F_des - self._Fd == F_des - self._Fd:  # both finite
                 self._dF += s * (F_des - self._Fd - self._dF)
-            z = self._adv(v, Ia, self.dt * dk)
+            z = self.model.advance(v, Ia, self.dt * dk)
         else:
             z = self._first(v)
-        zdot = self._zdot(v, Ia)
+        zdot = self.model.zdot(v, Ia)
         s0B, s1B, s2B = self._B
         s0A, s1A, s2A = self._A
         D = s0A * z + s1A * zdot + s2A * v

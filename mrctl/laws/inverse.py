@@ -80,9 +80,8 @@ class _ModelBasedLaw(InverseLaw):
         self.model = LuGreModel(params)
         self.I_prev = 0.0
         self._started = False
-        # bound once: attribute lookups cost as much as the arithmetic here
-        self._adv = self.model.advance
-        self._zdot = self.model.zdot
+        # compiled (mypyc), self.model.advance(...) is a native call; a bound
+        # method kept in an attribute would be a Python call
         self._B = (params.sigma0B, params.sigma1B, params.sigma2B)
         self._A = (params.sigma0A, params.sigma1A, params.sigma2A)
         self._Fo = params.F_offset
@@ -103,7 +102,7 @@ class _ModelBasedLaw(InverseLaw):
     def _advance(self, v: float) -> float:
         """Step 3 of eq (12): move z to now with the previous current."""
         if self._started:
-            return self._adv(v, self.I_prev, self.dt)
+            return self.model.advance(v, self.I_prev, self.dt)
         return self._first(v)
 
     def _first(self, v: float) -> float:
@@ -125,9 +124,9 @@ class PaperInverse(_ModelBasedLaw):
         if self._kx != 0.0 or self._Fo != 0.0:
             F_des -= self._Fo + self._kx * m.x
         Ip = self.I_prev
-        z = self._adv(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
+        z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
-        zdot = self._zdot(v, Ip)
+        zdot = self.model.zdot(v, Ip)
         s0B, s1B, s2B = self._B
         s0A, s1A, s2A = self._A
         num = F_des - (s0B * z + s1B * zdot + s2B * v)
@@ -220,8 +219,8 @@ class SmoothInverse(_ModelBasedLaw):
         if self._kx != 0.0 or self._Fo != 0.0:
             F_des -= self._Fo + self._kx * m.x
         Ip = self.I_prev
-        z = self._adv(v, Ip, self.dt) if self._started else self._first(v)
-        zdot = self._zdot(v, Ip)  # as in eq (12): ż with the previous current
+        z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)
+        zdot = self.model.zdot(v, Ip)  # as in eq (12): ż with the previous current
         s0B, s1B, s2B = self._B
         s0A, s1A, s2A = self._A
         B = s0B * z + s1B * zdot + s2B * v
@@ -248,8 +247,8 @@ class SmoothInverse(_ModelBasedLaw):
         if self._kx != 0.0 or self._Fo != 0.0:
             F_des -= self._Fo + self._kx * m.x
         Ia = self.I_coil
-        z = self._adv(v, Ia, self.dt) if self._started else self._first(v)
-        zdot = self._zdot(v, Ia)
+        z = self.model.advance(v, Ia, self.dt) if self._started else self._first(v)
+        zdot = self.model.zdot(v, Ia)
         s0B, s1B, s2B = self._B
         s0A, s1A, s2A = self._A
         B = s0B * z + s1B * zdot + s2B * v

@@ -31,10 +31,13 @@ class SimBench:
     ``plant`` gives another with its interface (``tick(v, I_cmd, x)``,
     ``I_applied``, ``F``): e.g. :class:`mrctl.model.boucwen.BoucWenPlant`.
     ``has_velocity`` false: the DAQ measures displacement only, the velocity
-    channel reads NaN (as the force does without a load cell)."""
+    channel reads NaN (as the force does without a load cell).
+    ``trajectory`` (x, v lists by tick, from ``excitation.trajectory``):
+    the shaker's motion computed up front (``mrctl simulate``), else
+    ``excitation.position``/``velocity`` at each tick's time."""
 
     __slots__ = ("excitation", "plant", "sensors", "dt", "k", "kp", "I_cmd", "t", "x", "v", "F",
-                 "has_load_cell", "has_velocity")
+                 "has_load_cell", "has_velocity", "_xs", "_vs")
 
     def __init__(
         self,
@@ -46,6 +49,7 @@ class SimBench:
         has_load_cell: bool = True,
         plant: Any = None,
         has_velocity: bool = True,
+        trajectory: tuple[list[float], list[float]] | None = None,
     ) -> None:
         self.excitation = excitation
         self.plant = DamperPlant(params, dt, driver_tau_s) if plant is None else plant
@@ -57,6 +61,8 @@ class SimBench:
         self.k = -1  # present tick
         self.kp = -1  # last tick the plant has produced a force for
         self.t = self.x = self.v = self.F = 0.0
+        self._xs: list[float] | None = None if trajectory is None else trajectory[0]
+        self._vs: list[float] = [] if trajectory is None else trajectory[1]
 
     def begin_tick(self, k: int) -> None:
         """Move to tick k; ticks skipped since the last command run on the held command."""
@@ -64,8 +70,13 @@ class SimBench:
             self._plant_tick(self.kp + 1)
         self.k = k
         t = self.t = k * self.dt
-        self.x = self.excitation.position(t)
-        self.v = self.excitation.velocity(t)
+        self.x, self.v = self._motion(k, t)
+
+    def _motion(self, k: int, t: float) -> tuple[float, float]:
+        xs = self._xs
+        if xs is not None:
+            return xs[k], self._vs[k]
+        return float(self.excitation.position(t)), float(self.excitation.velocity(t))
 
     def command(self, I_A: float) -> None:
         """Apply the driver input (A) at the present tick. Non-finite or
@@ -83,8 +94,7 @@ class SimBench:
         if j == self.k:
             x, v = self.x, self.v
         else:
-            t = j * self.dt
-            x, v = self.excitation.position(t), self.excitation.velocity(t)
+            x, v = self._motion(j, j * self.dt)
         self.F = self.plant.tick(v, self.I_cmd, x)
         self.kp = j
 

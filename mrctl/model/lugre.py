@@ -20,11 +20,12 @@ Everything here is plain-float arithmetic for the 1 kHz hot path.
 from __future__ import annotations
 
 import math
+from typing import Final
 
 from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
 
 # Below this a·h, φ1 and e^{-x} use their series (avoids 0/0 at v = 0).
-_SMALL_AH = 1e-8
+_SMALL_AH: Final = 1e-8
 
 
 def advance_z(z: float, v: float, a: float, h: float) -> float:
@@ -89,7 +90,11 @@ class LuGreModel:
         if -_LANGEVIN_SERIES_BELOW < x < _LANGEVIN_SERIES_BELOW or Bc == 0.0:
             self._Fc = p.Fc(I)  # series branch and degenerate fits: the reference code
         else:
-            L = 1.0 / math.tanh(x) - 1.0 / x  # eq (6) inlined: this runs every tick
+            # eq (6) inlined: this runs every tick. coth from exp, which the compiled
+            # build calls natively (math.tanh would be a Python call there)
+            e = math.exp(-2.0 * abs(x))
+            c = (1.0 + e) / (1.0 - e)
+            L = (c if x > 0.0 else -c) - 1.0 / x
             self._Fc = p.Ac * L * L + p.F0
         self._s0 = p.sigma0A * I + p.sigma0B
         self._s1 = p.sigma1A * I + p.sigma1B

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from typing import Any, Final
 
 # Below this |x| = |I/Bc| the Langevin function is evaluated by its Taylor
 # series: coth(x) - 1/x cancels catastrophically for small x, and is 0/0 at 0.
-_LANGEVIN_SERIES_BELOW = 0.05
+_LANGEVIN_SERIES_BELOW: Final = 0.05
 
 
 def langevin(x: float) -> float:

@@ -1,4 +1,4 @@
-"""Offline closed loop of the paper's Fig 4, as fast as CPython allows.
+"""Offline closed loop of the paper's Fig 4, on the compiled tick.
 
 No pacing, no threads: excitation → (sensors) → demand → inverse law →
 clamp → plant, once per tick, with the same objects the daemon uses. The
@@ -25,11 +25,12 @@ import numpy as np
 
 from mrctl.config import ConfigError
 from mrctl.experiment import Experiment
-from mrctl.laws.base import LawFault, Measurement, NonFiniteOutput, clamp_current
-from mrctl.laws.guard import law_fault
+from mrctl.core.offline import run_ticks
+from mrctl.laws.base import LawFault, Measurement
 from mrctl.runlog import files
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, RUN_UNITS
 from mrctl.runlog.metrics import tracking_summary
+from mrctl.runlog.ride import ride_summary
 
 #: The simulation's own arrays (:attr:`SimResult.columns`): the plant's x, v,
 #: F and the sensors' readings apart; ``F_meas[k]`` is the reading of F[k]
@@ -73,102 +74,48 @@ def run_duration(exp: Experiment, override_s: float | None = None) -> float:
 def simulate(exp: Experiment, duration_s: float) -> SimResult:
     """Run the closed loop for ``duration_s`` of simulated time.
 
-    The shaker's motion is an open-loop input, so it is computed for the
-    whole run up front (numpy); the loop itself is the per-tick plain-float
-    code the daemon runs. The laws see what the daemon's sim link gives
-    them: x and v at tick k, the load cell's reading of the force of tick
-    k − 1, sensor noise drawn in the same order (x, v, F per tick), NaN in
-    a channel the bench lacks (``plant.sensors.load_cell``/``velocity``),
-    and the velocity the observer makes of them (``sensing``), as the
-    controller does before its laws.
-
-    A bench whose motion depends on the damper (``plant.bench:
-    quarter_car``) is stepped tick by tick instead (:mod:`.bench_sim`). A law
-    that raises or returns NaN/inf ends the run at that tick with 0 A
-    (``SimResult.fault``)."""
-    if exp.config.plant.get("bench", "shaker") != "shaker":
-        from mrctl.offline.bench_sim import simulate_bench
-
-        return simulate_bench(exp, duration_s)
+    One loop for every bench (:func:`mrctl.core.offline.run_ticks`, the
+    compiled tick): the laws see what the daemon's sim link gives them: x
+    and v at tick k, the load cell's reading of the force of tick k − 1,
+    sensor noise drawn in the same order (x, v, F per tick), NaN in a
+    channel the bench lacks (``plant.sensors.load_cell``/``velocity``), and
+    the velocity the observer makes of them (``sensing``), as the controller
+    does before its laws. On the shaker the motion is an open-loop input,
+    computed for the whole run up front (numpy); a bench whose motion
+    depends on the damper (``plant.bench: quarter_car``) is stepped as the
+    sim link steps it. A law that raises or returns NaN/inf ends the run at
+    that tick with 0 A (``SimResult.fault``)."""
     n = int(round(duration_s / exp.dt)) + 1
-    exp.law.reset()
-    if exp.demand is not None:
-        exp.demand.reset()
-    t_arr = np.arange(n) * exp.dt
-    x_arr, v_arr = exp.excitation.trajectory(t_arr)
-    cols = {c: array("d", bytes(8 * n)) for c in SIM_COLUMNS[3:]}
+    shaker = exp.config.plant.get("bench", "shaker") == "shaker"
+    if shaker:
+        t_arr = np.arange(n) * exp.dt
+        x_arr, v_arr = exp.excitation.trajectory(t_arr)
+        bench = exp.make_bench(trajectory=(np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist()))
+    else:
+        bench = exp.make_bench()
+    channels: dict[str, float] = getattr(bench, "channels", {})
+    cols = {c: array("d", bytes(8 * n)) for c in (*SIM_COLUMNS, *channels)}
+    law, dem = exp.law, exp.demand
+    law.reset()
+    if dem is not None:
+        dem.reset()
+    m = Measurement(channels=channels)
     t0 = time.perf_counter()
-    n, fault = _loop(exp, t_arr.tolist(), np.asarray(x_arr, float).tolist(), np.asarray(v_arr, float).tolist(), cols)
+    fault, done = run_ticks(bench, law, dem, exp.make_observer(), m, exp.I_max, exp.dt, cols, n)
     wall = time.perf_counter() - t0
-    out = {"t": t_arr[:n], "x": np.asarray(x_arr, float)[:n], "v": np.asarray(v_arr, float)[:n]}
-    out.update({c: np.frombuffer(a, dtype=float)[:n] for c, a in cols.items()})
-    summary = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], exp.I_max, exp.excitation.settle_s)
-    summary["ticks"] = float(n)
-    summary["simulated_s"] = (n - 1) * exp.dt
-    summary["wall_s"] = wall
-    summary["realtime_factor"] = ((n - 1) * exp.dt / wall) if wall > 0 else math.inf
-    return SimResult(out, wall, summary, fault, notices=exp.law.notices())
-
-
-def _loop(exp: Experiment, ts: list[float], xs: list[float], vs: list[float], cols: dict[str, array]
-          ) -> tuple[int, LawFault | None]:
-    """The per-tick loop on the shaker; (ticks done, law fault or None)."""
-    n, I_max = len(ts), exp.I_max
-    plant, sensors = exp.make_plant(), exp.make_sensors()
-    cfd, cf, ci, cia, cz = cols["F_des"], cols["F"], cols["I"], cols["I_applied"], cols["z"]
-    cxm, cvm, cfm, cfr = cols["x_meas"], cols["v_meas"], cols["F_meas"], cols["F_rx"]
-    # local bindings: attribute lookups cost as much as the physics here
-    demand = exp.demand.force if exp.demand is not None else None
-    current, applied = exp.law.current, exp.law.applied
-    dname, lname = (exp.config.demand.type if demand is not None else ""), exp.config.inverse.law
-    ptick = plant.tick
-    observe = exp.make_observer()
-    has_F, has_v = exp.config.plant.sensors.load_cell, exp.config.plant.sensors.velocity
-    m = Measurement()
-    F_prev = 0.0  # the plant's force before the first tick (SimBench starts there too)
-    I, nan = 0.0, math.nan
-    fault: LawFault | None = None
-    for k in range(n):
-        x, v = xs[k], vs[k]
-        if sensors is None:
-            xm, vm, Fm = x, v, F_prev
-        else:
-            xm, vm, Fm = sensors.x(x), sensors.v(v), sensors.F(F_prev)
-        if not has_F:
-            Fm = math.nan
-        if k:
-            cfm[k - 1] = Fm
-        cfr[k] = Fm
-        if not has_v:
-            vm = math.nan
-        if observe is not None:
-            vm = observe.update(xm, vm)
-        m.k, m.t, m.x, m.v, m.F, m.I_applied, m.I_cmd = k, ts[k], xm, vm, Fm, plant.I_applied, I
-        Fd = nan
-        who = dname
-        try:  # the law guard (docs/laws.md, mrctl/laws/guard.py): zero cost on the good path
-            if demand is not None:
-                Fd = demand(m)
-                if Fd - Fd != 0.0:  # NaN or inf
-                    raise NonFiniteOutput(f"F_des = {Fd!r}")
-            who = lname
-            I = current(m, Fd)
-            if I - I != 0.0:
-                raise NonFiniteOutput(f"I = {I!r}")
-            Ic = clamp_current(I, I_max)
-            if Ic != I:  # tell the law only when the clamp changed its output
-                I = Ic
-                applied(I)
-        except Exception as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
-            fault = law_fault(exc, who, k, ts[k])
-            I = 0.0  # the run ends at this tick, at 0 A
-        F_prev = cf[k] = ptick(v, I, x)
-        cxm[k], cvm[k], cfd[k], ci[k], cia[k], cz[k] = xm, vm, Fd, I, plant.I_applied, plant.z
-        if fault is not None:
-            n = k + 1
-            break
-    cfm[n - 1] = (F_prev if sensors is None else sensors.F(F_prev)) if has_F else math.nan
-    return n, fault
+    if shaker:  # the load cell's reading of the last force, as the next tick would have received it
+        cols["F_meas"][done - 1] = bench.sensors.F(bench.F) if bench.sensors is not None else bench.F
+        if not bench.has_load_cell:
+            cols["F_meas"][done - 1] = math.nan
+    out = {c: np.frombuffer(a, dtype=float)[:done] for c, a in cols.items()}
+    s = tracking_summary(out["t"], out["F_des"], out["F"], out["I"], exp.I_max, exp.excitation.settle_s)
+    if "a_sprung" in out:
+        s.update(ride_summary(out, exp.excitation.settle_s))
+    s["ticks"] = float(done)
+    s["simulated_s"] = (done - 1) * exp.dt
+    s["wall_s"] = wall
+    s["realtime_factor"] = ((done - 1) * exp.dt / wall) if wall > 0 else math.inf
+    return SimResult(out, wall, s, fault, notices=law.notices())
 
 
 def log_columns(result: SimResult) -> dict[str, np.ndarray]:
