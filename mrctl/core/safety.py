@@ -109,6 +109,21 @@ class SafetySupervisor:
     locked.
     """
 
+    __slots__ = (
+        "config",
+        # precomputed config
+        "_I_max", "_step", "_hold", "_max_age", "_xlo", "_xhi", "_vlo", "_vhi",
+        "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n",
+        # state, and the sample the law runs on
+        "_state", "_have_good", "_have_seq", "_last_seq", "_bad_run", "_bad_bits", "_good_run",
+        "_fault", "_latched", "_reason", "_last_fault", "_last_reason", "_out_ok", "_last_out", "_law_reason",
+        "_k", "_fault_tick", "_held", "x", "v", "F", "I_applied", "status",
+        # counters
+        "_n_good", "_n_missing", "_n_late", "_n_stale", "_n_non_finite",
+        "_n_out_of_range", "_n_status", "_n_holds", "_longest_bad",
+        "_n_faults", "_n_fault_ticks", "_n_resumes", "_n_resets", "_n_cmd_nonfinite",
+    )
+
     def __init__(self, config: SafetyConfig) -> None:
         self.config = config
         self._I_max = float(config.I_max)
