@@ -33,6 +33,7 @@ COMPILED_MODULES: tuple[str, ...] = (
     "mrctl.laws.inverse",
     "mrctl.laws.closed",
     "mrctl.laws.demand",
+    "mrctl.laws.semiactive",
     "mrctl.estimation.observer",
     "mrctl.estimation.lead",
     "mrctl.core.safety",

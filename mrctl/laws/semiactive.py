@@ -32,6 +32,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from mypy_extensions import mypyc_attr
+
 from mrctl.errors import DependencyMissing
 from mrctl.laws.base import CurrentLaw, DemandLaw, LawContext, Measurement
 from mrctl.model.quarter_car import QuarterCarParams
@@ -41,6 +43,7 @@ _I_ON = Num(default=None, optional=True, min=0.0, doc="current when on (A); null
 _I_OFF = Num(default=0.0, min=0.0, doc="current when off (A)")
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class Skyhook(DemandLaw):
     """Clipped continuous skyhook: F_des = c_sky·v_s where v_s·v > 0, else 0."""
 
@@ -61,6 +64,7 @@ class Skyhook(DemandLaw):
         return self.c * vs if vs * m.v > 0.0 else 0.0
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class Groundhook(DemandLaw):
     """Clipped continuous groundhook: F_des = −c_gnd·v_u where v_u·v < 0, else 0."""
 
@@ -81,6 +85,7 @@ class Groundhook(DemandLaw):
         return -self.c * vu if vu * m.v < 0.0 else 0.0
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class _OnOff(CurrentLaw):
     """I_on where the law's condition holds, else I_off; no demand."""
 
@@ -108,6 +113,7 @@ class _OnOff(CurrentLaw):
         return []
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class SkyhookOnOff(_OnOff):
     """On-off skyhook: I_on where v_s·v > 0 (the damper can pull the body toward rest)."""
 
@@ -119,6 +125,7 @@ class SkyhookOnOff(_OnOff):
         return self.I_on if m.channels["v_sprung"] * m.v > 0.0 else self.I_off
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class GroundhookOnOff(_OnOff):
     """On-off groundhook: I_on where v_u·v < 0."""
 
@@ -130,6 +137,7 @@ class GroundhookOnOff(_OnOff):
         return self.I_on if m.channels["v_unsprung"] * m.v < 0.0 else self.I_off
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class ClippedOptimal(_OnOff):
     """Dyke et al. (1996): I_on if (F_des − F)·F > 0 else I_off, F the load cell."""
 
@@ -170,6 +178,7 @@ def lqr_gain(qc: QuarterCarParams, q_acc: float, q_susp: float, q_tyre: float, r
     return [float(k) for k in K.ravel()]
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)
 class LQR(DemandLaw):
     """Optimal force of the quarter car (Dyke et al. 1996's primary controller)."""
 
@@ -192,7 +201,7 @@ class LQR(DemandLaw):
     @staticmethod
     def _vehicle(cfg: Any, ctx: LawContext) -> tuple[QuarterCarParams | None, list[str]]:
         bench = ctx.extra.get("quarter_car")
-        vals = {k: cfg.get(k) if cfg.get(k) is not None else getattr(bench, k, None) for k in _QC_KEYS}
+        vals: dict[str, Any] = {k: cfg.get(k) if cfg.get(k) is not None else getattr(bench, k, None) for k in _QC_KEYS}
         missing = [f"{k}: needed (no plant.quarter_car to take it from)" for k, v in vals.items() if v is None]
         if missing:
             return None, missing
