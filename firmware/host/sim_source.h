@@ -4,9 +4,11 @@
 // Deliberately simple, not a damper model to identify against:
 //   x(t)   = A sin(2π f t)                              (the shaker, m)
 //   I_coil : first-order lag tau_s behind the applied current (driver + coil)
-//   F      = (c0 + cI·I_coil)·v + FI·I_coil·tanh(v / v0)  (N)
+//   F      = (c0 + cI·I_coil)·v + (F0 + FI·I_coil)·tanh(v / v0)  (N)
 // so the force grows with the coil current and the loop has something to
-// close. The readings go through the board's own calibration backwards
+// close. The defaults are loosely the size of the paper's Table I damper
+// (mrctl's `parameters: table1`) below 0.6 A: ~3 N and 15 N·s/m at 0 A,
+// +60 N and +100 N·s/m per ampere, an ideal driver (tau 0). The readings go through the board's own calibration backwards
 // (SI -> volts -> 12-bit counts, clamped to the ADC's range), so the core sees
 // the same quantisation as on the board.
 #pragma once
@@ -21,11 +23,12 @@ namespace host {
 struct SimParams {
   double amplitude_m = 0.010;
   double frequency_hz = 1.0;
-  double c0_Ns_per_m = 800.0;     // passive viscous damping
-  double cI_Ns_per_mA = 1000.0;   // extra damping per ampere
-  double FI_N_per_A = 600.0;      // friction-like force per ampere
-  double v0_mps = 0.01;           // smoothing velocity of the friction term
-  double tau_s = 0.005;           // driver + coil lag
+  double c0_Ns_per_m = 15.0;      // passive viscous damping
+  double cI_Ns_per_mA = 100.0;    // extra damping per ampere
+  double F0_N = 3.0;              // friction-like force at 0 A
+  double FI_N_per_A = 60.0;       // friction-like force per ampere
+  double v0_mps = 0.02;           // smoothing velocity of the friction term
+  double tau_s = 0.0;             // driver + coil lag
   int32_t adc_max_counts = 4095;
 };
 
@@ -44,7 +47,7 @@ class SimSource {
     const double w = 2.0 * M_PI * p_.frequency_hz;
     x_m = p_.amplitude_m * sin(w * t_s);
     v_mps = p_.amplitude_m * w * cos(w * t_s);
-    F_N = (p_.c0_Ns_per_m + p_.cI_Ns_per_mA * I_coil_) * v_mps + p_.FI_N_per_A * I_coil_ * tanh(v_mps / p_.v0_mps);
+    F_N = (p_.c0_Ns_per_m + p_.cI_Ns_per_mA * I_coil_) * v_mps + (p_.F0_N + p_.FI_N_per_A * I_coil_) * tanh(v_mps / p_.v0_mps);
     mrctl_fw::RawInputs raw;
     raw.x_counts = counts(cfg_.x, x_m);
     raw.force_counts = counts(cfg_.force, F_N);
