@@ -43,7 +43,7 @@ FW = ROOT / "firmware"
 GXX = shutil.which("g++")
 pytestmark = pytest.mark.skipif(GXX is None, reason="g++ is not installed")
 
-FLAGS = ["-std=c++17", "-O1", "-Wall", "-Wextra", "-Werror", "-Wshadow", "-Wconversion",
+FLAGS = ["-std=c++17", "-O1", "-Wall", "-Wextra", "-Werror", "-Wpedantic", "-Wshadow", "-Wconversion",
          "-Wno-sign-conversion", "-I", str(FW / "core"), "-I", str(FW / "boards" / "teensy4" / "mrctl_teensy4")]
 CORE = sorted(str(p) for p in (FW / "core").glob("*.cpp"))
 
@@ -68,6 +68,16 @@ def programs(tmp_path_factory) -> dict[str, Path]:
 
     with ThreadPoolExecutor(2) as pool:
         return dict(zip(("fw_script", "mrctl_fw_host"), pool.map(build, ("fw_script", "mrctl_fw_host"))))
+
+
+def test_the_teensy_board_file_compiles_against_the_teensy_api():
+    """The board file (an Arduino sketch) with the same strict flags, against
+    declarations of the Teensy 4 core's API (firmware/host/teensy_stub): a
+    typo or a call the core does not have fails here, without a Teensy toolchain."""
+    sketch = FW / "boards" / "teensy4" / "mrctl_teensy4" / "mrctl_teensy4.ino"
+    res = subprocess.run([GXX, *FLAGS, "-fsyntax-only", "-I", str(FW / "host" / "teensy_stub"), "-x", "c++",
+                          str(sketch)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and not res.stderr, res.stderr
 
 
 def script(programs, lines: list[str]) -> list[str]:

@@ -94,16 +94,17 @@ void loop() {
     t_us = latch.t_us;
     ticks_served = ticks_latched;  // ticks the loop missed are dropped, never queued
     interrupts();
-    raw.current_monitor_A = current_counts >= 0 ? current_counts * board::kCurrentMonitorAPerCount
-                                                 : __builtin_nanf("");
+    raw.current_monitor_A = current_counts >= 0
+                                ? static_cast<float>(current_counts) * board::kCurrentMonitorAPerCount
+                                : __builtin_nanf("");  // no monitor wired
     device.tick(raw, t_us);
     if (device.counters().ticks % 500 == 0) digitalToggleFast(board::kPinHeartbeat);
   }
-  int n = Serial.available();
-  if (n > 0) {
-    if (n > static_cast<int>(sizeof rx)) n = sizeof rx;
+  const int avail = Serial.available();
+  if (avail > 0) {  // never more than is there: readBytes() then does not wait
+    size_t n = static_cast<size_t>(avail) < sizeof rx ? static_cast<size_t>(avail) : sizeof rx;
     n = Serial.readBytes(reinterpret_cast<char*>(rx), n);
-    device.receive(rx, static_cast<size_t>(n), micros());
+    device.receive(rx, n, micros());
   }
   device.poll(micros());
 }
