@@ -198,6 +198,16 @@ def test_sync_setpoints_are_applied_and_answered_at_the_next_tick(programs):
     assert [st[0] for st in states(out)] == [0.0, pytest.approx(0.4)]
 
 
+def test_sync_requests_beyond_four_in_one_tick_drop_the_oldest(programs):
+    """A host that timed out and asked again: the newest request is the one
+    it waits for, so that one is answered; the latest setpoint is applied."""
+    lines = ["at 0", "tick"] + [rx(encode_setpoint(seq, 0.1 * seq, ENABLE | SYNC, 50)) for seq in range(1, 7)]
+    out = script(programs, lines + ["at 1000", "tick"])
+    r = decoded(sent(out))
+    assert [x.echo_seq for x in r] == [3, 4, 5, 6]
+    assert all(x.seq == 2 and x.current_A == pytest.approx(0.6) for x in r)
+
+
 def test_watchdog_forces_zero_amps_after_watchdog_ms_without_a_setpoint(programs):
     lines = ["at 0", "tick", "state"]  # power-up: 0 A until the first setpoint, nothing tripped
     lines += [rx(encode_setpoint(1, 0.5, ENABLE, 20))]

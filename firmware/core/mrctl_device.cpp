@@ -89,11 +89,12 @@ void Device::setpoint(const SetpointFields& sp) {
     pending_ = true;
     pending_A_ = I;
     pending_enable_ = enable;
-    if (n_owed_ < kMaxOwed) {
-      owed_[n_owed_++] = Owed{sp.seq, clamped};
-    } else {
+    if (n_owed_ == kMaxOwed) {  // the oldest is the one the host has given up on
+      for (size_t i = 1; i < kMaxOwed; ++i) owed_[i - 1] = owed_[i];
+      --n_owed_;
       ++counters_.sync_overflows;
     }
+    owed_[n_owed_++] = Owed{sp.seq, clamped};
     return;
   }
   pending_ = false;  // the newest setpoint wins

@@ -61,7 +61,7 @@ struct DeviceCounters {
   uint32_t samples_sent;
   uint32_t errors_sent;
   uint32_t watchdog_trips;
-  uint32_t sync_overflows;  // SYNC replies dropped: more than kMaxOwed within one tick
+  uint32_t sync_overflows;  // SYNC replies dropped (the oldest): more than kMaxOwed within one tick
 };
 
 class Device : private FrameSink {
