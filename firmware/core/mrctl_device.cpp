@@ -18,7 +18,8 @@ Device::Device(const DeviceConfig& cfg, DeviceIo& io) : cfg_(cfg), io_(io), rx_(
   // no measurement yet: a reply before the first tick says so
   meas_.x_m = meas_.v_mps = meas_.F_N = kNaN;
   meas_status_ = kStatusSensorFault | (cfg_.has_load_cell ? 0 : kStatusNoLoadCell);
-  drive();  // 0 A, driver disabled, from power-up
+  // the I/O is not touched here (a global object is built before the board is
+  // set up): the board holds 0 A and the driver disabled until the first tick
 }
 
 // --- receiving ------------------------------------------------------------------

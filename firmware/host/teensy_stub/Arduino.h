@@ -37,6 +37,7 @@ class usb_serial_class {
  public:
   void begin(long baud);
   int available();
+  int availableForWrite();
   size_t readBytes(char* buffer, size_t length);
   size_t write(const uint8_t* buffer, size_t size);
   void send_now();

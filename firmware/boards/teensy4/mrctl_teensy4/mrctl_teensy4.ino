@@ -36,9 +36,16 @@ uint32_t ticks_served = 0;            // written by the main loop
 class TeensyIo : public mrctl_fw::DeviceIo {
  public:
   void send(const uint8_t* data, size_t n) override {
+    // a host that stopped reading must not stall the loop (writes would wait
+    // for room): drop the frame instead, as a lost reply
+    if (Serial.availableForWrite() < static_cast<int>(n)) {
+      ++tx_dropped;
+      return;
+    }
     Serial.write(data, n);
     Serial.send_now();  // do not wait for the USB buffer to fill: the reply is due now
   }
+  uint32_t tx_dropped = 0;
   void set_output(uint32_t counts, bool enable) override {
     analogWrite(board::kPinDriverPwm, static_cast<int>(counts));
     digitalWriteFast(board::kPinDriverEnable, enable ? HIGH : LOW);
@@ -65,6 +72,7 @@ void on_sample_timer() {
 }  // namespace
 
 void setup() {
+  // 0 A and the driver disabled before anything else (the core drives them from the first tick)
   pinMode(board::kPinDriverEnable, OUTPUT);
   digitalWriteFast(board::kPinDriverEnable, LOW);
   pinMode(board::kPinDriverFault, INPUT_PULLUP);
