@@ -198,6 +198,18 @@ def test_sync_setpoints_are_applied_and_answered_at_the_next_tick(programs):
     assert [st[0] for st in states(out)] == [0.0, pytest.approx(0.4)]
 
 
+def test_a_setpoint_after_a_sync_one_wins_and_the_sync_reply_still_comes(programs):
+    out = script(programs, [
+        "at 0", "tick",
+        rx(encode_setpoint(1, 0.4, ENABLE | SYNC, 50)),
+        rx(encode_setpoint(2, 0.2, ENABLE, 50)),
+        "at 1000", "tick", "state",
+    ])
+    r = decoded(sent(out))
+    assert [x.echo_seq for x in r] == [2, 1]  # at once; then at the tick
+    assert r[1].current_A == pytest.approx(0.2) and states(out)[0][0] == pytest.approx(0.2)
+
+
 def test_sync_requests_beyond_four_in_one_tick_drop_the_oldest(programs):
     """A host that timed out and asked again: the newest request is the one
     it waits for, so that one is answered; the latest setpoint is applied."""
@@ -285,6 +297,14 @@ def test_sensor_and_driver_faults_set_their_bits_and_the_driver_fault_holds_zero
     assert not r[2].status & Status.DRIVER_FAULT and r[2].status & Status.OUTPUT_ENABLED
     assert [s[0] for s in states(out)] == [0.0, 0.0, 0.5]
     assert math.isnan(r[3].F_N) and r[3].status & Status.NO_LOAD_CELL
+
+
+def test_a_false_header_claiming_a_long_payload_does_not_hold_back_a_setpoint(programs):
+    """docs/protocol.md §3 step 5: the SETPOINT behind a garbage header of
+    another version declaring 64 payload bytes is answered at once."""
+    out = script(programs, ["at 0", "tick", rx(bytes.fromhex("a55a02aa40") + encode_setpoint(9, 0.3, ENABLE, 50))])
+    (r,) = decoded(sent(out))
+    assert r.echo_seq == 9 and r.status & Status.RX_ERROR
 
 
 def test_noise_and_split_frames_lose_nothing_and_never_stop_the_device(programs):
