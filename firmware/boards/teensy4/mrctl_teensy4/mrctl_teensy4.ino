@@ -31,7 +31,7 @@ struct Latch {
 IntervalTimer sample_timer;
 volatile Latch latch;
 volatile uint32_t ticks_latched = 0;  // written by the ISR
-uint32_t ticks_served = 0;            // written by the main loop
+volatile uint32_t ticks_served = 0;   // written by the main loop, read by the ISR
 
 class TeensyIo : public mrctl_fw::DeviceIo {
  public:
