@@ -376,14 +376,27 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _command(argv: Sequence[str] | None) -> str | None:
+    """The subcommand named on the command line (before argparse runs)."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    return next((w for w in words if not w.startswith("-")), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    if _command(argv) == "run":  # a SIGTERM or SIGHUP from here on is handled (mrctl.daemon.signals)
+        from mrctl.daemon.signals import install_startup
+
+        install_startup()
     try:
+        args = build_parser().parse_args(argv)
         return int(args.func(args))
     except MrctlError as exc:
         _err(str(exc))
         return int(exc.exit_code)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        if getattr(exc, "signum", None) is not None:  # a stop before the service began: nothing was touched
+            _err(f"stopped by {exc.name} during start-up: nothing ran")  # type: ignore[attr-defined]
+            return EXIT_OK
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
     except OSError as exc:
