@@ -46,7 +46,7 @@ class Law(CurrentLaw):
 '''
 
 
-def _start(tmp_path: Path, slow_at: int) -> tuple[subprocess.Popen, Path, Path]:
+def _start(tmp_path: Path, slow_at: int, duration_s: float = 0.3) -> tuple[subprocess.Popen, Path, Path]:
     (tmp_path / "slow_reset_law.py").write_text(SLOW_RESET)
     cfg = tmp_path / "exp.yaml"
     cfg.write_text(FIG5.replace("law: smooth", "law: 'slow_reset_law:Law'")
@@ -55,7 +55,7 @@ def _start(tmp_path: Path, slow_at: int) -> tuple[subprocess.Popen, Path, Path]:
     mark, out = tmp_path / "mark", tmp_path / "run.csv"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)]), SLOW_AT=str(slow_at),
                SLOW_MARK=str(mark))
-    p = subprocess.Popen([sys.executable, "-m", "mrctl", "run", str(cfg), "--out", str(out), "--duration", "0.3",
+    p = subprocess.Popen([sys.executable, "-m", "mrctl", "run", str(cfg), "--out", str(out), "--duration", str(duration_s),
                           "--quiet", "--status-socket", str(tmp_path / "st.sock")],
                          cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t_end = time.monotonic() + 30
@@ -96,7 +96,7 @@ def test_a_stop_at_the_first_instruction_exits_0(tmp_path):
 
 
 def test_a_sighup_during_start_up_is_kept_for_a_reload(tmp_path):
-    p, out, _ = _start(tmp_path, 2)
+    p, out, _ = _start(tmp_path, 2, duration_s=2.5)  # the reload takes ~0.5 s (a child process checks the file)
     p.send_signal(signal.SIGHUP)
     stdout, stderr = p.communicate(timeout=30)
     assert p.returncode == 0, (p.returncode, stdout, stderr)

@@ -55,6 +55,7 @@ from mrctl.daemon.logcheck import LogWatch, close_log
 from mrctl.daemon.loop import FixedRateLoop
 from mrctl.daemon.monitor import Monitor, live_line
 from mrctl.daemon.notify import Notifier
+from mrctl.daemon.reload import validate_in_child
 from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
@@ -419,12 +420,14 @@ class Service:
                          loop.stats.live_line() if loop else "")
 
     def _reload(self) -> None:
-        """SIGHUP: validate the config file again (off the loop); if valid,
-        hand the new demand and inverse laws to the controller, built at the
-        rate the loop actually runs."""
+        """SIGHUP, in the monitor's reload thread: validate the config file
+        again in a child process (:mod:`mrctl.daemon.reload`: bounded in time
+        and memory, never in the loop's interpreter); if valid, build the new
+        demand and inverse laws from the validated data at the rate the loop
+        actually runs and hand them to the controller."""
         assert self.exp is not None and self.ctl is not None and self.loaded is not None
         try:
-            new = build(load_experiment(self.opts.config_path))
+            new = build(validate_in_child(self.opts.config_path))
             changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
                                    "sensing", "stream")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
@@ -442,7 +445,7 @@ class Service:
                 msg += f"; changes to {', '.join(changed)} need a restart and were not applied"
             self.warn(msg, NOTICE)
             self.notifier.send(f"STATUS={msg}")
-        except Exception as exc:  # noqa: BLE001 - a reload must never take the loop down
+        except BaseException as exc:  # noqa: BLE001 - a reload (a plugin's SystemExit too) never takes anything down
             self.reloads_rejected += 1
             self.last_reload_error = str(exc) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
             self.warn(f"reload rejected, keeping the running config: {self.last_reload_error}")
