@@ -340,7 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     tp.set_defaults(func=cmd_tap)
 
     xp = sub.add_parser("exporter", help="Prometheus HTTP exporter reading the status socket (mrctl[metrics])")
-    xp.add_argument("--listen", default=":9877", metavar="[HOST]:PORT", help="where to serve /metrics (default :9877)")
+    xp.add_argument("--listen", default="127.0.0.1:9877", metavar="[HOST]:PORT",
+                    help="where to serve /metrics (default 127.0.0.1:9877, loopback only; :9877 for every address)")
     xp.add_argument("--socket", help="status socket path (default as for run)")
     xp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service (also a damper label)")
     xp.set_defaults(func=cmd_exporter)
