@@ -204,16 +204,18 @@ def test_the_monitor_survives_what_a_plugin_does_at_reload(plugin):
     m = Monitor(notes, lambda: ticks[0], lambda: "line", reload, io.StringIO(), live=False)
     m.start()
     try:
-        m.reload_event.set()
-        t_end = time.monotonic() + 2.0
-        while time.monotonic() < t_end:
-            ticks[0] += 1
-            if time.monotonic() > t_end - 1.5 and not m.reload_event.is_set() and len(calls) == 1:
+        t0 = time.monotonic()
+        while time.monotonic() < t0 + 2.5:
+            ticks[0] += 1  # a healthy loop
+            if not calls and time.monotonic() > t0 + 0.3:
+                m.reload_event.set()  # the hostile SIGHUP, once the watchdog is being fed
+            if len(calls) == 1 and time.monotonic() > t0 + 0.6 and not m.reload_event.is_set():
                 m.reload_event.set()  # a later SIGHUP
             time.sleep(0.01)
     finally:
         m.stop()
     pings = [t for t, line in notes.sent if line == "WATCHDOG=1"]
-    assert len(pings) >= 12, len(pings)  # every 50 ms over 2 s, also while the first reload hangs
+    assert pings and pings[0] < t0 + 0.3 and pings[-1] > t0 + 2.2
+    assert len(pings) >= 25, len(pings)  # every 50 ms over 2.5 s, also while the first reload hangs
     assert max(b - a for a, b in zip(pings, pings[1:])) < 0.3
     assert len(calls) == 2  # the later reload ran
