@@ -248,7 +248,7 @@ def attack_d4() -> tuple[bool, str]:
         stop.set()
     rx.close()
     answers = r["during"] or []
-    expect = ("took longer than", "SystemExit raised at import", "reload: new demand")
+    expect = ("took longer than", "SystemExit(0) raised at import", "reload: new demand")
     ok = [want in line for (_, line), want in zip(answers, expect)]
     gaps = [b - a for a, b in zip(pings, pings[1:])]
     held = r["exit"] == 0 and len(ok) == 3 and all(ok) and bool(gaps) and max(gaps) < 1.0
@@ -366,7 +366,7 @@ def _check_and_run(cfg_text: str, expect: str, **env: str) -> tuple[bool, str]:
 
 
 def attack_d13() -> tuple[bool, str]:
-    return _check_and_run(_law("exits_law"), "SystemExit raised at import")
+    return _check_and_run(_law("exits_law"), "SystemExit(0) raised at import")
 
 
 def attack_d15() -> tuple[bool, str]:

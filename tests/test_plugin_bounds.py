@@ -81,7 +81,7 @@ def test_a_plugin_raising_systemexit_at_import_is_refused(tmp_path, cmd):
     args = [cmd, str(cfg)] + (["--out", str(tmp_path / "r.csv"), "--duration", "0.2", "--quiet"] if cmd == "run" else [])
     r = _mrctl(tmp_path, *args)
     assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    assert "inverse.law: cannot load 'exits_law:Law': SystemExit raised at import" in r.stderr
+    assert "inverse.law: cannot load 'exits_law:Law': SystemExit(0) raised at import" in r.stderr
     assert not (tmp_path / "r.csv").exists()
 
 

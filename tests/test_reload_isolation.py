@@ -114,7 +114,7 @@ def test_the_child_returns_the_validated_config():
 
 @pytest.mark.parametrize("module,expect", [
     ("hangs_at_import", "checking it took longer than 2 s: refused"),
-    ("exits_at_import", "SystemExit raised at import"),
+    ("exits_at_import", "SystemExit(3) raised at import"),
     ("eats_memory", "cannot load 'eats_memory:Law': MemoryError"),
 ])
 def test_the_child_is_bounded_in_time_and_memory(plugin_dir, module, expect):
@@ -207,15 +207,16 @@ def test_the_monitor_survives_what_a_plugin_does_at_reload(plugin):
         t0 = time.monotonic()
         while time.monotonic() < t0 + 2.5:
             ticks[0] += 1  # a healthy loop
-            if not calls and time.monotonic() > t0 + 0.3:
+            if not calls and not m.reload_event.is_set() and notes.sent:
                 m.reload_event.set()  # the hostile SIGHUP, once the watchdog is being fed
-            if len(calls) == 1 and time.monotonic() > t0 + 0.6 and not m.reload_event.is_set():
+            if len(calls) == 1 and time.monotonic() > calls[0] + 0.3 and not m.reload_event.is_set():
                 m.reload_event.set()  # a later SIGHUP
             time.sleep(0.01)
     finally:
         m.stop()
     pings = [t for t, line in notes.sent if line == "WATCHDOG=1"]
-    assert pings and pings[0] < t0 + 0.3 and pings[-1] > t0 + 2.2
-    assert len(pings) >= 25, len(pings)  # every 50 ms over 2.5 s, also while the first reload hangs
-    assert max(b - a for a, b in zip(pings, pings[1:])) < 0.3
+    assert calls and pings[0] < calls[0]
+    during = [t for t in pings if calls[0] < t < calls[0] + 0.9]  # while the first reload raises or hangs
+    assert len(during) >= 5, (len(during), len(pings))  # every 50 ms: ~18
+    assert max(b - a for a, b in zip(pings, pings[1:])) < 0.7  # the hang lasts 1 s
     assert len(calls) == 2  # the later reload ran

@@ -133,8 +133,10 @@ def _import_bounded(module: str) -> Any:
                           f"$MRCTL_PLUGIN_IMPORT_TIMEOUT_S sets the bound)")
     if "error" in box:
         exc = box["error"]
-        raise ImportError(f"{type(exc).__name__}: {exc}" if isinstance(exc, Exception)
-                          else f"{type(exc).__name__} raised at import ({short_repr(exc.args)})")
+        if isinstance(exc, Exception):
+            raise ImportError(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
+        args = ", ".join(short_repr(a) for a in exc.args)
+        raise ImportError(f"{type(exc).__name__}({args}) raised at import")
     return box["module"]
 
 
