@@ -39,7 +39,7 @@ _SHORT = reprlib.Repr()
 _SHORT.maxlevel, _SHORT.maxstring, _SHORT.maxother = 3, 60, 60
 _SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = _SHORT.maxset = 6
 #: errors listed by one ConfigError, and characters per error line
-MAX_ERRORS, MAX_ERROR_CHARS = 50, 400
+MAX_ERRORS, MAX_ERROR_CHARS = 50, 1000
 
 
 def short_repr(value: Any) -> str:
