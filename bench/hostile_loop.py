@@ -196,7 +196,7 @@ def attack_d2_reload() -> tuple[bool, str]:
     d = _tmp()
     quiet = run_daemon(d / "quiet", 7.0)
     hostile = [FIG5 + alias_bomb(), FIG5 + "# " + "x" * 2_600_000 + "\n",
-               FIG5.replace("rate_hz: 1000", "rate_hz: [" + ",".join(["1e9"] * 25_000) + "]")]
+               FIG5.replace("rate_hz: 1000", "rate_hz: [" + ",".join(["1e9"] * 15_000) + "]")]
     r = run_daemon(d / "attack", 7.0, _reload_sequence(hostile + [FIG5.replace("c_des: 500.0", "c_des: 700.0")]))
     answers = r["during"] or []
     rejected = sum("reload rejected" in line for _, line in answers[:3])
@@ -204,7 +204,7 @@ def attack_d2_reload() -> tuple[bool, str]:
     gq, ga = quiet["timing"].get("longest_gap_us"), r["timing"].get("longest_gap_us")
     lat = max((t or 99) for t, _ in answers) if answers else None
     held = r["exit"] == 0 and rejected == 3 and applied and _gap_ok(ga, gq)
-    return held, (f"alias bomb, 2.6 MB, 250 KB of bad values: {rejected}/3 rejected, slowest answer "
+    return held, (f"alias bomb, 2.6 MB, 60 KB of bad values: {rejected}/3 rejected, slowest answer "
                   f"{lat:.2f} s; good reload applied: {applied}; longest gap {ga / 1e3 if ga else float('nan'):.1f} ms "
                   f"(quiet {gq / 1e3 if gq else float('nan'):.1f} ms); exit {r['exit']}")
 
@@ -396,7 +396,7 @@ def attack_d19_tap() -> tuple[bool, str]:
 
 ATTACKS: list[tuple[str, str, Callable[[], tuple[bool, str]]]] = [
     ("D1", "second daemon on an owned Modbus TCP device as ::ffff:127.0.0.1, unit 0, or localhost unit 17", attack_d1),
-    ("D2", "SIGHUP with an alias bomb, a 2.6 MB file and 250 KB of bad values, then a good file", attack_d2_reload),
+    ("D2", "SIGHUP with an alias bomb, a 2.6 MB file and 60 KB of bad values, then a good file", attack_d2_reload),
     ("D2", "mrctl check on an 860-byte alias bomb and a 2.6 MB config", attack_d2_check),
     ("D4", "SIGHUP with a plugin that hangs at import, then one raising SystemExit, then a good file", attack_d4),
     ("D5", "8 status scrapers back to back for a whole run, against a quiet run", attack_d5),

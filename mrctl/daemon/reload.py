@@ -9,8 +9,9 @@ whole check (:func:`~mrctl.config.load_experiment`, then
 :func:`~mrctl.experiment.build`: the laws are imported, constructed and
 reset, data files read) in a fresh interpreter, limited in time
 (:data:`RELOAD_TIMEOUT_S`, then killed) and in memory
-(:data:`RELOAD_MEMORY_BYTES`, ``RLIMIT_AS``), its output other than the
-result thrown away (a plugin that prints cannot fill the journal). The
+(:data:`RELOAD_MEMORY_BYTES`, ``RLIMIT_AS``), at nice 19 (it competes
+for a CPU with the loop only when the machine is idle enough to afford it),
+its output other than the result thrown away (a plugin that prints cannot fill the journal). The
 child hands back the validated config as plain data (a pickled
 :class:`~mrctl.util.schema.Node`); the daemon builds the laws from it,
 which is then quick, since everything slow or hostile was refused in the
@@ -91,6 +92,10 @@ def _child(argv: list[str]) -> int:
     os.dup2(devnull, 1)
     os.dup2(devnull, 2)
     path, memory, cpu = argv[0], int(argv[1]), int(argv[2])
+    try:
+        os.nice(19)  # a background job: on a busy 2-core box it must not take the loop's CPU
+    except OSError:
+        pass
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 1))
     try:

@@ -72,8 +72,9 @@ class ConfigError(BadInput):
 # --------------------------------------------------------------------------
 # YAML loading
 #: the largest YAML file read: experiments, parameter sets, bench configs and
-#: dataset descriptions are 1-3 kB; 100 times that is no real experiment
-MAX_YAML_BYTES = 256 * 1024
+#: dataset descriptions are 1-3 kB; 30 times that is no real experiment, and
+#: parsing it costs well under a second (a 2.6 MB one took a minute)
+MAX_YAML_BYTES = 64 * 1024
 #: aliases (``*name``) one file may use, and the nodes it may stand for once
 #: every alias is expanded: a few anchors are handy, a billion laughs is not
 MAX_YAML_ALIASES = 64
