@@ -284,12 +284,15 @@ def attack_d20_fifo() -> tuple[bool, str]:
     d = _tmp()
     dev = _Listener()
     try:
-        os.mkfifo(_lock_path(d, dev.port), 0o444)
+        fifo = _lock_path(d, dev.port)
+        os.mkfifo(fifo, 0o444)
+        if os.getuid() == 0:
+            os.chown(fifo, 65534, 65534)
         cfg = d / "tcp.yaml"
         cfg.write_text(TCP_EXP.replace("port: 5020", f"port: {dev.port}"))
         rc, err, t = _mrctl(d, *_run_args(d, cfg), timeout=15)
         held = rc == 3 and "is a FIFO, not a regular file" in err and dev.connections == 0
-        return held, f"FIFO at the lock path: exit {rc} after {t:.1f} s: {_last(err, 90)}"
+        return held, f"FIFO at the lock path: exit {rc} after {t:.1f} s: …{_last(err, 400).split('.lock', 1)[-1][:90]}"
     finally:
         dev.close()
 
@@ -307,7 +310,7 @@ def attack_d20_mode0() -> tuple[bool, str]:
         cfg.write_text(TCP_EXP.replace("port: 5020", f"port: {dev.port}"))
         rc, err, t = _mrctl(d, *_run_args(d, cfg), timeout=15)
         held = rc == 3 and "not a lock file mrctl made" in err and dev.connections == 0
-        return held, f"another user's 0000 file at the lock path: exit {rc}: {_last(err, 100)}"
+        return held, f"another user's 0000 file at the lock path: exit {rc}: …{_last(err, 400).split('.lock', 1)[-1][:90]}"
     finally:
         dev.close()
 

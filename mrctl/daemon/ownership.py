@@ -132,7 +132,7 @@ def _check_lock_file(path: Path, st: os.stat_result) -> None:
     if not stat.S_ISREG(st.st_mode):
         raise _refuse(path, st, f"is {_kind(st.st_mode)}, not a regular file")
     if st.st_uid not in (os.getuid(), 0) and stat.S_IMODE(st.st_mode) != LOCK_MODE:
-        raise _refuse(path, st, f"has mode {stat.S_IMODE(st.st_mode):04o}, not {LOCK_MODE:04o}")
+        raise _refuse(path, st, f"is another user's file not of mode {LOCK_MODE:04o}")
 
 
 def _kind(mode: int) -> str:
