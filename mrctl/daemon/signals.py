@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import threading
 from typing import Any, Iterator
 
 __all__ = ["StopSignal", "install_startup", "install_late", "deferred", "take_hup", "restore", "STOP_SIGNALS"]
@@ -67,8 +68,8 @@ def install_startup() -> dict[int, Any]:
     """Install the start-up handlers (main thread only); returns the ones they
     replace, for :func:`restore` (none if they are in place already: the
     CLI installs them before anything else, the service again)."""
-    if signal.getsignal(signal.SIGTERM) is _on_stop:
-        return {}
+    if signal.getsignal(signal.SIGTERM) is _on_stop or threading.current_thread() is not threading.main_thread():
+        return {}  # in place already, or a service run from a thread (tests): signals are not its to handle
     _state.update(depth=0, pending=None, hup=False)
     old = {s: signal.signal(s, _on_stop) for s in STOP_SIGNALS}
     old[signal.SIGHUP] = signal.signal(signal.SIGHUP, _on_hup)
@@ -78,6 +79,8 @@ def install_startup() -> dict[int, Any]:
 def install_late() -> None:
     """After the loop: a further SIGINT/SIGTERM/SIGHUP is ignored while the run
     log and sidecar are finished."""
+    if threading.current_thread() is not threading.main_thread():
+        return
     for s in (*STOP_SIGNALS, signal.SIGHUP):
         signal.signal(s, _on_late)
 
