@@ -342,7 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
     tp.set_defaults(func=cmd_tap)
 
     xp = sub.add_parser("exporter", help="Prometheus HTTP exporter reading the status socket (mrctl[metrics])")
-    xp.add_argument("--listen", default=":9877", metavar="[HOST]:PORT", help="where to serve /metrics (default :9877)")
+    xp.add_argument("--listen", default="127.0.0.1:9877", metavar="[HOST]:PORT",
+                    help="where to serve /metrics (default 127.0.0.1:9877, loopback only; :9877 for every address)")
     xp.add_argument("--socket", help="status socket path (default as for run)")
     xp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service (also a damper label)")
     xp.set_defaults(func=cmd_exporter)
@@ -378,18 +379,31 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _command(argv: Sequence[str] | None) -> str | None:
+    """The subcommand named on the command line (before argparse runs)."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    return next((w for w in words if not w.startswith("-")), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.command in ("run", "simulate"):
-        notice = build_notice()  # the compiled tick was wanted but not built at install
-        if notice is not None:
-            print(notice, file=sys.stderr)
+    if _command(argv) == "run":  # a SIGTERM or SIGHUP from here on is handled (mrctl.daemon.signals)
+        from mrctl.daemon.signals import install_startup
+
+        install_startup()
     try:
+        args = build_parser().parse_args(argv)
+        if args.command in ("run", "simulate"):
+            notice = build_notice()  # the compiled tick was wanted but not built at install
+            if notice is not None:
+                print(notice, file=sys.stderr)
         return int(args.func(args))
     except MrctlError as exc:
         _err(str(exc))
         return int(exc.exit_code)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        if getattr(exc, "signum", None) is not None:  # a stop before the service began: nothing was touched
+            _err(f"stopped by {exc.name} during start-up: nothing ran")  # type: ignore[attr-defined]
+            return EXIT_OK
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
     except OSError as exc:

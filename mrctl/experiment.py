@@ -193,11 +193,29 @@ def build_law(kind: str, node: Node, config: Node) -> Law:
         raise ConfigError([f"{where}: {name!r} cannot be built: {e}"]) from None
     except MrctlError:
         raise
-    except Exception as e:  # noqa: BLE001 - a plugin's constructor may raise anything
+    except (Exception, SystemExit, GeneratorExit) as e:  # noqa: BLE001 - a plugin's constructor may raise anything
         raise ConfigError([f"{section}.{key}: {name!r} cannot be built: {type(e).__name__}: {e}"]) from None
     if not isinstance(law, (DemandLaw if kind == "demand" else CurrentLaw)):
         raise ConfigError([f"{section}.{key}: {name!r}.from_config returned {type(law).__name__}, not a law"])
     return law
+
+
+def try_reset(demand: DemandLaw | None, law: CurrentLaw) -> None:
+    """Reset each law once as it is built, so that a ``reset()`` that raises
+    (a plugin's) is a ConfigError naming the law (``mrctl check``, and
+    ``mrctl run`` before the device is touched, exit 2), never an internal
+    error at start-up. ``SystemExit`` and the like from a plugin count too;
+    only a real Ctrl-C (KeyboardInterrupt) goes through."""
+    for section, key, obj in (("demand", "type", demand), ("inverse", "law", law)):
+        if obj is None:
+            continue
+        try:
+            obj.reset()
+        except MrctlError:
+            raise
+        except (Exception, SystemExit, GeneratorExit) as e:  # noqa: BLE001 - a plugin's reset may raise anything
+            name = obj.name or type(obj).__name__
+            raise ConfigError([f"{section}.{key}: {name!r}: reset() raised {type(e).__name__}: {str(e)[:200]}"]) from None
 
 
 def check_channels(laws: tuple[Law | None, ...], provided: Any, what: str) -> None:
@@ -228,4 +246,5 @@ def build(config: Node) -> Experiment:
     dt = 1.0 / config.rate_hz
     exc = make_excitation(config.excitation)
     dem, law = make_laws(config)
+    try_reset(dem, law)
     return Experiment(config, config.parameters, dt, config.safety.I_max, exc, dem, law)

@@ -52,7 +52,7 @@ def test_units_keep_syslog_level_prefixes():
 
 def test_exporter_unit_reads_the_socket_as_group_mrctl():
     text = (ROOT / "systemd" / "mrctl-exporter.service").read_text()
-    assert "mrctl exporter --listen :9877" in text and "SupplementaryGroups=mrctl" in text
+    assert "mrctl exporter --listen 127.0.0.1:9877" in text and "SupplementaryGroups=mrctl" in text  # loopback
     assert "mrctl run" not in text  # never the control process
 
 

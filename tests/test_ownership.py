@@ -88,7 +88,7 @@ def test_lock_is_released_on_every_exit(tmp_path, monkeypatch):
     code = Service(RunOptions(str(cfg), out=None, duration_s=1.0, live=False, err=err, stream=io.StringIO(),
                               status_socket=str(tmp_path / "s.sock"))).run()
     assert code == 3 and "cannot open" in err.getvalue()
-    acquire(f"modbus-tcp 127.0.0.1:{port} unit 1", "test").release()  # free again
+    acquire(f"tcp 127.0.0.1:{port}", "test").release()  # free again
 
 
 def test_owner_pid_is_in_the_lock_and_a_dead_owner_does_not_block(tmp_path):
@@ -145,9 +145,40 @@ def test_links_give_stable_device_keys(tmp_path):
     assert SerialLink(str(alias)).device_key() == SerialLink(str(real)).device_key() == f"serial {real}"
     assert SerialLink("socket://localhost:7000").device_key() == "tcp 127.0.0.1:7000"
     assert SerialLink("loop://").device_key() is None
-    assert ModbusLink("tcp", host="localhost", port=502, unit_id=3).device_key() == "modbus-tcp 127.0.0.1:502 unit 3"
-    assert ModbusLink("tcp", host="127.0.0.1", port=502, unit_id=4).device_key() == "modbus-tcp 127.0.0.1:502 unit 4"
+    assert ModbusLink("tcp", host="localhost", port=502, unit_id=3, gateway=True).device_key() == "tcp 127.0.0.1:502 unit 3"
+    assert ModbusLink("tcp", host="127.0.0.1", port=502, unit_id=4, gateway=True).device_key() == "tcp 127.0.0.1:502 unit 4"
     assert ModbusLink("rtu", url=str(alias)).device_key() == f"serial {real}"
+
+
+def test_a_tcp_device_is_its_endpoint_whatever_the_unit_id_or_spelling():
+    """D1: unit id 0 (which a direct device and hil_sim answer) or an
+    IPv4-mapped IPv6 spelling took another lock, and a second daemon drove
+    the owner's device. One endpoint is one device unless it is a gateway."""
+    pytest.importorskip("mrctl.io.registers")
+    from mrctl.io.modbus import ModbusLink
+    from mrctl.io.serial import SerialLink
+
+    keys = {ModbusLink("tcp", host=h, port=5020, unit_id=u).device_key()
+            for h in ("127.0.0.1", "localhost", "::ffff:127.0.0.1", "[::ffff:127.0.0.1]", "::FFFF:7f00:1")
+            for u in (0, 1, 17, 247)}
+    keys.add(SerialLink("socket://127.0.0.1:5020").device_key())
+    assert keys == {"tcp 127.0.0.1:5020"}
+    assert ModbusLink("tcp", host="::1", port=502).device_key() == "tcp [::1]:502"
+    assert ModbusLink("tcp", host="0:0:0:0:0:0:0:1", port=502).device_key() == "tcp [::1]:502"
+    gw = {ModbusLink("tcp", host="::ffff:127.0.0.1", port=502, unit_id=u, gateway=True).device_key() for u in (0, 1)}
+    assert gw == {"tcp 127.0.0.1:502 unit 0", "tcp 127.0.0.1:502 unit 1"}
+
+
+def test_the_config_says_gateway(tmp_path):
+    pytest.importorskip("mrctl.io.registers")
+    from mrctl.config import load_experiment
+    from mrctl.experiment import build
+
+    cfg = tmp_path / "exp.yaml"
+    cfg.write_text(TCP_EXP.replace("unit_id: 1", "unit_id: 0"))
+    assert build(load_experiment(cfg)).make_link().device_key() == "tcp 127.0.0.1:5020"
+    cfg.write_text(TCP_EXP.replace("unit_id: 1", "unit_id: 0, gateway: true"))
+    assert build(load_experiment(cfg)).make_link().device_key() == "tcp 127.0.0.1:5020 unit 0"
 
 
 def test_serial_ports_are_opened_exclusively():
@@ -280,3 +311,66 @@ def test_the_lock_is_seen_across_users(tmp_path):
         import shutil
 
         shutil.rmtree(base, ignore_errors=True)
+
+
+def test_a_fifo_planted_at_the_lock_path_is_refused_not_waited_on(tmp_path, monkeypatch):
+    """D20: open() of a FIFO for reading blocked every later start forever.
+    Another user's 0444 FIFO: opening it read-write is denied (simulated,
+    so that the test means the same as root), read-only it blocks unless
+    O_NONBLOCK."""
+    import threading
+
+    from mrctl.daemon import ownership
+    from mrctl.errors import LinkFailure
+
+    d = tmp_path / "locks"
+    d.mkdir()
+    key = "tcp 127.0.0.1:5020"
+    fifo = d / ownership._file_name(key)
+    os.mkfifo(fifo, 0o444)
+    real_open = os.open
+
+    def as_another_user(path, flags, *a):
+        if Path(path) == fifo and flags & os.O_ACCMODE != os.O_RDONLY:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, flags, *a)
+
+    monkeypatch.setattr(ownership.os, "open", as_another_user)
+    box: dict = {}
+
+    def take():
+        try:
+            ownership.acquire(key, "x", lock_dir=d).release()
+        except Exception as exc:  # noqa: BLE001
+            box["exc"] = exc
+
+    t = threading.Thread(target=take, daemon=True)
+    t.start()
+    t.join(5.0)
+    if t.is_alive():  # the old code: blocked in open(); let it go before failing
+        fd = real_open(fifo, os.O_RDWR | os.O_NONBLOCK)
+        t.join(2.0)
+        os.close(fd)
+        pytest.fail("acquire() blocked on a FIFO at the lock path")
+    assert isinstance(box.get("exc"), LinkFailure), box
+    msg = str(box["exc"])
+    assert "is a FIFO, not a regular file" in msg and "not a lock file mrctl made" in msg
+
+
+def test_a_planted_unreadable_lock_file_is_refused_with_a_clear_message(tmp_path):
+    from mrctl.daemon.ownership import _file_name, acquire
+    from mrctl.errors import LinkFailure
+
+    d = tmp_path / "locks"
+    d.mkdir()
+    key = "serial /dev/ttyUSB9"
+    p = d / _file_name(key)
+    p.touch()
+    os.chmod(p, 0)
+    if os.getuid() == 0:
+        os.chown(p, 65534, 65534)  # another user's file: root could open it, its mode gives it away
+    with pytest.raises(LinkFailure) as e:
+        acquire(key, "x", lock_dir=d)
+    msg = str(e.value)
+    assert "mode 0000" in msg and "not a lock file mrctl made" in msg and "remove it" in msg
+    assert e.value.exit_code == 3

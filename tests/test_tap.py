@@ -272,3 +272,20 @@ def test_tap_goes_through_the_status_sockets_permissions(tmp_path):
         assert oct(os.stat(path).st_mode & 0o777) == oct(0o660)
     finally:
         srv.close()
+
+
+def test_tap_against_a_daemon_that_never_answers_times_out(tmp_path):
+    """D19: a socket that accepts and never answers hung ``mrctl tap`` forever."""
+    path = str(tmp_path / "mute.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(path)
+    srv.listen(4)
+    try:
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "mrctl", "tap", "--socket", path, "-n", "5"],
+                    capture_output=True, text=True, timeout=30)
+        assert time.monotonic() - t0 < 15
+        assert r.returncode == 1, (r.returncode, r.stderr)
+        assert "no answer within 2 s" in r.stderr and "Traceback" not in r.stderr
+    finally:
+        srv.close()

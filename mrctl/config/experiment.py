@@ -215,6 +215,9 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                 "host": Str(default="127.0.0.1", doc="device address"),
                 "port": Num(default=502, integer=True, min=1, max=65535, doc="TCP port"),
                 "unit_id": Num(default=1, integer=True, min=0, max=247, doc="Modbus unit id"),
+                "gateway": Bool(default=False, doc="the host is a Modbus TCP gateway: each unit id behind it is a "
+                                                   "device of its own (else any unit id is the one device at "
+                                                   "host:port, for the one-daemon-per-device lock)"),
                 **modbus_common,
             },
             "modbus-rtu": {

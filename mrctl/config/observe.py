@@ -8,11 +8,12 @@ sending is :mod:`mrctl.daemon.stream`.
 
 from __future__ import annotations
 
+import ipaddress
 from typing import Any
 from urllib.parse import urlsplit
 
 from mrctl.runlog.format import RUN_COLUMNS
-from mrctl.util.schema import Custom, Num, Section
+from mrctl.util.schema import Custom, Num, Section, short_repr
 
 #: the default PlotJuggler UDP server port
 PLOTJUGGLER_PORT = 9870
@@ -25,16 +26,38 @@ def parse_stream_url(url: str) -> tuple[str, int]:
         raise ValueError("must be a string udp://HOST:PORT")
     parts = urlsplit(url)
     if parts.scheme != "udp":
-        raise ValueError(f"only udp://HOST:PORT is supported, got {url!r}")
+        raise ValueError(f"only udp://HOST:PORT is supported, got {short_repr(url)}")
     if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username or parts.password:
-        raise ValueError(f"udp://HOST:PORT takes nothing else, got {url!r}")
+        raise ValueError(f"udp://HOST:PORT takes nothing else, got {short_repr(url)}")
     try:
         port = parts.port
     except ValueError:
-        raise ValueError(f"bad port in {url!r}") from None
+        raise ValueError(f"bad port in {short_repr(url)}") from None
     if not parts.hostname or port is None or not 1 <= port <= 65535:
-        raise ValueError(f"needs a host and a port 1-65535, e.g. udp://127.0.0.1:{PLOTJUGGLER_PORT}; got {url!r}")
+        raise ValueError(f"needs a host and a port 1-65535, e.g. udp://127.0.0.1:{PLOTJUGGLER_PORT}; got {short_repr(url)}")
+    why = host_problem(parts.hostname)
+    if why:
+        raise ValueError(f"host {short_repr(parts.hostname)}: {why}")
     return parts.hostname, port
+
+
+def host_problem(host: str) -> str | None:
+    """Why ``host`` cannot name a machine (an empty or over-long label, which
+    the resolver would raise UnicodeError for), or None: an IP literal or a
+    name of 1-63 character labels, at most 253 characters in all."""
+    try:
+        ipaddress.ip_address(host.split("%", 1)[0])
+        return None
+    except ValueError:
+        pass
+    try:
+        ascii_name = host.encode("idna").decode("ascii")
+    except UnicodeError as exc:
+        return f"not a valid host name ({exc})"
+    labels = ascii_name.rstrip(".").split(".")
+    if not ascii_name or len(ascii_name) > 253 or any(not 1 <= len(label) <= 63 for label in labels):
+        return "not a valid host name (every dot-separated label needs 1-63 characters)"
+    return None
 
 
 def parse_columns(value: Any) -> tuple[str, ...]:

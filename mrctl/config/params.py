@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mrctl.model.params import LuGreParams, params_from_mapping
-from mrctl.util.schema import ConfigError, load_yaml
+from mrctl.util.schema import ConfigError, load_yaml, short_repr
 
 __all__ = ["INPUT_KINDS", "ParamsFile", "read_params_file", "load_params_file", "params_check",
            "params_input_kind", "input_kind_errors"]
@@ -47,7 +47,7 @@ def _check_meta(data: dict[str, Any]) -> tuple[str, tuple[float, float] | None, 
     errors: list[str] = []
     kind = data.get("input", "current")
     if kind not in INPUT_KINDS:
-        errors.append(f"input: {kind!r} not allowed (allowed: {', '.join(INPUT_KINDS)}: what the laws take, "
+        errors.append(f"input: {short_repr(kind)} not allowed (allowed: {', '.join(INPUT_KINDS)}: what the laws take, "
                       "a coil current in A or a driver command voltage in V)")
         kind = "current"
     rng = data.get("input_range")
@@ -56,7 +56,7 @@ def _check_meta(data: dict[str, Any]) -> tuple[str, tuple[float, float] | None, 
         ok = (isinstance(rng, list) and len(rng) == 2
               and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)) for x in rng))
         if not ok or not float(rng[0]) < float(rng[1]):
-            errors.append(f"input_range: must be [lo, hi] with lo < hi (the identified input range), got {rng!r}")
+            errors.append(f"input_range: must be [lo, hi] with lo < hi (the identified input range), got {short_repr(rng)}")
         else:
             out = (float(rng[0]), float(rng[1]))
     return kind, out, errors
@@ -154,7 +154,7 @@ def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
         if "file" in overrides:
             fpath = overrides.pop("file")
             if not isinstance(fpath, str):
-                return None, [f"{path}.file: must be a path string, got {fpath!r}"]
+                return None, [f"{path}.file: must be a path string, got {short_repr(fpath)}"]
             full = (base_dir / fpath) if not Path(fpath).is_absolute() else Path(fpath)
             try:
                 base = load_params_file(full)
@@ -167,7 +167,7 @@ def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
             if k not in known:
                 errors.append(f"{path}.{k}: unknown parameter (expected: file, {', '.join(LuGreParams.all_names())})")
             elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-                errors.append(f"{path}.{k}: must be a finite number, got {v!r}")
+                errors.append(f"{path}.{k}: must be a finite number, got {short_repr(v)}")
             else:
                 good[k] = float(v)
         if errors:

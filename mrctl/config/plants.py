@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mrctl.model.boucwen import BoucWenParams, bw_params_from_mapping
-from mrctl.util.schema import ConfigError, Custom, Num, Union, load_yaml
+from mrctl.util.schema import ConfigError, Custom, Num, Union, load_yaml, short_repr
 
 #: metadata keys a plant parameters file may carry besides the constants
 _META = ("version", "description", "source", "fit")
@@ -40,7 +40,7 @@ def load_bouc_wen_file(path: str | Path) -> BoucWenParams:
 def _bw_file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if not isinstance(value, str) or not value:
-            return None, [f"{path}: must be a Bouc–Wen parameters file path, got {value!r}"]
+            return None, [f"{path}: must be a Bouc–Wen parameters file path, got {short_repr(value)}"]
         full = Path(value) if Path(value).is_absolute() else base_dir / value
         if not full.is_file():
             return None, [f"{path}: no such file: {full}"]

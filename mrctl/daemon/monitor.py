@@ -6,6 +6,12 @@ while the loop's tick counter advances, i.e. from a healthy loop), runs
 config reloads off the loop (SIGHUP only sets an event), and calls a
 ``watch`` hook every poll (the service warns there when the run log starts
 losing rows). It never touches the link or the laws directly.
+
+A reload runs in a thread of its own (one at a time; a SIGHUP meanwhile is
+kept for when it ends): however long it takes, and whatever a plugin does
+in it (``SystemExit``, an import that never returns), the monitor goes on
+polling, warning and feeding the watchdog, and later reloads still run.
+Nothing the hooks raise stops the monitor.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ class Monitor:
         self.live = live
         self.watch = watch
         self.reload_event = threading.Event()
+        self._reloader: threading.Thread | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="mrctl-monitor", daemon=True)
 
@@ -52,13 +59,14 @@ class Monitor:
         is_tty = self.err.isatty() if hasattr(self.err, "isatty") else False
         while not self._stop.wait(0.05):
             now = time.monotonic()
-            if self.reload_event.is_set():
+            if self.reload_event.is_set() and not self.reloading():
                 self.reload_event.clear()
-                self.reload()
+                self._reloader = threading.Thread(target=self._reload_once, name="mrctl-reload", daemon=True)
+                self._reloader.start()
             if self.watch is not None:
                 try:
                     self.watch()
-                except Exception:  # noqa: BLE001 - a report must never stop the watchdog
+                except BaseException:  # noqa: BLE001 - a report must never stop the watchdog
                     pass
             ticks = self.ticks()
             if wd is not None and now - last_wd >= wd / 2:
@@ -68,7 +76,10 @@ class Monitor:
                 last_ticks = ticks
             if now - last_live >= (0.5 if is_tty else 5.0):
                 last_live = now
-                line = self.live_line()
+                try:
+                    line = self.live_line()
+                except BaseException as exc:  # noqa: BLE001 - the watchdog above goes on regardless
+                    line = f"(live line failed: {type(exc).__name__})"
                 if n.enabled:
                     n.send(f"STATUS={line}")
                 if self.live:
@@ -80,6 +91,16 @@ class Monitor:
                         print(line, file=self.err, flush=True)
         if self.live and is_tty:
             print(file=self.err, flush=True)
+
+    def reloading(self) -> bool:
+        """Whether a reload is running now."""
+        return self._reloader is not None and self._reloader.is_alive()
+
+    def _reload_once(self) -> None:
+        try:
+            self.reload()
+        except BaseException:  # noqa: BLE001 - the service reports its own failures; this thread just ends
+            pass
 
 
 def live_line(ticks: int, total: int | None, rate_hz: float, I_A: float, state: str, link_errors: int,

@@ -116,12 +116,42 @@ class DeviceLock:
         self.release()
 
 
+#: the mode mrctl gives a lock file it creates
+LOCK_MODE = 0o644
+
+
+def _refuse(path: Path, st: os.stat_result, why: str) -> OSError:
+    return OSError(f"{path} {why} (owner uid {st.st_uid}, mode {stat.S_IMODE(st.st_mode):04o}): not a lock file "
+                   f"mrctl made, perhaps planted by another user; refusing to start (ask its owner or root to "
+                   f"remove it)")
+
+
+def _check_lock_file(path: Path, st: os.stat_result) -> None:
+    """A lock file must be a regular file, and one mrctl made: ours, root's,
+    or another user's daemon's (mode 0644, as :func:`_open` creates them)."""
+    if not stat.S_ISREG(st.st_mode):
+        raise _refuse(path, st, f"is {_kind(st.st_mode)}, not a regular file")
+    if st.st_uid not in (os.getuid(), 0) and stat.S_IMODE(st.st_mode) != LOCK_MODE:
+        raise _refuse(path, st, f"is another user's file not of mode {LOCK_MODE:04o}")
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory"),
+                       (stat.S_ISLNK, "a symlink")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
 def _open(path: Path) -> int:
-    """Open (or create) the lock file without following a symlink. O_CREAT
+    """Open (or create) the lock file without following a symlink and
+    without blocking (O_NONBLOCK: a FIFO planted at the path would block an
+    open for read forever), and check it (:func:`_check_lock_file`). O_CREAT
     only when it is missing: fs.protected_regular refuses O_CREAT on another
     user's file in a sticky directory. Read-only if we may not write it
     (flock works on any descriptor)."""
-    nf = os.O_NOFOLLOW | os.O_CLOEXEC
+    nf = os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK
     for _ in range(10):
         for flags in (os.O_RDWR, os.O_RDONLY):
             try:
@@ -130,15 +160,28 @@ def _open(path: Path) -> int:
                 continue
             except FileNotFoundError:
                 break
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
+            except OSError as exc:  # ELOOP: a symlink; ENXIO: a FIFO or socket nobody serves
+                try:
+                    st = os.lstat(path)
+                except OSError:
+                    raise OSError(f"{path}: cannot open it: {exc.strerror or exc}") from None
+                raise _refuse(path, st, f"is {_kind(st.st_mode)}, not a regular file") from None
+            try:
+                _check_lock_file(path, os.fstat(fd))
+            except OSError:
                 os.close(fd)
-                raise OSError(f"{path}: not a regular file")
+                raise
             return fd
         else:
-            raise OSError(f"{path}: cannot open it")
+            try:
+                st = os.lstat(path)
+            except OSError as exc:
+                raise OSError(f"{path}: cannot open it: {exc.strerror or exc}") from None
+            _check_lock_file(path, st)
+            raise _refuse(path, st, "cannot be opened by this user (uid %d)" % os.getuid())
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | nf, 0o644)
-            os.fchmod(fd, 0o644)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | nf, LOCK_MODE)
+            os.fchmod(fd, LOCK_MODE)
             return fd
         except FileExistsError:
             continue  # created meanwhile: open that one

@@ -49,12 +49,14 @@ from mrctl.build import tick_build
 from mrctl.config import ConfigError, Node, load_experiment
 from mrctl.core.controller import Controller, safe_zero
 from mrctl.daemon import ownership
+from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
 from mrctl.daemon.logcheck import LogWatch, close_log
 from mrctl.daemon.loop import FixedRateLoop
 from mrctl.daemon.monitor import Monitor, live_line
 from mrctl.daemon.notify import Notifier
+from mrctl.daemon.reload import validate_in_child
 from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.core.safety import SafetyConfig, SafetySupervisor
@@ -135,25 +137,55 @@ class Service:
 
     # -- the run ---------------------------------------------------------------
     def run(self) -> int:
-        """The whole run; returns the exit code (README)."""
+        """The whole run; returns the exit code (README). A SIGINT/SIGTERM
+        during start-up (:mod:`mrctl.daemon.signals`) leaves through the same
+        stack (0 A if the link is open), removes the run log it created, and
+        exits 0."""
         code: int = EXIT_OK
+        old_handlers = signals.install_startup()
+        stopped: signals.StopSignal | None = None
         try:
-            with contextlib.ExitStack() as stack:
-                try:
-                    code = self._run(stack)
-                except MrctlError as exc:  # a refusal at start-up: the error says how to exit
-                    self.warn(str(exc), ERR)
-                    code = exc.exit_code
-                except KeyboardInterrupt:
-                    pass  # a second Ctrl-C during start-up: still leave safely (the stack)
-                except Exception as exc:  # noqa: BLE001 - report, then leave safely (the stack)
-                    self.warn(f"internal error: {type(exc).__name__}: {exc}", ERR)
-                    code = EXIT_FAILURE
+            try:
+                with contextlib.ExitStack() as stack:
+                    try:
+                        code = self._run(stack)
+                    except MrctlError as exc:  # a refusal at start-up: the error says how to exit
+                        self.warn(str(exc), ERR)
+                        code = exc.exit_code
+                    except signals.StopSignal as exc:
+                        stopped = exc
+                    except KeyboardInterrupt:
+                        pass  # a second Ctrl-C during start-up: still leave safely (the stack)
+                    except Exception as exc:  # noqa: BLE001 - report, then leave safely (the stack)
+                        self.warn(f"internal error: {type(exc).__name__}: {exc}", ERR)
+                        code = EXIT_FAILURE
+            except signals.StopSignal as exc:  # while the stack unwound a refusal
+                stopped = stopped or exc
+            finally:
+                signals.install_late()
+                if self.link is not None and self._zero_error is not None:
+                    self.warn(f"could not command 0 A on exit: {self._zero_error}", CRIT)
+                    code = code or EXIT_LINK
+            if stopped is not None:
+                return self._stopped_at_startup(stopped, code)
+            return self._finish(code) if self.ctl is not None and self.loop is not None else code
         finally:
-            if self.link is not None and self._zero_error is not None:
-                self.warn(f"could not command 0 A on exit: {self._zero_error}", CRIT)
-                code = code or EXIT_LINK
-        return self._finish(code) if self.ctl is not None and self.loop is not None else code
+            signals.restore(old_handlers)
+
+    def _stopped_at_startup(self, stop: signals.StopSignal, code: int) -> int:
+        """A stop before the first tick: nothing ran, so no run log is left
+        (the recorder's CSV and "incomplete" sidecar are removed); exit 0
+        unless 0 A could not be commanded."""
+        if self.rec is not None:
+            with contextlib.suppress(Exception):
+                self.rec.close(write_sidecar=False, timeout=5.0)
+            for q in (self.opts.out, files.sidecar_path(self.opts.out or "x")):
+                with contextlib.suppress(OSError):
+                    if self.opts.out:
+                        os.unlink(q)
+        self.warn(f"stopped by {stop.name} during start-up: nothing ran"
+                  + ("; 0 A commanded" if self.link is not None and code == EXIT_OK else ""), NOTICE)
+        return code
 
     def _run(self, stack: contextlib.ExitStack) -> int:
         o = self.opts
@@ -171,17 +203,20 @@ class Service:
             raise BadInput(f"backend: {exc}") from None
         self.say(f"mrctl {__version__}: {exp.name}, law {exp.config.inverse.law}, {exp.config.rate_hz:g} Hz, "
                  f"{'%.3f s' % duration if duration else 'until stopped'}; backend {link.describe()}")
-        self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
+        with signals.deferred():  # a stop waits until the lock's release is registered
+            self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
         if o.out:
-            self._log_fh = files.create_log(o.out, o.force)
-            stack.callback(self._drop_unused_log)
-        try:
-            link.open()
-        except (LinkError, OSError) as exc:
-            raise LinkFailure(f"cannot open backend: {exc}") from None
-        self.link = link
-        stack.callback(link.close)
-        stack.callback(self._zero_on_exit)  # runs before close, also after a refusal below
+            with signals.deferred():  # the file and its removal, as one step
+                self._log_fh = files.create_log(o.out, o.force)
+                stack.callback(self._drop_unused_log)
+        with signals.deferred():  # an open link always has its 0 A registered
+            try:
+                link.open()
+            except (LinkError, OSError) as exc:
+                raise LinkFailure(f"cannot open backend: {exc}") from None
+            self.link = link
+            stack.callback(link.close)
+            stack.callback(self._zero_on_exit)  # runs before close, also after a refusal below
         err = safe_zero(link)
         if err:
             raise LinkFailure(f"could not command 0 A at start: {err}")
@@ -191,8 +226,9 @@ class Service:
         if exp.config.loop.pacing == "device":
             self._set_device_pacing(exp, link)
         link_channels(exp, link)  # the laws' extra channels: asked for, checked (exit 2)
-        self._build(exp, link, duration)
-        self._enter_run(stack)
+        with signals.deferred():  # recorder, threads and handlers: all or none registered
+            self._build(exp, link, duration)
+            self._enter_run(stack)
         ctl, loop = self.ctl, self.loop
         assert ctl is not None and loop is not None
         stack.callback(self._zero_on_exit)  # the first thing on the way out of the loop
@@ -319,9 +355,12 @@ class Service:
                                      watch=lambda: (self.log_watch.check(self.rec), faults.check()))
         mon.start()
         stack.callback(mon.stop)
-        old_handlers = {sig: signal.signal(sig, lambda s, f: loop.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
-        old_handlers[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda s, f: mon.reload_event.set())
-        stack.callback(lambda: [signal.signal(s, h) for s, h in old_handlers.items()])
+        for sig in signals.STOP_SIGNALS:
+            signal.signal(sig, lambda s, f: loop.stop())
+        signal.signal(signal.SIGHUP, lambda s, f: mon.reload_event.set())
+        if signals.take_hup():  # a SIGHUP during start-up, maybe after the config was read
+            mon.reload_event.set()
+        stack.callback(signals.install_late)  # the way out is not cut short by a second signal
         old_switch = sys.getswitchinterval()
         stack.callback(sys.setswitchinterval, old_switch)
         stack.callback(restore)
@@ -382,12 +421,14 @@ class Service:
                          loop.stats.live_line() if loop else "")
 
     def _reload(self) -> None:
-        """SIGHUP: validate the config file again (off the loop); if valid,
-        hand the new demand and inverse laws to the controller, built at the
-        rate the loop actually runs."""
+        """SIGHUP, in the monitor's reload thread: validate the config file
+        again in a child process (:mod:`mrctl.daemon.reload`: bounded in time
+        and memory, never in the loop's interpreter); if valid, build the new
+        demand and inverse laws from the validated data at the rate the loop
+        actually runs and hand them to the controller."""
         assert self.exp is not None and self.ctl is not None and self.loaded is not None
         try:
-            new = build(load_experiment(self.opts.config_path))
+            new = build(validate_in_child(self.opts.config_path))
             changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
                                    "sensing", "stream")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
@@ -405,7 +446,7 @@ class Service:
                 msg += f"; changes to {', '.join(changed)} need a restart and were not applied"
             self.warn(msg, NOTICE)
             self.notifier.send(f"STATUS={msg}")
-        except Exception as exc:  # noqa: BLE001 - a reload must never take the loop down
+        except BaseException as exc:  # noqa: BLE001 - a reload (a plugin's SystemExit too) never takes anything down
             self.reloads_rejected += 1
             self.last_reload_error = str(exc) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
             self.warn(f"reload rejected, keeping the running config: {self.last_reload_error}")

@@ -17,6 +17,14 @@ Where: systemd's ``$RUNTIME_DIRECTORY``, else the per-user directory
 user owns or can write to (a local user who creates it first could plant a
 socket there and show a spoofed state). A reply that is not a JSON object
 is refused, never a traceback.
+
+Scrapes cannot slow the loop: the snapshot (a 5000-tick timing summary
+and its JSON) is computed at most once per :data:`REPLY_MAX_AGE_S` and the
+same bytes go to every client asking meanwhile, and at most
+:data:`MAX_REPLIES_PER_S` replies go out a second (a further client waits in
+the listen backlog, the status thread sleeping, i.e. not holding the
+interpreter). Eight scrapers in a tight loop then cost the loop what one
+does (``bench/status_flood.py``).
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import math
 import os
 import socket
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -57,6 +66,11 @@ def default_status_socket(check: bool = False) -> str:
 
 #: how long the server waits for a request line before it answers with the status
 REQUEST_WAIT_S = 0.1
+#: a status reply is reused for this long (s): the loop's interpreter computes
+#: at most 1 / REPLY_MAX_AGE_S snapshots a second, however many clients ask
+REPLY_MAX_AGE_S = 0.2
+#: replies sent per second at most; a client beyond waits its turn
+MAX_REPLIES_PER_S = 50.0
 
 
 class StatusServer:
@@ -73,6 +87,27 @@ class StatusServer:
         self._stop = threading.Event()
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
+        self._reply = b""
+        self._reply_at = -math.inf
+        self._next_reply_at = 0.0
+        self.replies_built = 0  #: snapshots computed (tests, the bench)
+
+    def reply(self, now: float) -> bytes:
+        """The status line, rebuilt only when older than :data:`REPLY_MAX_AGE_S`."""
+        if now - self._reply_at >= REPLY_MAX_AGE_S or not self._reply:
+            self._reply = (json.dumps(jsonable(self.snapshot(), nonfinite="null")) + "\n").encode()
+            self._reply_at = now
+            self.replies_built += 1
+        return self._reply
+
+    def _pace(self) -> None:
+        """Sleep until the next reply may go out (:data:`MAX_REPLIES_PER_S`)."""
+        now = time.monotonic()
+        wait = self._next_reply_at - now
+        if wait > 0:
+            self._stop.wait(wait)
+            now += wait
+        self._next_reply_at = max(now, self._next_reply_at) + 1.0 / MAX_REPLIES_PER_S
 
     def start(self) -> None:
         p = Path(self.path)
@@ -117,9 +152,12 @@ class StatusServer:
                     pass
             with conn:
                 try:
+                    self._pace()
                     conn.settimeout(1.0)
-                    conn.sendall((json.dumps(jsonable(self.snapshot(), nonfinite="null")) + "\n").encode())
+                    conn.sendall(self.reply(time.monotonic()))
                 except OSError:
+                    pass
+                except Exception:  # noqa: BLE001 - a snapshot that fails must not end the status thread
                     pass
 
     def close(self) -> None:

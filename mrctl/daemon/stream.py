@@ -48,8 +48,8 @@ def resolve(url: str) -> tuple[int, Any]:
         raise BadInput(f"--stream: {exc}") from None
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
-    except OSError as exc:
-        raise BadInput(f"--stream {url}: cannot resolve {host!r}: {exc.strerror or exc}") from None
+    except (OSError, UnicodeError) as exc:  # UnicodeError: a label the IDNA codec refuses
+        raise BadInput(f"--stream {url}: cannot resolve {host!r}: {getattr(exc, 'strerror', None) or exc}") from None
     family, _, _, _, addr = infos[0]
     return family, addr
 

@@ -328,6 +328,10 @@ def _reply(conn: socket.socket, obj: dict[str, Any]) -> None:
 
 
 # -- client side (mrctl tap) ------------------------------------------------------
+#: seconds ``mrctl tap`` waits for the daemon's header (as ``mrctl status`` waits 2 s)
+HEADER_TIMEOUT_S = 2.0
+
+
 @dataclass
 class TapResult:
     rows: int
@@ -347,9 +351,14 @@ def tap(path: str, out: BinaryIO, rows: int | None = None, columns: Sequence[str
     try:
         req = {"tap": rows, "columns": list(columns) if columns else None, "trigger": trigger, "pre": pre}
         s.sendall((json.dumps(req) + "\n").encode())
-        s.settimeout(None)  # a trigger may wait long; Ctrl-C ends it
+        s.settimeout(HEADER_TIMEOUT_S)  # the daemon answers at once, before any row
         f = s.makefile("rb")
-        first = f.readline(1 << 16)
+        try:
+            first = f.readline(1 << 16)
+        except (socket.timeout, TimeoutError):
+            raise StatusError(f"{path}: no answer within {HEADER_TIMEOUT_S:g} s (is an mrctl daemon serving "
+                              f"it, or a busy or hung one?)") from None
+        s.settimeout(None)  # then a trigger may wait long; Ctrl-C ends it
         try:
             head = json.loads(first.decode("utf-8"))
         except (UnicodeDecodeError, ValueError):

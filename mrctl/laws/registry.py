@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import os
+import sys
+import threading
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any, Mapping
@@ -31,7 +34,7 @@ from mrctl.laws.closed import ClosedLoopInverse
 from mrctl.laws.demand import ConstantForce, FromFile, Viscous
 from mrctl.laws.inverse import ConstantCurrent, PaperInverse, ScheduleCurrent, SmoothInverse
 from mrctl.laws.semiactive import LQR, ClippedOptimal, Groundhook, GroundhookOnOff, Skyhook, SkyhookOnOff
-from mrctl.util.schema import Bool, Custom, FilePath, Num, Section, Str
+from mrctl.util.schema import Bool, Custom, FilePath, Num, Section, Str, short_repr
 
 #: kind → entry-point groups
 GROUPS: dict[str, tuple[str, ...]] = {
@@ -100,19 +103,79 @@ def check_law_class(obj: Any, kind: str) -> str | None:
     return None
 
 
+#: seconds a plugin's import may take before it is refused (a real one takes
+#: well under one); ``$MRCTL_PLUGIN_IMPORT_TIMEOUT_S`` overrides it
+IMPORT_TIMEOUT_S = 10.0
+#: imports that did not finish in time, by module: never waited for twice
+_HUNG: dict[str, threading.Thread] = {}
+
+
+def import_timeout_s() -> float:
+    """The bound on one plugin import (:data:`IMPORT_TIMEOUT_S`, or the environment's)."""
+    try:
+        v = float(os.environ.get("MRCTL_PLUGIN_IMPORT_TIMEOUT_S", IMPORT_TIMEOUT_S))
+    except ValueError:
+        return IMPORT_TIMEOUT_S
+    return v if 0 < v < 1e6 else IMPORT_TIMEOUT_S
+
+
+def _import_bounded(module: str) -> Any:
+    """``importlib.import_module(module)`` in a daemon thread, waited for at
+    most :func:`import_timeout_s`: a plugin whose import never returns must
+    not block a start-up or the reload forever, and whatever it raises
+    (``SystemExit`` included) comes back as an ImportError here instead of
+    ending the process or the thread that asked."""
+    hung = _HUNG.get(module)
+    if hung is not None and hung.is_alive():
+        raise ImportError(f"its import from an earlier attempt has not finished "
+                          f"(still running after {import_timeout_s():g} s)")
+    box: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            box["module"] = importlib.import_module(module)
+        except BaseException as exc:  # noqa: BLE001 - SystemExit, KeyboardInterrupt: all are the plugin's
+            box["error"] = exc
+
+    t = threading.Thread(target=work, name=f"mrctl-import-{module}"[:60], daemon=True)
+    t.start()
+    t.join(import_timeout_s())
+    if t.is_alive():
+        _HUNG[module] = t
+        raise ImportError(f"its import did not finish within {import_timeout_s():g} s (refused; "
+                          f"$MRCTL_PLUGIN_IMPORT_TIMEOUT_S sets the bound)")
+    if "error" in box:
+        exc = box["error"]
+        if isinstance(exc, Exception):
+            raise ImportError(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
+        args = ", ".join(short_repr(a) for a in exc.args)
+        raise ImportError(f"{type(exc).__name__}({args}) raised at import")
+    return box["module"]
+
+
 def _load(target: str, kind: str) -> tuple[type[Law] | None, str | None]:
-    """Import ``package.module:Class`` and check it."""
+    """Import ``package.module:Class`` (bounded in time: :func:`_import_bounded`) and check it."""
     module, _, qual = target.partition(":")
     if not module or not qual:
-        return None, f"{target!r}: write package.module:Class"
+        return None, f"{short_repr(target)}: write package.module:Class"
     try:
-        obj: Any = importlib.import_module(module)
+        obj: Any = sys.modules.get(module) if _imported(module) else _import_bounded(module)
         for part in qual.split("."):
             obj = getattr(obj, part)
-    except Exception as exc:  # noqa: BLE001 - a plugin's import may raise anything
-        return None, f"cannot load {target!r}: {type(exc).__name__}: {exc}"
+    except ImportError as exc:
+        msg = str(exc) if not exc.name else f"{type(exc).__name__}: {exc}"
+        return None, f"cannot load {short_repr(target)}: {msg}"
+    except Exception as exc:  # noqa: BLE001 - a plugin's attribute may raise anything
+        return None, f"cannot load {short_repr(target)}: {type(exc).__name__}: {exc}"
     why = check_law_class(obj, kind)
     return (None, why) if why else (obj, None)
+
+
+def _imported(module: str) -> bool:
+    """Whether ``module`` is fully imported already (no thread needed)."""
+    mod = sys.modules.get(module)
+    spec = getattr(mod, "__spec__", None)
+    return mod is not None and not getattr(spec, "_initializing", False)
 
 
 def _unknown(kind: str, name: str, eps: dict[str, LawInfo]) -> str:

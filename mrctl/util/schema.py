@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import re
+import reprlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
@@ -30,14 +31,39 @@ _REQUIRED = object()
 __all__ = [
     "ConfigError", "load_yaml", "Num", "Str", "Bool", "Section", "Union", "Custom", "Node", "REQUIRED",
     "FilePath", "bind_paths", "check_num", "validate_fields", "validate_union", "file_check", "range_check", "optional_bool",
-    "schema_markdown",
+    "schema_markdown", "short_repr", "MAX_YAML_BYTES", "MAX_YAML_ALIASES", "MAX_YAML_NODES",
 ]
+
+#: an error message quotes at most this much of a value (a 2 MB list must not be echoed)
+_SHORT = reprlib.Repr()
+_SHORT.maxlevel, _SHORT.maxstring, _SHORT.maxother = 3, 60, 60
+_SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = _SHORT.maxset = 6
+#: errors listed by one ConfigError, and characters per error line
+MAX_ERRORS, MAX_ERROR_CHARS = 50, 1000
+
+
+def short_repr(value: Any) -> str:
+    """``repr`` of a value cut to a few dozen characters, in time independent
+    of the value's size: what an error message may echo of user input."""
+    try:
+        return _SHORT.repr(value)
+    except Exception:  # noqa: BLE001 - a repr must never turn an error into a traceback
+        return f"<{type(value).__name__}>"
+
+
+def _bounded(errors: list[str]) -> list[str]:
+    """At most :data:`MAX_ERRORS` lines of at most :data:`MAX_ERROR_CHARS` each."""
+    out = [e if len(e) <= MAX_ERROR_CHARS else e[:MAX_ERROR_CHARS - 1] + "…" for e in errors[:MAX_ERRORS]]
+    if len(errors) > MAX_ERRORS:
+        out.append(f"… and {len(errors) - MAX_ERRORS} more errors")
+    return out
+
 
 class ConfigError(BadInput):
     """One or more problems in a config; ``errors`` holds one line per problem."""
 
     def __init__(self, errors: list[str], source: str | None = None) -> None:
-        self.errors = list(errors)
+        self.errors = _bounded([str(e) for e in errors])
         self.source = source
         head = f"{source}: " if source else ""
         super().__init__(head + ("; ".join(self.errors) if len(self.errors) == 1 else f"{len(self.errors)} errors:\n  " + "\n  ".join(self.errors)))
@@ -45,8 +71,65 @@ class ConfigError(BadInput):
 
 # --------------------------------------------------------------------------
 # YAML loading
+#: the largest YAML file read: experiments, parameter sets, bench configs and
+#: dataset descriptions are 1-3 kB; 30 times that is no real experiment, and
+#: parsing it costs well under a second (a 2.6 MB one took a minute)
+MAX_YAML_BYTES = 64 * 1024
+#: aliases (``*name``) one file may use, and the nodes it may stand for once
+#: every alias is expanded: a few anchors are handy, a billion laughs is not
+MAX_YAML_ALIASES = 64
+MAX_YAML_NODES = 100_000
+
+
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys and reads 1e-3 as a float."""
+    """SafeLoader that rejects duplicate keys, reads 1e-3 as a float, and
+    refuses alias bombs (more than :data:`MAX_YAML_ALIASES` aliases, or a
+    document that expands to more than :data:`MAX_YAML_NODES` nodes) before
+    anything is constructed."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            self._aliases = getattr(self, "_aliases", 0) + 1
+            if self._aliases > MAX_YAML_ALIASES:
+                mark = self.peek_event().start_mark
+                raise yaml.composer.ComposerError(None, None, f"more than {MAX_YAML_ALIASES} aliases (*name): "
+                                                  f"refused (an alias bomb expands without end)", mark)
+        return super().compose_node(parent, index)
+
+    def compose_document(self) -> Any:
+        node = super().compose_document()
+        if getattr(self, "_aliases", 0) and _expanded_size(node) > MAX_YAML_NODES:
+            raise yaml.composer.ComposerError(None, None, f"expands to more than {MAX_YAML_NODES} nodes through "
+                                              f"its aliases: refused", node.start_mark)
+        return node
+
+
+def _expanded_size(root: yaml.Node) -> int:
+    """Nodes in the document with every alias expanded, without expanding
+    (each node's size is computed once); iterative (no recursion limit).
+    A recursive alias (``&a [1, *a]``, infinite once expanded) is refused."""
+    size: dict[int, int] = {}
+    entered: set[int] = set()
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        if id(node) in size:
+            continue
+        if not done and id(node) in entered:  # entered, not finished: one of its own ancestors
+            raise yaml.composer.ComposerError(None, None, "a recursive alias (a node that contains itself): "
+                                              "refused", node.start_mark)
+        entered.add(id(node))
+        kids: list[yaml.Node] = []
+        if isinstance(node, yaml.SequenceNode):
+            kids = list(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            kids = [n for pair in node.value for n in pair]
+        if done:
+            size[id(node)] = min(1 + sum(size.get(id(k), 1) for k in kids), MAX_YAML_NODES + 1)
+        else:
+            stack.append((node, True))
+            stack.extend((k, False) for k in kids if id(k) not in size)
+    return size[id(root)]
 
 
 def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
@@ -55,7 +138,7 @@ def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool
         key = loader.construct_object(key_node, deep=deep)
         if key in seen:
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r} (first at line {seen[key].start_mark.line + 1})", key_node.start_mark
+                None, None, f"duplicate key {short_repr(key)} (first at line {seen[key].start_mark.line + 1})", key_node.start_mark
             )
         seen[key] = key_node
     return loader.construct_mapping(node, deep=deep)
@@ -67,10 +150,6 @@ _StrictLoader.add_implicit_resolver(
     re.compile(r"^[-+]?(?:\d[\d_]*)?(?:\.\d*)?[eE][-+]?\d+$"),
     list("-+0123456789."),
 )
-
-
-#: the largest YAML file read (experiments, parameter sets, bench configs are a few kB)
-MAX_YAML_BYTES = 4 * MiB
 
 
 def load_yaml(path: str | Path) -> Any:
@@ -208,6 +287,11 @@ class Node:
     def __repr__(self) -> str:
         return f"Node({self.to_dict()!r})"
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickled whole (the reload's validating child hands its result back);
+        # without this, unpickling recurses through __getattr__
+        return (Node, (self._values,))
+
 
 def _path(prefix: str, key: str) -> str:
     return f"{prefix}.{key}" if prefix else key
@@ -217,18 +301,18 @@ def check_num(spec: Num, value: Any, path: str) -> tuple[Any, list[str]]:
     if value is None and spec.optional:
         return None, []
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None, [f"{path}: must be a number, got {value!r}"]
+        return None, [f"{path}: must be a number, got {short_repr(value)}"]
     if spec.integer and not (isinstance(value, int) or float(value).is_integer()):
-        return None, [f"{path}: must be a whole number, got {value!r}"]
+        return None, [f"{path}: must be a whole number, got {short_repr(value)}"]
     if not math.isfinite(float(value)):
-        return None, [f"{path}: must be finite, got {value!r}"]
+        return None, [f"{path}: must be finite, got {short_repr(value)}"]
     v = int(value) if spec.integer else float(value)
     lo, hi = spec.min, spec.max
     if lo is not None and (v <= lo if spec.min_exclusive else v < lo):
         rel = ">" if spec.min_exclusive else ">="
-        return None, [f"{path}: {value!r} out of range (must be {rel} {lo:g}{f' and <= {hi:g}' if hi is not None else ''})"]
+        return None, [f"{path}: {short_repr(value)} out of range (must be {rel} {lo:g}{f' and <= {hi:g}' if hi is not None else ''})"]
     if hi is not None and v > hi:
-        return None, [f"{path}: {value!r} out of range (must be <= {hi:g})"]
+        return None, [f"{path}: {short_repr(value)} out of range (must be <= {hi:g})"]
     return v, []
 
 
@@ -275,13 +359,13 @@ def validate_fields(fields_: Mapping[str, Any], data: Any, path: str) -> tuple[N
             if value is None and spec.optional:
                 v, errs = None, []
             elif not isinstance(value, str):
-                v, errs = None, [f"{kpath}: must be a string, got {value!r}"]
+                v, errs = None, [f"{kpath}: must be a string, got {short_repr(value)}"]
             elif spec.choices is not None and value not in spec.choices:
-                v, errs = None, [f"{kpath}: {value!r} not allowed (allowed: {', '.join(spec.choices)})"]
+                v, errs = None, [f"{kpath}: {short_repr(value)} not allowed (allowed: {', '.join(spec.choices)})"]
             else:
                 v, errs = value, []
         elif isinstance(spec, Bool):
-            v, errs = (value, []) if isinstance(value, bool) else (None, [f"{kpath}: must be true or false, got {value!r}"])
+            v, errs = (value, []) if isinstance(value, bool) else (None, [f"{kpath}: must be true or false, got {short_repr(value)}"])
         elif isinstance(spec, Custom):
             v, errs = spec.check(value, kpath)
         else:  # pragma: no cover - schema bug
@@ -309,7 +393,7 @@ def validate_union(spec: Union, data: Any, path: str, present: bool) -> tuple[No
             return Node({}), [f"{_path(path, spec.key)}: {why}"]
         return validate_fields({spec.key: Str(default=kind), **fields_}, data, path)
     if not isinstance(kind, str) or kind not in spec.variants:
-        return Node({}), [f"{_path(path, spec.key)}: {kind!r} not allowed (allowed: {', '.join(spec.variants)})"]
+        return Node({}), [f"{_path(path, spec.key)}: {short_repr(kind)} not allowed (allowed: {', '.join(spec.variants)})"]
     variant = {spec.key: Str(default=kind), **spec.variants[kind]}
     return validate_fields(variant, data, path)
 
@@ -322,7 +406,7 @@ REQUIRED = _REQUIRED
 def file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if not isinstance(value, str) or not value:
-            return None, [f"{path}: must be a file path, got {value!r}"]
+            return None, [f"{path}: must be a file path, got {short_repr(value)}"]
         p = Path(value)
         full = p if p.is_absolute() else base_dir / p
         if not full.exists():
@@ -339,20 +423,20 @@ def range_check(value: Any, path: str) -> tuple[Any, list[str]]:
     if value is None:
         return None, []
     if not isinstance(value, list) or len(value) != 2:
-        return None, [f"{path}: must be [lo, hi] or null, got {value!r}"]
+        return None, [f"{path}: must be [lo, hi] or null, got {short_repr(value)}"]
     lo, e1 = check_num(Num(), value[0], f"{path}[0]")
     hi, e2 = check_num(Num(), value[1], f"{path}[1]")
     if e1 or e2:
         return None, e1 + e2
     if not lo <= hi:
-        return None, [f"{path}: need lo <= hi, got {value!r}"]
+        return None, [f"{path}: need lo <= hi, got {short_repr(value)}"]
     return (lo, hi), []
 
 
 def optional_bool(value: Any, path: str) -> tuple[Any, list[str]]:
     if value is None or isinstance(value, bool):
         return value, []
-    return None, [f"{path}: must be true, false or null (probe), got {value!r}"]
+    return None, [f"{path}: must be true, false or null (probe), got {short_repr(value)}"]
 
 
 # --------------------------------------------------------------------------

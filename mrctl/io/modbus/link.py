@@ -144,6 +144,7 @@ class ModbusLink(Link):
         rtu_local_echo: bool = False,
         serial_kwargs: Mapping[str, Any] | None = None,
         spin_wait: bool = True,
+        gateway: bool = False,
     ) -> None:
         if transport is not None and transport != self.transport:
             raise ValueError(f"{type(self).__name__} is Modbus {self.transport.upper()}, not {transport!r}")
@@ -156,7 +157,7 @@ class ModbusLink(Link):
         self.register_map = rmap
         self.unit_id = rmap.unit_id
         self._configure(host=host, port=port, url=url, baudrate=baudrate, parity=parity, stopbits=stopbits,
-                        rtu_local_echo=rtu_local_echo, serial_kwargs=serial_kwargs)
+                        rtu_local_echo=rtu_local_echo, serial_kwargs=serial_kwargs, gateway=gateway)
         if timeout_s is not None and not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
         self._timeout_arg = timeout_s

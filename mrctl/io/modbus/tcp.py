@@ -23,15 +23,18 @@ __all__ = ["ModbusTcpLink"]
 
 
 class ModbusTcpLink(ModbusLink):
-    """Backend ``modbus-tcp``: ``host``, ``port`` (default 502); see :class:`ModbusLink`."""
+    """Backend ``modbus-tcp``: ``host``, ``port`` (default 502), ``gateway``
+    (the endpoint is a gateway: each unit id a device of its own, for the
+    ownership lock); see :class:`ModbusLink`."""
 
     kinds = ("modbus-tcp",)
     transport = "tcp"
 
-    def _configure(self, *, host: str | None, port: int, **_other: Any) -> None:
+    def _configure(self, *, host: str | None, port: int, gateway: bool = False, **_other: Any) -> None:
         if not host:
             raise ValueError("Modbus TCP needs host")
         self.host = host
+        self.gateway = bool(gateway)
         self.port = int(port)
         self.url: str | int | None = None
         self._tid = 0
@@ -39,10 +42,11 @@ class ModbusTcpLink(ModbusLink):
 
     @classmethod
     def _options(cls, cfg: Any) -> dict[str, Any]:
-        return {"host": cfg.host, "port": cfg.port}
+        return {"host": cfg.host, "port": cfg.port, "gateway": cfg.get("gateway", False)}
 
     def device_key(self) -> str | None:
-        return network_device_key("modbus-tcp", str(self.host), self.port, self.unit_id)
+        """The endpoint; per unit id only behind a gateway (a direct device answers any unit id)."""
+        return network_device_key("modbus-tcp", str(self.host), self.port, self.unit_id if self.gateway else None)
 
     def _default_timeout(self, fc23: bool) -> float:
         return float(self._timeout_arg) if self._timeout_arg is not None else DEFAULT_TCP_TIMEOUT_S
