@@ -38,36 +38,71 @@ def _load(config_path: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    """The offline closed loop. With ``--out``, the log's names (CSV and
+    sidecar) are taken before simulating and the sidecar is reserved at its
+    full size, as ``mrctl run`` does: on a full disk the final sidecar still
+    fits and records the loss (exit 4)."""
+    import contextlib
+    import os
+
     from mrctl.offline.simulate import run_duration, simulate, write_csv
     from mrctl.runlog import files
     from mrctl.runlog.format import sidecar_header
-    from mrctl.runlog.metrics import format_summary
     from mrctl.util.options import check_duration
 
     override = check_duration(args.duration)
-    if args.out:
+    if args.out is not None:
         files.check_log_path(args.out, args.force)  # before a long simulation, not after
     exp = _load(args.config)
     duration = run_duration(exp, override)
-    res = simulate(exp, duration)
-    s = res.summary
-    if args.out:
-        side = {**sidecar_header("simulate", Path(args.out).name, {
-                    "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
-                    "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
-                    "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
-                    "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
-                    "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
-                "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
-                "exit_code": 1 if res.fault is not None else 0, "summary": s,
-                "law_fault": str(res.fault) if res.fault is not None else None,
-                "notices": res.notices}
-        try:
-            write_csv(res, args.out, force=args.force)
-            files.write_json(files.sidecar_path(args.out), side)
-        except OSError as exc:
-            raise LogIncomplete(f"{exc.filename or args.out}: cannot write the run log: "
+    if args.out is None:
+        res = simulate(exp, duration)
+        return _simulated(args, exp, res)
+    side_path = files.sidecar_path(args.out)
+    head = sidecar_header("simulate", Path(args.out).name, {
+        "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
+        "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
+        "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
+        "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
+        "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1})
+    fh = files.create_log(args.out, args.force)  # both names are ours from here
+    try:
+        files.write_json(side_path, {**head, "complete": False}, reserve=files.SIDECAR_RESERVE_BYTES)
+        res = simulate(exp, duration)
+    except BaseException as exc:  # nothing simulated: nothing left behind
+        fh.close()
+        for q in (Path(args.out), side_path):
+            with contextlib.suppress(OSError):
+                os.unlink(q)
+        if isinstance(exc, OSError):
+            raise LogIncomplete(f"{exc.filename or side_path}: cannot write the run log: "
                                 f"{exc.strerror or exc}") from None
+        raise
+    s = res.summary
+    side = {**head, "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
+            "exit_code": 1 if res.fault is not None else 0, "summary": s,
+            "law_fault": str(res.fault) if res.fault is not None else None, "notices": res.notices}
+    try:
+        write_csv(res, args.out, fh=fh)
+    except OSError as exc:
+        err = f"{type(exc).__name__}: {exc.strerror or exc}"
+        with contextlib.suppress(OSError):  # the reservation: this fits on a full disk
+            files.write_json(side_path, {**side, "complete": False, "rows_written": None, "exit_code": 4,
+                                         "error": f"the CSV could not be written whole: {err}"})
+        raise LogIncomplete(f"{args.out}: cannot write the run log: {exc.strerror or exc}; the sidecar "
+                            f"{side_path} says so") from None
+    try:
+        files.write_json(side_path, side)
+    except OSError as exc:
+        raise LogIncomplete(f"{exc.filename or side_path}: cannot write the sidecar: {exc.strerror or exc}") from None
+    return _simulated(args, exp, res)
+
+
+def _simulated(args: argparse.Namespace, exp, res) -> int:
+    """What ``mrctl simulate`` prints after the run (and its exit code)."""
+    from mrctl.runlog.metrics import format_summary
+
+    s = res.summary
     law = exp.config.inverse.law
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
@@ -78,7 +113,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(format_ride(s))
     for note in res.notices:
         print(f"mrctl: {note}", file=sys.stderr)
-    if args.out:
+    if args.out is not None:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
@@ -89,7 +124,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report
 
-    make_report(args.runs, args.out, title=args.title)
+    make_report(args.runs, args.out, title=args.title, force=args.force)
     print(f"wrote {args.out}")
     return EXIT_OK
 
@@ -186,7 +221,8 @@ def cmd_exporter(args: argparse.Namespace) -> int:
     path = _status_path(args)
     server, thread = start(args.listen, path, args.instance)
     host, port = server.server_address[:2]
-    print(f"mrctl exporter: http://{host}:{port}/metrics, reading {path}", flush=True)
+    shown = f"[{host}]" if ":" in str(host) else host  # an IPv6 address is bracketed in a URL
+    print(f"mrctl exporter: http://{shown}:{port}/metrics, reading {path}", flush=True)
     try:
         while thread.is_alive():
             thread.join(1.0)
@@ -209,9 +245,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
     description (a lab's measured records, ``--dataset`` or a .yaml argument).
     Prints progress, the summary table, what was written. Errors are raised
     (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
-    exit 1, ReportError exit 2) for :func:`main`'s handler."""
-    from mrctl.errors import BadInput
-
+    exit 1, ReportError exit 2) for :func:`main`'s handler. Every output is
+    checked before the fit (docs/identification.md: an existing file only
+    with --force, never an input, never through a symlink) and written after
+    it, all or nothing."""
     runs = list(args.runs)
     dataset = args.dataset
     if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
@@ -225,37 +262,99 @@ def cmd_identify(args: argparse.Namespace) -> int:
         return _identify_dataset(args, dataset)
     if args.holdout is not None:
         raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
+    if args.data_dir is not None or args.allow_outside_paths:
+        raise BadInput("identify: --data-dir and --allow-outside-paths are for --dataset (run CSVs are named on "
+                       "the command line)")
     from mrctl.offline.identify import format_summary, identify_files
+    from mrctl.offline.identify.result import params_yaml_bytes
+    from mrctl.runlog.files import sidecar_path
 
     def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
         print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
 
     if args.period is not None and not args.period > 0:
         raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
-    result = identify_files(args.runs, args.out, method=args.method, progress=progress, period_s=args.period,
+    _check_identify_outputs(args, [q for r in runs for q in (r, sidecar_path(r))], summary=False)
+    result = identify_files(runs, None, method=args.method, progress=progress, period_s=args.period,
                             offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
-    print(format_summary(result))
-    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
+    items = [(args.out, params_yaml_bytes(result))]
     if args.report:
         from mrctl.offline.report import make_identification_report
 
-        make_identification_report(result, args.report)
+        items.append((args.report, make_identification_report(result, args.report, write=False)))
+    print(format_summary(result))
+    _write_identify_outputs(items, args.force)
+    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
+    if args.report:
         print(f"wrote {args.report}")
     return EXIT_OK
 
 
-def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
-    from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
+def _check_identify_outputs(args: argparse.Namespace, inputs: list, summary: bool) -> None:
+    """Refuse, before any fit, outputs that would destroy something: ``--out
+    x.json`` (the summary's name), two outputs with one name, an input, an
+    existing file without ``--force``."""
+    from mrctl.runlog.files import check_output_path
 
+    out = args.out
+    if not out:
+        raise BadInput("--out '': an empty name; give the parameters file to write (.yaml)")
+    if Path(out).suffix.lower() == ".json":
+        raise BadInput(f"--out {out}: the parameters file is YAML; a .json name is the summary's, written beside "
+                       "it (name it .yaml)")
+    outs = [(Path(out), "the parameters (--out)")]
+    if summary:
+        from mrctl.offline.identify import json_path
+
+        outs.append((json_path(out), f"the summary of {Path(out).name}"))
+    if args.report is not None:
+        from mrctl.offline.report import figure_format
+
+        if not args.report:
+            raise BadInput("--report '': an empty name; give the figure to write (.png, .pdf or .svg)")
+        figure_format(args.report)
+        outs.append((Path(args.report), "the figure (--report)"))
+    seen: dict[Path, str] = {}
+    for p, what in outs:
+        key = p.resolve()
+        if key in seen:
+            raise BadInput(f"{p}: {what} and {seen[key]} would be the same file; give them different names")
+        seen[key] = what
+        check_output_path(p, args.force, inputs=inputs, what=what)
+
+
+def _write_identify_outputs(items: list, force: bool) -> None:
+    from mrctl.offline.identify import IdentificationError
+    from mrctl.runlog.files import write_outputs
+
+    try:
+        write_outputs(items, force, mkdir=True)
+    except OSError as exc:
+        raise IdentificationError(f"{exc.filename or items[0][0]}: cannot write: {exc.strerror or exc}") from None
+
+
+def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
+    from mrctl.config.dataset import load_dataset
+    from mrctl.offline.identify import format_dataset_summary, identify_dataset
+    from mrctl.offline.identify.dataset_result import dataset_output_bytes
+
+    if args.data_dir is not None and not Path(args.data_dir).is_dir():
+        raise BadInput(f"--data-dir {args.data_dir}: not a directory")
+    ds = load_dataset(dataset, data_dir=args.data_dir, allow_outside=args.allow_outside_paths)
+    inputs = [dataset, *(f.path for f in ds.files or [])] + ([ds.manifest.path] if ds.manifest is not None else [])
+    _check_identify_outputs(args, inputs, summary=True)
     model = {"offset": False, "stiffness": False} if args.no_offset else None
-    res = identify_dataset_file(dataset, args.out, holdout=args.holdout, model=model,
-                                progress=not args.no_progress and sys.stderr.isatty())
-    print(format_dataset_summary(res))
-    print(f"wrote {args.out} and {json_path(args.out)} ({res.time_s:.1f} s)")
+    res = identify_dataset(ds, holdout=args.holdout, model=model, source=str(dataset),
+                           progress=not args.no_progress and sys.stderr.isatty())
+    items = dataset_output_bytes(res, args.out)
     if args.report:
         from mrctl.offline.identify_figure import make_dataset_report
 
-        make_dataset_report(res, args.report)
+        items.append((Path(args.report), make_dataset_report(res, args.report, write=False)))
+    print(format_dataset_summary(res))
+    _write_identify_outputs(items, args.force)
+    print(f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
+    if args.report:
         print(f"wrote {args.report}")
     return EXIT_OK
 
@@ -303,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
     rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
     rp.add_argument("--title", help="figure title (default: the run file names)")
+    rp.add_argument("--force", action="store_true", help="replace an existing figure")
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
@@ -359,6 +459,11 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--period", type=float, help="run CSVs: the excitation period (s), if it cannot be estimated")
     ip.add_argument("--no-offset", action="store_true", help="fit no force offset and stiffness (for comparison)")
     ip.add_argument("--no-progress", action="store_true", help="dataset: no progress bar")
+    ip.add_argument("--force", action="store_true", help="replace existing output files (never an input)")
+    ip.add_argument("--data-dir", metavar="DIR",
+                    help="dataset: data files must lie under DIR (default: the description's directory)")
+    ip.add_argument("--allow-outside-paths", action="store_true",
+                    help="dataset: read data files wherever the description points (trust the description)")
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
                     help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)

@@ -230,10 +230,7 @@ class Service:
         fh, self._log_fh = self._log_fh, None
         if fh is not None and self.opts.out:
             fh.close()
-            try:
-                os.unlink(self.opts.out)
-            except OSError:
-                pass
+            files.drop_log(self.opts.out)
 
     # -- start-up steps ----------------------------------------------------------
     def _check_link(self, exp: Experiment, link: Link) -> Experiment:
@@ -299,8 +296,7 @@ class Service:
                                     fmt=RUN_FORMATS, defer_format=host_paced, opener=lambda _p: fh,
                                     header=sidecar_header("run", Path(o.out).name, self._provenance()))
             except OSError as exc:
-                with contextlib.suppress(OSError):
-                    os.unlink(o.out)
+                files.drop_log(o.out)
                 raise LogIncomplete(f"{o.out}: cannot write the run log: {exc.strerror or exc}") from None
             ctl.record = self.rec.record
             if host_paced:

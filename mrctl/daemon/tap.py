@@ -352,7 +352,7 @@ def tap(path: str, out: BinaryIO, rows: int | None = None, columns: Sequence[str
         first = f.readline(1 << 16)
         try:
             head = json.loads(first.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
+        except (UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: '[' * 200 000
             head = None
         if not isinstance(head, dict):
             shown = first[:60].decode("utf-8", "replace").strip() or "nothing"

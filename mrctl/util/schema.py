@@ -92,6 +92,9 @@ def load_yaml(path: str | Path) -> Any:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError([f"{where}invalid YAML: {problem}"], str(p)) from None
+    except RecursionError:  # 200 000 '[': PyYAML's composer recurses per level
+        raise ConfigError(["invalid YAML: nested too deeply (lists or mappings inside each other hundreds of "
+                           "levels down); no config is"], str(p)) from None
 
 
 # --------------------------------------------------------------------------
