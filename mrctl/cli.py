@@ -134,6 +134,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from mrctl.daemon.service import RunOptions, run
 
+    if args.out is not None and not args.out.strip():
+        raise BadInput("--out '': an empty name would silently log nothing; give the run log's file name "
+                       "(or leave --out out for no log)")
+    if args.stream is not None and not args.stream.strip():
+        raise BadInput("--stream '': an empty URL would silently stream nothing; give udp://HOST:PORT "
+                       "(or leave --stream out)")
     out = time.strftime(args.out) if args.out and "%" in args.out else args.out
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
@@ -481,16 +487,32 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: the reader is gone, and Python's flush at
+    exit must not report a broken pipe."""
+    import os
+
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return code
     except MrctlError as exc:
         _err(str(exc))
         return int(exc.exit_code)
     except KeyboardInterrupt:
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
+    except BrokenPipeError:  # mrctl status | head: the reader has what it wanted
+        _quiet_stdout()
+        return EXIT_OK
     except OSError as exc:
         _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))
         return EXIT_FAILURE

@@ -53,10 +53,11 @@ class Record:
     fs: float = 0.0  # sample rate (Hz)
 
 
-def _read_bytes(path: Path, max_bytes: int = MAX_DATA_BYTES) -> bytes:
-    """A data file's bytes: a regular file, at most ``max_bytes`` (never /dev/zero or a FIFO)."""
+def _read_bytes(path: Path, max_bytes: int | None = None) -> bytes:
+    """A data file's bytes: a regular file, at most ``max_bytes`` (default
+    :data:`MAX_DATA_BYTES`; never /dev/zero or a FIFO)."""
     try:
-        return read_regular_file(path, max_bytes)
+        return read_regular_file(path, MAX_DATA_BYTES if max_bytes is None else max_bytes)
     except FileProblem as exc:
         raise IdentificationError(f"{path}: {exc}") from None
 
