@@ -10,14 +10,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 from mrctl import __version__
-from mrctl.errors import BadInput, ExitCode, LogIncomplete, MrctlError
-from mrctl.util.jsonutil import jsonable
+from mrctl.errors import BadInput, ExitCode, MrctlError
 
 EXIT_OK = ExitCode.OK
 EXIT_FAILURE = ExitCode.FAILURE
@@ -38,16 +36,10 @@ def _load(config_path: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """The offline closed loop. With ``--out``, the log's names (CSV and
-    sidecar) are taken before simulating and the sidecar is reserved at its
-    full size, as ``mrctl run`` does: on a full disk the final sidecar still
-    fits and records the loss (exit 4)."""
-    import contextlib
-    import os
-
-    from mrctl.offline.simulate import run_duration, simulate, write_csv
+    """The offline closed loop; ``--out``: :func:`mrctl.offline.simulate_log.simulate_logged`."""
+    from mrctl.offline.simulate import run_duration, simulate
+    from mrctl.offline.simulate_log import simulate_logged
     from mrctl.runlog import files
-    from mrctl.runlog.format import sidecar_header
     from mrctl.util.options import check_duration
 
     override = check_duration(args.duration)
@@ -55,55 +47,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         files.check_log_path(args.out, args.force)  # before a long simulation, not after
     exp = _load(args.config)
     duration = run_duration(exp, override)
-    if args.out is None:
-        res = simulate(exp, duration)
-        return _simulated(args, exp, res)
-    side_path = files.sidecar_path(args.out)
-    head = sidecar_header("simulate", Path(args.out).name, {
-        "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
-        "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
-        "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
-        "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
-        "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1})
-    fh = files.create_log(args.out, args.force)  # both names are ours from here
-    try:
-        files.write_json(side_path, {**head, "complete": False}, reserve=files.SIDECAR_RESERVE_BYTES)
-        res = simulate(exp, duration)
-    except BaseException as exc:  # nothing simulated: nothing left behind
-        fh.close()
-        for q in (Path(args.out), side_path):
-            with contextlib.suppress(OSError):
-                os.unlink(q)
-        if isinstance(exc, OSError):
-            raise LogIncomplete(f"{exc.filename or side_path}: cannot write the run log: "
-                                f"{exc.strerror or exc}") from None
-        raise
-    s = res.summary
-    side = {**head, "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
-            "exit_code": 1 if res.fault is not None else 0, "summary": s,
-            "law_fault": str(res.fault) if res.fault is not None else None, "notices": res.notices}
-    try:
-        write_csv(res, args.out, fh=fh)
-    except OSError as exc:
-        err = f"{type(exc).__name__}: {exc.strerror or exc}"
-        with contextlib.suppress(OSError):  # the reservation: this fits on a full disk
-            files.write_json(side_path, {**side, "complete": False, "rows_written": None, "exit_code": 4,
-                                         "error": f"the CSV could not be written whole: {err}"})
-        raise LogIncomplete(f"{args.out}: cannot write the run log: {exc.strerror or exc}; the sidecar "
-                            f"{side_path} says so") from None
-    try:
-        files.write_json(side_path, side)
-    except OSError as exc:
-        raise LogIncomplete(f"{exc.filename or side_path}: cannot write the sidecar: {exc.strerror or exc}") from None
+    res = simulate(exp, duration) if args.out is None else simulate_logged(exp, duration, args.out, args.config,
+                                                                           force=args.force)
     return _simulated(args, exp, res)
 
 
-def _simulated(args: argparse.Namespace, exp, res) -> int:
+def _simulated(args: argparse.Namespace, exp: Any, res: Any) -> int:
     """What ``mrctl simulate`` prints after the run (and its exit code)."""
     from mrctl.runlog.metrics import format_summary
 
-    s = res.summary
-    law = exp.config.inverse.law
+    s, law = res.summary, exp.config.inverse.law
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
     print(format_summary(s, exp.I_max))
@@ -134,12 +87,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from mrctl.daemon.service import RunOptions, run
 
-    if args.out is not None and not args.out.strip():
-        raise BadInput("--out '': an empty name would silently log nothing; give the run log's file name "
-                       "(or leave --out out for no log)")
-    if args.stream is not None and not args.stream.strip():
-        raise BadInput("--stream '': an empty URL would silently stream nothing; give udp://HOST:PORT "
-                       "(or leave --stream out)")
+    for opt, value in (("--out", args.out), ("--stream", args.stream)):
+        if value is not None and not value.strip():  # not a silent "off": leaving the option out is
+            raise BadInput(f"{opt} '': an empty value would silently turn it off; leave {opt} out for none")
     out = time.strftime(args.out) if args.out and "%" in args.out else args.out
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
@@ -251,10 +201,8 @@ def cmd_identify(args: argparse.Namespace) -> int:
     description (a lab's measured records, ``--dataset`` or a .yaml argument).
     Prints progress, the summary table, what was written. Errors are raised
     (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
-    exit 1, ReportError exit 2) for :func:`main`'s handler. Every output is
-    checked before the fit (docs/identification.md: an existing file only
-    with --force, never an input, never through a symlink) and written after
-    it, all or nothing."""
+    exit 1, ReportError exit 2) for :func:`main`'s handler. Outputs: checked
+    before the fit, written after it (:mod:`mrctl.offline.identify.outputs`)."""
     runs = list(args.runs)
     dataset = args.dataset
     if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
@@ -269,9 +217,9 @@ def cmd_identify(args: argparse.Namespace) -> int:
     if args.holdout is not None:
         raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
     if args.data_dir is not None or args.allow_outside_paths:
-        raise BadInput("identify: --data-dir and --allow-outside-paths are for --dataset (run CSVs are named on "
-                       "the command line)")
+        raise BadInput("identify: --data-dir and --allow-outside-paths are for --dataset (not run CSVs)")
     from mrctl.offline.identify import format_summary, identify_files
+    from mrctl.offline.identify.outputs import check_outputs, write_all
     from mrctl.offline.identify.result import params_yaml_bytes
     from mrctl.runlog.files import sidecar_path
 
@@ -280,7 +228,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
     if args.period is not None and not args.period > 0:
         raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
-    _check_identify_outputs(args, [q for r in runs for q in (r, sidecar_path(r))], summary=False)
+    check_outputs(args.out, args.report, [q for r in runs for q in (r, sidecar_path(r))], force=args.force)
     result = identify_files(runs, None, method=args.method, progress=progress, period_s=args.period,
                             offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
     items = [(args.out, params_yaml_bytes(result))]
@@ -289,66 +237,22 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
         items.append((args.report, make_identification_report(result, args.report, write=False)))
     print(format_summary(result))
-    _write_identify_outputs(items, args.force)
+    write_all(items, args.force)
     print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
     if args.report:
         print(f"wrote {args.report}")
     return EXIT_OK
 
 
-def _check_identify_outputs(args: argparse.Namespace, inputs: list, summary: bool) -> None:
-    """Refuse, before any fit, outputs that would destroy something: ``--out
-    x.json`` (the summary's name), two outputs with one name, an input, an
-    existing file without ``--force``."""
-    from mrctl.runlog.files import check_output_path
-
-    out = args.out
-    if not out:
-        raise BadInput("--out '': an empty name; give the parameters file to write (.yaml)")
-    if Path(out).suffix.lower() == ".json":
-        raise BadInput(f"--out {out}: the parameters file is YAML; a .json name is the summary's, written beside "
-                       "it (name it .yaml)")
-    outs = [(Path(out), "the parameters (--out)")]
-    if summary:
-        from mrctl.offline.identify import json_path
-
-        outs.append((json_path(out), f"the summary of {Path(out).name}"))
-    if args.report is not None:
-        from mrctl.offline.report import figure_format
-
-        if not args.report:
-            raise BadInput("--report '': an empty name; give the figure to write (.png, .pdf or .svg)")
-        figure_format(args.report)
-        outs.append((Path(args.report), "the figure (--report)"))
-    seen: dict[Path, str] = {}
-    for p, what in outs:
-        key = p.resolve()
-        if key in seen:
-            raise BadInput(f"{p}: {what} and {seen[key]} would be the same file; give them different names")
-        seen[key] = what
-        check_output_path(p, args.force, inputs=inputs, what=what)
-
-
-def _write_identify_outputs(items: list, force: bool) -> None:
-    from mrctl.offline.identify import IdentificationError
-    from mrctl.runlog.files import write_outputs
-
-    try:
-        write_outputs(items, force, mkdir=True)
-    except OSError as exc:
-        raise IdentificationError(f"{exc.filename or items[0][0]}: cannot write: {exc.strerror or exc}") from None
-
-
 def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
     from mrctl.config.dataset import load_dataset
     from mrctl.offline.identify import format_dataset_summary, identify_dataset
     from mrctl.offline.identify.dataset_result import dataset_output_bytes
+    from mrctl.offline.identify.outputs import check_outputs, write_all
 
-    if args.data_dir is not None and not Path(args.data_dir).is_dir():
-        raise BadInput(f"--data-dir {args.data_dir}: not a directory")
     ds = load_dataset(dataset, data_dir=args.data_dir, allow_outside=args.allow_outside_paths)
     inputs = [dataset, *(f.path for f in ds.files or [])] + ([ds.manifest.path] if ds.manifest is not None else [])
-    _check_identify_outputs(args, inputs, summary=True)
+    check_outputs(args.out, args.report, inputs, force=args.force, summary=True)
     model = {"offset": False, "stiffness": False} if args.no_offset else None
     res = identify_dataset(ds, holdout=args.holdout, model=model, source=str(dataset),
                            progress=not args.no_progress and sys.stderr.isatty())
@@ -358,7 +262,7 @@ def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
 
         items.append((Path(args.report), make_dataset_report(res, args.report, write=False)))
     print(format_dataset_summary(res))
-    _write_identify_outputs(items, args.force)
+    write_all(items, args.force)
     print(f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
     if args.report:
         print(f"wrote {args.report}")
@@ -487,17 +391,6 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _quiet_stdout() -> None:
-    """Point stdout at /dev/null: the reader is gone, and Python's flush at
-    exit must not report a broken pipe."""
-    import os
-
-    try:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    except (OSError, ValueError):
-        pass
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -510,8 +403,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
-    except BrokenPipeError:  # mrctl status | head: the reader has what it wanted
-        _quiet_stdout()
+    except BrokenPipeError:  # mrctl status | head: the reader has what it wanted; exit quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit: no complaint
         return EXIT_OK
     except OSError as exc:
         _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))

@@ -397,3 +397,13 @@ def test_identify_names_dev_zero_as_a_device(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "a character device" in err and "no such file" not in err
     np.testing.assert_equal(list(tmp_path.iterdir()), [tmp_path / "ds.yaml"])
+
+
+def test_a_demand_file_that_is_not_a_csv_is_not_echoed(tmp_path, capsys):
+    secret = tmp_path / "shadow"
+    secret.write_text("root:$6$SECRETHASH:19000:0:99999:7:::\n")
+    text = FIG5.read_text().replace("demand: {type: viscous, c_des: 500.0}", f"demand: {{type: file, path: {secret}}}")
+    (tmp_path / "x.yaml").write_text(text)
+    assert main(["check", str(tmp_path / "x.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "missing required column(s) t, F_des" in err and "SECRETHASH" not in err

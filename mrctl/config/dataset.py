@@ -336,6 +336,8 @@ def validate_dataset(data: Any, base_dir: Path, source: str | None = None, *, da
 def load_dataset(path: str | Path, *, data_dir: str | Path | None = None, allow_outside: bool = False) -> Node:
     """Load and validate a dataset description (YAML); data paths as :func:`validate_dataset`."""
     p = Path(path)
+    if data_dir is not None and not Path(data_dir).is_dir():
+        raise ConfigError([f"--data-dir {data_dir}: not a directory"], str(p))
     return validate_dataset(load_yaml(p), p.parent, str(p), data_dir=data_dir, allow_outside=allow_outside)
 
 
