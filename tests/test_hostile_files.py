@@ -306,6 +306,8 @@ def _serve_once(path: Path, reply: bytes) -> threading.Thread:
     def run() -> None:
         c, _ = srv.accept()
         try:
+            c.settimeout(5)
+            c.recv(65536)  # the client's request (or its shutdown): closing over unread bytes would reset it
             c.sendall(reply)
         except OSError:
             pass
@@ -407,3 +409,18 @@ def test_a_demand_file_that_is_not_a_csv_is_not_echoed(tmp_path, capsys):
     assert main(["check", str(tmp_path / "x.yaml")]) == 2
     err = capsys.readouterr().err
     assert "missing required column(s) t, F_des" in err and "SECRETHASH" not in err
+
+
+def test_outputs_without_hard_links_are_still_created_exclusively(tmp_path, monkeypatch):
+    """A filesystem without hard links (vfat): the name is created with O_EXCL instead."""
+    from mrctl.runlog.files import write_outputs
+
+    def no_link(*a, **k):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_link)
+    write_outputs([(tmp_path / "a.yaml", b"a")])
+    assert (tmp_path / "a.yaml").read_bytes() == b"a"
+    with pytest.raises(BadInput, match="appeared"):
+        write_outputs([(tmp_path / "a.yaml", b"b")])
+    assert (tmp_path / "a.yaml").read_bytes() == b"a" and sorted(p.name for p in tmp_path.iterdir()) == ["a.yaml"]

@@ -23,6 +23,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import stat
@@ -125,6 +126,10 @@ def write_outputs(items: Sequence[tuple[str | os.PathLike[str], bytes]], force: 
                         os.link(tmp, p, follow_symlinks=False)
                     except FileExistsError:
                         raise BadInput(f"{p}: appeared while writing; refusing to replace it (pass --force)") from None
+                    except OSError as exc:  # no hard links here (vfat, some FUSE): create it exclusively instead
+                        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EXDEV, errno.EMLINK, errno.ENOSYS):
+                            raise
+                        _create_whole(p, data)
             finally:
                 try:
                     os.unlink(tmp)
@@ -219,6 +224,22 @@ def write_json(path: str | os.PathLike[str], data: Mapping[str, Any], reserve: i
             raise
         return
     fsync_dir(p.parent)
+
+
+def _create_whole(p: Path, data: bytes) -> None:
+    """Create ``p`` exclusively (never through a symlink) with ``data``; removed again if the write fails."""
+    try:
+        fd = os.open(p, _CREATE, 0o644)
+    except FileExistsError:
+        raise BadInput(f"{p}: appeared while writing; refusing to replace it (pass --force)") from None
+    try:
+        _write_all(fd, data, 0)
+        os.fsync(fd)
+    except OSError:
+        os.close(fd)
+        os.unlink(p)
+        raise
+    os.close(fd)
 
 
 def _write_all(fd: int, data: bytes, offset: int) -> None:
