@@ -333,10 +333,18 @@ def d16_manifest_row_outside() -> tuple[bool, str]:
     return ok and "root:" not in r.err, d
 
 
-def d16_demand_file_echo() -> tuple[bool, str]:
+def d16_demand_file() -> tuple[bool, str]:
     text = FIG5.read_text().replace("demand: {type: viscous, c_des: 500.0}", "demand: {type: file, path: /etc/passwd}")
     Path("x.yaml").write_text(text)
     r = mrctl("check", "x.yaml")
+    ok, d = refused(r, "outside")
+    return ok and "root:" not in r.err, d
+
+
+def d16_demand_file_echo() -> tuple[bool, str]:
+    text = FIG5.read_text().replace("demand: {type: viscous, c_des: 500.0}", "demand: {type: file, path: /etc/passwd}")
+    Path("x.yaml").write_text(text)
+    r = mrctl("check", "x.yaml", "--allow-outside-paths")
     return r.code == 2 and r.clean and "root:" not in r.err, r.say()
 
 
@@ -503,7 +511,7 @@ def r1_excitation_dev_zero() -> tuple[bool, str]:
     text = FIG5.read_text().replace("excitation: {type: sine, amplitude_m: 0.010, frequency_hz: 1.0}",
                                     "excitation: {type: file, path: /dev/zero}")
     Path("x.yaml").write_text(text)
-    r = mrctl("check", "x.yaml")
+    r = mrctl("check", "x.yaml", "--allow-outside-paths")
     return r.code == 2 and r.clean and "/dev/zero" in r.err, r.say()
 
 
@@ -533,7 +541,8 @@ ATTACKS: list[Attack] = [
     ("D16", "dataset `files: [/etc/passwd]`", d16_etc_passwd),
     ("D16", "the same with --allow-outside-paths: contents not echoed", d16_etc_passwd_allowed),
     ("D16", "manifest row naming /etc/passwd", d16_manifest_row_outside),
-    ("D16", "`demand: {type: file, path: /etc/passwd}`: contents not echoed", d16_demand_file_echo),
+    ("D16", "`demand: {type: file, path: /etc/passwd}`", d16_demand_file),
+    ("D16", "the same with --allow-outside-paths: contents not echoed", d16_demand_file_echo),
     ("D10", "config of 200 000 `[`", d10_config),
     ("D10", "dataset with 200 000 `[`", d10_dataset),
     ("D10", "sidecar of 200 000 `[` (report)", d10_sidecar),
@@ -549,7 +558,7 @@ ATTACKS: list[Attack] = [
     ("D17", "`run --stream ''`", d17_empty_stream),
     ("round 1", "`run --out link.csv`, a symlink to another file", r1_log_symlink),
     ("round 1", "`simulate --out run.csv` over an existing log", r1_log_existing),
-    ("round 1", "`excitation: {type: file, path: /dev/zero}`", r1_excitation_dev_zero),
+    ("round 1", "`excitation: {type: file, path: /dev/zero}` (with --allow-outside-paths)", r1_excitation_dev_zero),
 ]
 
 

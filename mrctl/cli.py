@@ -28,11 +28,11 @@ def _err(msg: str) -> None:
     Journal(sys.stderr).log(ERR, msg)  # <3> first when stderr is the journal (a unit's ExecStartPre=)
 
 
-def _load(config_path: str):
+def _load(args: argparse.Namespace) -> Any:
     from mrctl.config import load_experiment
     from mrctl.experiment import build
 
-    return build(load_experiment(config_path))
+    return build(load_experiment(args.config, allow_outside=args.allow_outside_paths))
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -45,7 +45,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     override = check_duration(args.duration)
     if args.out is not None:
         files.check_log_path(args.out, args.force)  # before a long simulation, not after
-    exp = _load(args.config)
+    exp = _load(args)
     duration = run_duration(exp, override)
     res = simulate(exp, duration) if args.out is None else simulate_logged(exp, duration, args.out, args.config,
                                                                            force=args.force)
@@ -95,7 +95,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
                           status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
                           stream_every=args.stream_every, stream_columns=columns,
-                          log_priorities=True if args.log_priorities else None))
+                          log_priorities=True if args.log_priorities else None,
+                          allow_outside_paths=args.allow_outside_paths))
 
 
 def _columns(text: str, option: str) -> tuple[str, ...]:
@@ -197,76 +198,10 @@ def cmd_examples(args: argparse.Namespace) -> int:
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    """Run CSVs (mrctl's own logs of constant-current steps) or a dataset
-    description (a lab's measured records, ``--dataset`` or a .yaml argument).
-    Prints progress, the summary table, what was written. Errors are raised
-    (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
-    exit 1, ReportError exit 2) for :func:`main`'s handler. Outputs: checked
-    before the fit, written after it (:mod:`mrctl.offline.identify.outputs`)."""
-    runs = list(args.runs)
-    dataset = args.dataset
-    if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
-        dataset, runs = runs[0], []
-    if dataset is not None:
-        if runs:
-            raise BadInput("identify: give run CSVs or --dataset, not both")
-        if args.period is not None or args.method != "trf":
-            raise BadInput("identify: --period and --method are for run CSVs; a dataset's segments have their own "
-                           "period")
-        return _identify_dataset(args, dataset)
-    if args.holdout is not None:
-        raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
-    if args.data_dir is not None or args.allow_outside_paths:
-        raise BadInput("identify: --data-dir and --allow-outside-paths are for --dataset (not run CSVs)")
-    from mrctl.offline.identify import format_summary, identify_files
-    from mrctl.offline.identify.outputs import check_outputs, write_all
-    from mrctl.offline.identify.result import params_yaml_bytes
-    from mrctl.runlog.files import sidecar_path
+    """Run CSVs or a dataset description (:mod:`mrctl.offline.identify_command`)."""
+    from mrctl.offline.identify_command import identify_command
 
-    def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
-        print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
-
-    if args.period is not None and not args.period > 0:
-        raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
-    check_outputs(args.out, args.report, [q for r in runs for q in (r, sidecar_path(r))], force=args.force)
-    result = identify_files(runs, None, method=args.method, progress=progress, period_s=args.period,
-                            offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
-    items = [(args.out, params_yaml_bytes(result))]
-    if args.report:
-        from mrctl.offline.report import make_identification_report
-
-        items.append((args.report, make_identification_report(result, args.report, write=False)))
-    print(format_summary(result))
-    write_all(items, args.force)
-    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
-    if args.report:
-        print(f"wrote {args.report}")
-    return EXIT_OK
-
-
-def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
-    from mrctl.config.dataset import load_dataset
-    from mrctl.offline.identify import format_dataset_summary, identify_dataset
-    from mrctl.offline.identify.dataset_result import dataset_output_bytes
-    from mrctl.offline.identify.outputs import check_outputs, write_all
-
-    ds = load_dataset(dataset, data_dir=args.data_dir, allow_outside=args.allow_outside_paths)
-    inputs = [dataset, *(f.path for f in ds.files or [])] + ([ds.manifest.path] if ds.manifest is not None else [])
-    check_outputs(args.out, args.report, inputs, force=args.force, summary=True)
-    model = {"offset": False, "stiffness": False} if args.no_offset else None
-    res = identify_dataset(ds, holdout=args.holdout, model=model, source=str(dataset),
-                           progress=not args.no_progress and sys.stderr.isatty())
-    items = dataset_output_bytes(res, args.out)
-    if args.report:
-        from mrctl.offline.identify_figure import make_dataset_report
-
-        items.append((Path(args.report), make_dataset_report(res, args.report, write=False)))
-    print(format_dataset_summary(res))
-    write_all(items, args.force)
-    print(f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
-    if args.report:
-        print(f"wrote {args.report}")
-    return EXIT_OK
+    return identify_command(args)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -279,7 +214,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         if not args.laws:
             _err("check: give an experiment YAML (or --laws)")
         return EXIT_OK if args.laws else EXIT_BAD_INPUT
-    exp = _load(args.config)
+    exp = _load(args)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
     if wire is not None:
@@ -296,6 +231,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _outside_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-outside-paths", action="store_true", help="read data files (a demand or excitation "
+                   "series, a dataset's records) outside the config's or description's directory")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
     ap.add_argument("--version", action="version", version=f"mrctl {__version__}")
@@ -306,6 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
     sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
+    _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 
     rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops")
@@ -329,6 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--stream-columns", metavar="COLS", help="comma-separated run-log columns to stream (default all)")
     rn.add_argument("--log-priorities", action="store_true",
                     help="prefix warnings and errors with <4>/<3> (default: when stderr is the journal)")
+    _outside_option(rn)
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="live state of a running mrctl")
@@ -372,8 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--force", action="store_true", help="replace existing output files (never an input)")
     ip.add_argument("--data-dir", metavar="DIR",
                     help="dataset: data files must lie under DIR (default: the description's directory)")
-    ip.add_argument("--allow-outside-paths", action="store_true",
-                    help="dataset: read data files wherever the description points (trust the description)")
+    _outside_option(ip)
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
                     help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
@@ -381,6 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
     cp.add_argument("config", nargs="?")
     cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
+    _outside_option(cp)
     cp.set_defaults(func=cmd_check)
 
     ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")

@@ -424,3 +424,21 @@ def test_outputs_without_hard_links_are_still_created_exclusively(tmp_path, monk
     with pytest.raises(BadInput, match="appeared"):
         write_outputs([(tmp_path / "a.yaml", b"b")])
     assert (tmp_path / "a.yaml").read_bytes() == b"a" and sorted(p.name for p in tmp_path.iterdir()) == ["a.yaml"]
+
+
+def test_demand_and_excitation_files_stay_under_the_config_unless_allowed(tmp_path, capsys):
+    series = tmp_path / "elsewhere" / "f.csv"
+    series.parent.mkdir()
+    series.write_text("t,F_des\n0,0\n1,10\n")
+    cfg_dir = tmp_path / "cfg"
+    cfg_dir.mkdir()
+    text = FIG5.read_text().replace("demand: {type: viscous, c_des: 500.0}", f"demand: {{type: file, path: {series}}}")
+    (cfg_dir / "x.yaml").write_text(text)
+    assert main(["check", str(cfg_dir / "x.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "demand.path" in err and "outside" in err and "--allow-outside-paths" in err
+    assert main(["check", str(cfg_dir / "x.yaml"), "--allow-outside-paths"]) == 0
+    (cfg_dir / "y.yaml").write_text(FIG5.read_text().replace(
+        "excitation: {type: sine, amplitude_m: 0.010, frequency_hz: 1.0}", "excitation: {type: file, path: ../e.csv}"))
+    assert main(["simulate", str(cfg_dir / "y.yaml"), "--duration", "0.1"]) == 2
+    assert "excitation.path" in capsys.readouterr().err

@@ -91,6 +91,7 @@ class RunOptions:
     stream_every: int | None = None
     stream_columns: tuple[str, ...] | None = None
     log_priorities: bool | None = None  # <N> prefixes on stderr; None: when stderr is the journal
+    allow_outside_paths: bool = False  # data files outside the config's directory (--allow-outside-paths)
 
 
 class Service:
@@ -158,7 +159,7 @@ class Service:
         o = self.opts
         # everything the user gave is checked before the device is touched
         override = check_duration(o.duration_s, "--duration")
-        exp = self.exp = build(load_experiment(o.config_path))
+        exp = self.exp = build(load_experiment(o.config_path, allow_outside=o.allow_outside_paths))
         self.loaded = exp.config
         duration = override if override is not None else exp.config.duration_s
         if o.out:
@@ -382,7 +383,7 @@ class Service:
         rate the loop actually runs."""
         assert self.exp is not None and self.ctl is not None and self.loaded is not None
         try:
-            new = build(load_experiment(self.opts.config_path))
+            new = build(load_experiment(self.opts.config_path, allow_outside=self.opts.allow_outside_paths))
             changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
                                    "sensing", "stream")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]
