@@ -239,7 +239,8 @@ def d8_same_stem() -> tuple[bool, str]:
     side = json.loads(Path("run.json").read_text()) if Path("run.json").exists() else {}
     ok = sorted(codes) == [0, 2] and side.get("complete") is True and all("Traceback" not in e for e in errs)
     loser = errs[codes.index(2)].strip().splitlines()[-1].replace(os.getcwd(), "WORK") if 2 in codes else "-"
-    return ok, f"exits {codes[0]}/{codes[1]}; the refused one: \"{loser[:110]}\"; run.json complete: {side.get('complete')}"
+    return ok, (f"exits {codes[0]}/{codes[1]}; the refused one: \"{loser[:110]}\"; "
+                f"run.json complete: {side.get('complete')}")
 
 
 def d18_simulate_full_disk() -> tuple[bool, str]:
@@ -480,7 +481,8 @@ def d17_status_pipe() -> tuple[bool, str]:
         p.kill()
         code = None
     err = p.stderr.read().decode(errors="replace")
-    return code == 0 and "Broken pipe" not in err and "Traceback" not in err, f"exit {code}, stderr {err.strip()[:80]!r}"
+    ok = code == 0 and "Broken pipe" not in err and "Traceback" not in err
+    return ok, f"exit {code}, stderr {err.strip()[:80]!r}"
 
 
 def d17_empty_out() -> tuple[bool, str]:
@@ -567,6 +569,7 @@ def all_attacks() -> list[Attack]:
     attacks = list(ATTACKS)
     loop = Path(__file__).with_name("hostile_loop.py")
     if loop.exists():
+        sys.path.insert(0, str(loop.parent))  # it may import this module's helpers (import hostile)
         spec = importlib.util.spec_from_file_location("hostile_loop", loop)
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)

@@ -276,7 +276,8 @@ def test_data_paths_stay_under_the_description_and_errors_do_not_echo_contents(b
     (d / "r.csv").write_text("t,x,F\n0,0,0\n")
     (d / "m.csv").write_text(f"file,level\n{secret},0.5\n")
     (d / "man.yaml").write_text("version: 1\nprotocol: constant_input\ncolumns: {time: t, displacement: x, "
-                                "force: F}\nmodel: {stiffness: false}\nmanifest: {path: m.csv, file: file, level: level}\n")
+                                "force: F}\nmodel: {stiffness: false}\n"
+                                "manifest: {path: m.csv, file: file, level: level}\n")
     assert _ident(d / "man.yaml", d / "P.yaml") == 2
     err = capsys.readouterr().err
     assert "outside" in err and "SECRETHASH" not in err

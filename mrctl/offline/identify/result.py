@@ -23,7 +23,8 @@ from mrctl.offline.identify.fit import _WELL_REL_SE, _WELL_SENS
 from mrctl.offline.identify.laws import LawFit
 from mrctl.offline.identify.model import THETA_NAMES
 
-__all__ = ["CurrentFit", "IdentificationResult", "result_metadata", "write_params_yaml", "params_yaml_bytes", "format_summary"]
+__all__ = ["CurrentFit", "IdentificationResult", "result_metadata", "write_params_yaml", "params_yaml_bytes",
+           "format_summary"]
 
 
 @dataclass
