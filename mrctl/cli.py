@@ -10,15 +10,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 from mrctl import __version__
 from mrctl.build import build_notice, tick_build
-from mrctl.errors import BadInput, ExitCode, LogIncomplete, MrctlError
-from mrctl.util.jsonutil import jsonable
+from mrctl.errors import BadInput, ExitCode, MrctlError
 
 EXIT_OK = ExitCode.OK
 EXIT_FAILURE = ExitCode.FAILURE
@@ -31,45 +29,35 @@ def _err(msg: str) -> None:
     Journal(sys.stderr).log(ERR, msg)  # <3> first when stderr is the journal (a unit's ExecStartPre=)
 
 
-def _load(config_path: str):
+def _load(args: argparse.Namespace) -> Any:
     from mrctl.config import load_experiment
     from mrctl.experiment import build
 
-    return build(load_experiment(config_path))
+    return build(load_experiment(args.config, allow_outside=args.allow_outside_paths))
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from mrctl.offline.simulate import run_duration, simulate, write_csv
+    """The offline closed loop; ``--out``: :func:`mrctl.offline.simulate_log.simulate_logged`."""
+    from mrctl.offline.simulate import run_duration, simulate
+    from mrctl.offline.simulate_log import simulate_logged
     from mrctl.runlog import files
-    from mrctl.runlog.format import sidecar_header
-    from mrctl.runlog.metrics import format_summary
     from mrctl.util.options import check_duration
 
     override = check_duration(args.duration)
-    if args.out:
+    if args.out is not None:
         files.check_log_path(args.out, args.force)  # before a long simulation, not after
-    exp = _load(args.config)
+    exp = _load(args)
     duration = run_duration(exp, override)
-    res = simulate(exp, duration)
-    s = res.summary
-    if args.out:
-        side = {**sidecar_header("simulate", Path(args.out).name, {
-                    "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(),
-                    "host": platform.node(), "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
-                    "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
-                    "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
-                    "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
-                "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
-                "exit_code": 1 if res.fault is not None else 0, "summary": s,
-                "law_fault": str(res.fault) if res.fault is not None else None,
-                "notices": res.notices}
-        try:
-            write_csv(res, args.out, force=args.force)
-            files.write_json(files.sidecar_path(args.out), side)
-        except OSError as exc:
-            raise LogIncomplete(f"{exc.filename or args.out}: cannot write the run log: "
-                                f"{exc.strerror or exc}") from None
-    law = exp.config.inverse.law
+    res = simulate(exp, duration) if args.out is None else simulate_logged(exp, duration, args.out, args.config,
+                                                                           force=args.force)
+    return _simulated(args, exp, res)
+
+
+def _simulated(args: argparse.Namespace, exp: Any, res: Any) -> int:
+    """What ``mrctl simulate`` prints after the run (and its exit code)."""
+    from mrctl.runlog.metrics import format_summary
+
+    s, law = res.summary, exp.config.inverse.law
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
     print(format_summary(s, exp.I_max))
@@ -79,7 +67,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(format_ride(s))
     for note in res.notices:
         print(f"mrctl: {note}", file=sys.stderr)
-    if args.out:
+    if args.out is not None:
         print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
@@ -90,7 +78,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report
 
-    make_report(args.runs, args.out, title=args.title)
+    make_report(args.runs, args.out, title=args.title, force=args.force)
     print(f"wrote {args.out}")
     return EXIT_OK
 
@@ -100,12 +88,16 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from mrctl.daemon.service import RunOptions, run
 
+    for opt, value in (("--out", args.out), ("--stream", args.stream)):
+        if value is not None and not value.strip():  # not a silent "off": leaving the option out is
+            raise BadInput(f"{opt} '': an empty value would silently turn it off; leave {opt} out for none")
     out = time.strftime(args.out) if args.out and "%" in args.out else args.out
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
                           status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
                           stream_every=args.stream_every, stream_columns=columns,
-                          log_priorities=True if args.log_priorities else None))
+                          log_priorities=True if args.log_priorities else None,
+                          allow_outside_paths=args.allow_outside_paths))
 
 
 def _columns(text: str, option: str) -> tuple[str, ...]:
@@ -187,7 +179,8 @@ def cmd_exporter(args: argparse.Namespace) -> int:
     path = _status_path(args)
     server, thread = start(args.listen, path, args.instance)
     host, port = server.server_address[:2]
-    print(f"mrctl exporter: http://{host}:{port}/metrics, reading {path}", flush=True)
+    shown = f"[{host}]" if ":" in str(host) else host  # an IPv6 address is bracketed in a URL
+    print(f"mrctl exporter: http://{shown}:{port}/metrics, reading {path}", flush=True)
     try:
         while thread.is_alive():
             thread.join(1.0)
@@ -206,59 +199,10 @@ def cmd_examples(args: argparse.Namespace) -> int:
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    """Run CSVs (mrctl's own logs of constant-current steps) or a dataset
-    description (a lab's measured records, ``--dataset`` or a .yaml argument).
-    Prints progress, the summary table, what was written. Errors are raised
-    (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
-    exit 1, ReportError exit 2) for :func:`main`'s handler."""
-    from mrctl.errors import BadInput
+    """Run CSVs or a dataset description (:mod:`mrctl.offline.identify_command`)."""
+    from mrctl.offline.identify_command import identify_command
 
-    runs = list(args.runs)
-    dataset = args.dataset
-    if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
-        dataset, runs = runs[0], []
-    if dataset is not None:
-        if runs:
-            raise BadInput("identify: give run CSVs or --dataset, not both")
-        if args.period is not None or args.method != "trf":
-            raise BadInput("identify: --period and --method are for run CSVs; a dataset's segments have their own "
-                           "period")
-        return _identify_dataset(args, dataset)
-    if args.holdout is not None:
-        raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
-    from mrctl.offline.identify import format_summary, identify_files
-
-    def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
-        print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
-
-    if args.period is not None and not args.period > 0:
-        raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
-    result = identify_files(args.runs, args.out, method=args.method, progress=progress, period_s=args.period,
-                            offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
-    print(format_summary(result))
-    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
-    if args.report:
-        from mrctl.offline.report import make_identification_report
-
-        make_identification_report(result, args.report)
-        print(f"wrote {args.report}")
-    return EXIT_OK
-
-
-def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
-    from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
-
-    model = {"offset": False, "stiffness": False} if args.no_offset else None
-    res = identify_dataset_file(dataset, args.out, holdout=args.holdout, model=model,
-                                progress=not args.no_progress and sys.stderr.isatty())
-    print(format_dataset_summary(res))
-    print(f"wrote {args.out} and {json_path(args.out)} ({res.time_s:.1f} s)")
-    if args.report:
-        from mrctl.offline.identify_figure import make_dataset_report
-
-        make_dataset_report(res, args.report)
-        print(f"wrote {args.report}")
-    return EXIT_OK
+    return identify_command(args)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -271,7 +215,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         if not args.laws:
             _err("check: give an experiment YAML (or --laws)")
         return EXIT_OK if args.laws else EXIT_BAD_INPUT
-    exp = _load(args.config)
+    exp = _load(args)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
     if wire is not None:
@@ -289,6 +233,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _outside_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-outside-paths", action="store_true", help="read data files (a demand or excitation "
+                   "series, a dataset's records) outside the config's or description's directory")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
     ap.add_argument("--version", action="version", version=f"mrctl {__version__} ({tick_build()})")
@@ -299,12 +248,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
     sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
+    _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 
     rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops")
     rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
     rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
     rp.add_argument("--title", help="figure title (default: the run file names)")
+    rp.add_argument("--force", action="store_true", help="replace an existing figure")
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
@@ -321,6 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--stream-columns", metavar="COLS", help="comma-separated run-log columns to stream (default all)")
     rn.add_argument("--log-priorities", action="store_true",
                     help="prefix warnings and errors with <4>/<3> (default: when stderr is the journal)")
+    _outside_option(rn)
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="live state of a running mrctl")
@@ -362,6 +314,10 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--period", type=float, help="run CSVs: the excitation period (s), if it cannot be estimated")
     ip.add_argument("--no-offset", action="store_true", help="fit no force offset and stiffness (for comparison)")
     ip.add_argument("--no-progress", action="store_true", help="dataset: no progress bar")
+    ip.add_argument("--force", action="store_true", help="replace existing output files (never an input)")
+    ip.add_argument("--data-dir", metavar="DIR",
+                    help="dataset: data files must lie under DIR (default: the description's directory)")
+    _outside_option(ip)
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
                     help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
@@ -369,6 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
     cp.add_argument("config", nargs="?")
     cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
+    _outside_option(cp)
     cp.set_defaults(func=cmd_check)
 
     ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")
@@ -396,7 +353,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             notice = build_notice()  # the compiled tick was wanted but not built at install
             if notice is not None:
                 print(notice, file=sys.stderr)
-        return int(args.func(args))
+        code = int(args.func(args))
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return code
     except MrctlError as exc:
         _err(str(exc))
         return int(exc.exit_code)
@@ -406,6 +365,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_OK
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
+    except BrokenPipeError:  # mrctl status | head: the reader has what it wanted; exit quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit: no complaint
+        return EXIT_OK
     except OSError as exc:
         _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))
         return EXIT_FAILURE

@@ -7,7 +7,10 @@ constant-input tests, which records or how much of each to hold out. The
 schema is validated like an experiment file (every error with its key path,
 all at once) and generates the reference table in docs/identification.md
 (``python -m mrctl.config.dataset``). Relative paths resolve against the
-dataset file's directory. Reading the data is :mod:`mrctl.offline.identify`'s.
+dataset file's directory. Data paths must stay under the dataset file's
+directory (or the ``--data-dir`` given) unless ``allow_outside``: a
+description from elsewhere cannot make identify read ``/etc/shadow``.
+Reading the data is :mod:`mrctl.offline.identify`'s.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from mrctl.config.params import INPUT_KINDS
+from mrctl.util.files import not_regular
 from mrctl.util.schema import (
     Bool,
     ConfigError,
@@ -31,14 +35,16 @@ from mrctl.util.schema import (
     validate_fields,
 )
 
-__all__ = ["DATASET_VERSION", "PROTOCOLS", "COLUMN_ROLES", "dataset_schema", "validate_dataset", "load_dataset",
-           "dataset_markdown"]
+__all__ = ["DATASET_VERSION", "PROTOCOLS", "COLUMN_ROLES", "MAX_RATE_HZ", "dataset_schema", "validate_dataset",
+           "load_dataset", "outside_message", "dataset_markdown"]
 
 DATASET_VERSION = 1
 PROTOCOLS = ("constant_input", "broadband")
 #: the columns a record may give, and the SI unit each is scaled to
 COLUMN_ROLES = {"time": "s", "displacement": "m", "velocity": "m/s", "force": "N", "input": "A or V"}
 ROLES = ("fit", "holdout")
+#: the highest sample rate a description may give (Hz): far above any DAQ, far below overflow
+MAX_RATE_HZ = 1e7
 
 
 def _column(value: Any, path: str) -> tuple[Any, list[str]]:
@@ -118,7 +124,7 @@ def _file_entry_fields() -> dict[str, Any]:
     }
 
 
-def _files_check(base_dir: Path):
+def _files_check(base_dir: Path, root: Path | None):
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if value is None:
             return [], []
@@ -131,7 +137,7 @@ def _files_check(base_dir: Path):
                 entry = {"path": entry}
             node, errs = validate_fields(_file_entry_fields(), entry, p)
             if not errs:
-                full, errs = _resolve(node.path, base_dir, p)
+                full, errs = _resolve(node.path, base_dir, p, root)
                 node = node.replace(path=full) if full else node
                 if node.level is not None and node.levels:
                     errs.append(f"{p}: give level (whole file) or levels (per segment), not both")
@@ -143,22 +149,46 @@ def _files_check(base_dir: Path):
     return check
 
 
-def _resolve(value: str, base_dir: Path, path: str) -> tuple[str | None, list[str]]:
-    """``value`` resolved against base_dir, or an error naming the missing file or directory."""
+def _outside(full: Path, root: Path | None) -> bool:
+    if root is None:
+        return False
+    try:
+        full.resolve().relative_to(root.resolve())
+    except ValueError:
+        return True
+    return False
+
+
+def outside_message(key: str, full: Path, root: Path) -> str:
+    """The error for a data path that leaves ``root`` (the same for files and manifest rows)."""
+    return (f"{key}: {full.resolve()} is outside {root.resolve()}, the directory data must stay in; give "
+            "--data-dir DIR (its directory) or --allow-outside-paths if you trust this description")
+
+
+def _resolve(value: str, base_dir: Path, path: str, root: Path | None = None) -> tuple[str | None, list[str]]:
+    """``value`` resolved against base_dir, or an error naming the missing
+    file or directory, or one outside ``root`` (checked first: nothing is
+    said about a file outside)."""
     raw = Path(value)
     full = raw if raw.is_absolute() else (base_dir / raw)
-    if not full.is_file():
+    if _outside(full, root):
+        assert root is not None
+        return None, [outside_message(f"{path}.path", full, root)]
+    kind = not_regular(full)
+    if kind == "missing":
         parent = full.parent
         if not parent.is_dir():
             return None, [f"{path}.path: no such directory {parent.resolve()} (for {raw}): the data is not part "
                           "of mrctl; check the path relative to the dataset file, or where the data is stored"]
-        if full.is_dir():
-            return None, [f"{path}.path: {full.resolve()} is a directory, not a data file"]
         return None, [f"{path}.path: no such file: {full.resolve()}"]
+    if kind == "a directory":
+        return None, [f"{path}.path: {full.resolve()} is a directory, not a data file"]
+    if kind is not None:
+        return None, [f"{path}.path: {full.resolve()} is not a regular file ({kind}); a data file is"]
     return str(full.resolve()), []
 
 
-def _manifest_check(base_dir: Path):
+def _manifest_check(base_dir: Path, root: Path | None):
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if value is None:
             return None, []
@@ -168,15 +198,25 @@ def _manifest_check(base_dir: Path):
             "level": Str(doc="its column with each file's constant input level"),
         }, value, path)
         if not errors:
-            full, errors = _resolve(node.path, base_dir, path)
-            node = node.replace(path=full) if full else node
+            full, errors = _resolve(node.path, base_dir, path, root)
+            if full:  # its rows are held to the same root (mrctl.offline.identify.records)
+                node = Node({**node.to_dict(), "path": full, "root": str(root.resolve()) if root else None})
         return (node if not errors else None), errors
 
     return check
 
 
-def dataset_schema(base_dir: Path) -> dict[str, Any]:
-    """The dataset schema; relative paths resolve against ``base_dir``."""
+def _delimiter(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None:
+        return ",", []
+    if not isinstance(value, str) or len(value) != 1 or value in "\r\n\"":
+        return None, [f"{path}: must be one character (',' ';' '\\t' ...), got {value!r}"[:200]]
+    return value, []
+
+
+def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
+    """The dataset schema; relative paths resolve against ``base_dir`` and
+    must stay under ``root`` (None: anywhere)."""
     return {
         "version": Num(integer=True, min=DATASET_VERSION, max=DATASET_VERSION, doc="format version (1)"),
         "name": Str(default=None, optional=True, doc="dataset name (tables, figure titles)"),
@@ -199,20 +239,20 @@ def dataset_schema(base_dir: Path) -> dict[str, Any]:
         "format": Section({
             "type": Str(default=None, optional=True, choices=("csv", "mat"),
                         doc="file format; null = by extension (.mat is MATLAB, anything else CSV)"),
-            "delimiter": Str(default=",", doc="CSV field separator"),
+            "delimiter": Custom(_delimiter, default=",", doc="CSV field separator (one character)"),
         }, doc="how to read the files"),
-        "sample_rate_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+        "sample_rate_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=MAX_RATE_HZ,
                               doc="sample rate; when set, time is rebuilt as t0 + k/rate (for rounded or missing "
                                   "time columns)"),
-        "resample_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+        "resample_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=MAX_RATE_HZ,
                            doc="fit at this rate (anti-aliased decimation of faster records); null = the lowest "
                                "integer division of the rate at or above max(20 × motion_band_hz, 500 Hz)"),
-        "motion_band_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True,
+        "motion_band_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=MAX_RATE_HZ,
                               doc="highest frequency of the motion; sets the resample rate and the velocity "
                                   "differentiator's window; null = estimated from the displacement or velocity"),
-        "files": Custom(_files_check(base_dir), default=None,
+        "files": Custom(_files_check(base_dir, root), default=None,
                         doc="records: [{path, name, role, use, exclude, level, levels}] (see below)"),
-        "manifest": Custom(_manifest_check(base_dir), default=None,
+        "manifest": Custom(_manifest_check(base_dir, root), default=None,
                            doc="constant_input: {path, file, level}: a CSV listing files and their levels"),
         "holdout": Section({
             "fraction": Num(default=None, optional=True, min=0.0, max=0.9,
@@ -278,11 +318,14 @@ def _cross_checks(node: Node) -> list[str]:
     return errors
 
 
-def validate_dataset(data: Any, base_dir: Path, source: str | None = None) -> Node:
-    """Validate a parsed dataset description; raises ConfigError listing every problem."""
+def validate_dataset(data: Any, base_dir: Path, source: str | None = None, *, data_dir: str | Path | None = None,
+                     allow_outside: bool = False) -> Node:
+    """Validate a parsed dataset description; raises ConfigError listing every problem.
+    Data paths must lie under ``data_dir`` (default ``base_dir``) unless ``allow_outside``."""
     if not isinstance(data, dict):
         raise ConfigError([f"dataset: must be a mapping, got {type(data).__name__}"], source)
-    node, errors = validate_fields(dataset_schema(base_dir), data, "")
+    root = None if allow_outside else Path(data_dir if data_dir is not None else base_dir)
+    node, errors = validate_fields(dataset_schema(base_dir, root), data, "")
     if not errors:
         errors = _cross_checks(node)
     if errors:
@@ -290,10 +333,12 @@ def validate_dataset(data: Any, base_dir: Path, source: str | None = None) -> No
     return node
 
 
-def load_dataset(path: str | Path) -> Node:
-    """Load and validate a dataset description (YAML)."""
+def load_dataset(path: str | Path, *, data_dir: str | Path | None = None, allow_outside: bool = False) -> Node:
+    """Load and validate a dataset description (YAML); data paths as :func:`validate_dataset`."""
     p = Path(path)
-    return validate_dataset(load_yaml(p), p.parent, str(p))
+    if data_dir is not None and not Path(data_dir).is_dir():
+        raise ConfigError([f"--data-dir {data_dir}: not a directory"], str(p))
+    return validate_dataset(load_yaml(p), p.parent, str(p), data_dir=data_dir, allow_outside=allow_outside)
 
 
 def dataset_markdown() -> str:

@@ -74,8 +74,9 @@ def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
     return rmap, errors
 
 
-def experiment_schema(base_dir: Path) -> dict[str, Any]:
-    """The experiment schema; relative file paths resolve against ``base_dir``."""
+def experiment_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
+    """The experiment schema; relative file paths resolve against ``base_dir``,
+    data files (excitation, demand) must lie under ``root`` (None: anywhere)."""
     driver_input = Str(default="current", choices=tuple(INPUT_KINDS),
                        doc="what the driver takes: a coil current (A) or a command voltage (V); the parameter "
                            "sets' input (docs/identification.md) must match")
@@ -106,10 +107,11 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                       "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="start frequency (Hz)"),
                       "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
-            "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
+            "file": {"path": Custom(file_check(base_dir, root),
+                                    doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
             **road_excitations(),
         }, doc="shaker motion on the simulated bench (plant.bench: quarter_car: the road)"),
-        **law_unions(base_dir),
+        **law_unions(base_dir, root),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
             "max_slew_A_per_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
@@ -287,12 +289,14 @@ def _plant_checks(cfg: Node, I_max: Any) -> list[str]:
     return errors
 
 
-def validate_experiment(data: Any, base_dir: Path, source: str | None = None) -> Node:
-    """Validate a parsed experiment; raises ConfigError listing every problem."""
+def validate_experiment(data: Any, base_dir: Path, source: str | None = None, *, allow_outside: bool = False
+                        ) -> Node:
+    """Validate a parsed experiment; raises ConfigError listing every problem.
+    Data files (excitation, demand) must lie under ``base_dir`` unless ``allow_outside``."""
     if not isinstance(data, dict):
         raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
     # the safety section is required: a daemon must never guess a current limit
-    schema = experiment_schema(base_dir)
+    schema = experiment_schema(base_dir, None if allow_outside else base_dir)
     schema["safety"] = Section(schema["safety"].fields, optional=False)
     node, errors = validate_fields(schema, data, "")
     if not errors:
@@ -303,10 +307,10 @@ def validate_experiment(data: Any, base_dir: Path, source: str | None = None) ->
     return node
 
 
-def load_experiment(path: str | Path) -> Node:
-    """Load and validate an experiment YAML file."""
+def load_experiment(path: str | Path, *, allow_outside: bool = False) -> Node:
+    """Load and validate an experiment YAML file (data files as :func:`validate_experiment`)."""
     p = Path(path)
-    return validate_experiment(load_yaml(p), p.parent, str(p))
+    return validate_experiment(load_yaml(p), p.parent, str(p), allow_outside=allow_outside)
 
 
 

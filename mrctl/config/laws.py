@@ -30,26 +30,27 @@ LAW_GUARD_FIELDS = {
 }
 
 
-def _resolver(kind: str, base_dir: Path) -> Callable[[str], tuple[Mapping[str, Any] | None, str | None]]:
+def _resolver(kind: str, base_dir: Path, root: Path | None
+              ) -> Callable[[str], tuple[Mapping[str, Any] | None, str | None]]:
     def resolve(name: str) -> tuple[Mapping[str, Any] | None, str | None]:
         info = find_law(kind, name)
         if info.cls is None:
             return None, info.error
-        return bind_paths(info.cls.params, base_dir), None
+        return bind_paths(info.cls.params, base_dir, root), None
 
     return resolve
 
 
-def law_unions(base_dir: Path) -> dict[str, Union]:
-    """The ``demand`` and ``inverse`` unions."""
+def law_unions(base_dir: Path, root: Path | None = None) -> dict[str, Union]:
+    """The ``demand`` and ``inverse`` unions; file paths under ``root`` (None: anywhere)."""
     def variants(kind: str) -> dict[str, Any]:
-        return {name: bind_paths(cls.params, base_dir) for name, cls in BUILTIN[kind].items()}
+        return {name: bind_paths(cls.params, base_dir, root) for name, cls in BUILTIN[kind].items()}
 
     return {
-        "demand": Union("type", variants("demand"), optional=True, resolve=_resolver("demand", base_dir),
+        "demand": Union("type", variants("demand"), optional=True, resolve=_resolver("demand", base_dir, root),
                         doc="desired-force law (built-ins below; an installed plugin's name or "
                             "package.module:Class: docs/laws.md). Needed when the current law needs a demand"),
-        "inverse": Union("law", variants("current"), resolve=_resolver("current", base_dir),
+        "inverse": Union("law", variants("current"), resolve=_resolver("current", base_dir, root),
                          doc="current law: an inverse law for demand's force, or a law that decides the "
                              "current (built-ins below; plugins: docs/laws.md)"),
     }

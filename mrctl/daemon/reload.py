@@ -45,15 +45,16 @@ MAX_REPLY_BYTES = 4 << 20
 
 
 def validate_in_child(path: str | os.PathLike[str], timeout_s: float = RELOAD_TIMEOUT_S,
-                      memory_bytes: int = RELOAD_MEMORY_BYTES) -> Node:
+                      memory_bytes: int = RELOAD_MEMORY_BYTES, *, allow_outside: bool = False) -> Node:
     """The validated experiment config in ``path``, checked in a child
     process; :class:`ConfigError` for a bad file, one that takes longer than
-    ``timeout_s`` or more than ``memory_bytes``, or a child that died."""
+    ``timeout_s`` or more than ``memory_bytes``, or a child that died.
+    ``allow_outside`` is the CLI's ``--allow-outside-paths``."""
     src = str(path)
     env = dict(os.environ, MRCTL_RELOAD_SYSPATH=json.dumps(sys.path), OPENBLAS_NUM_THREADS="1",
                OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "mrctl.daemon.reload", str(Path(src).absolute()), str(int(memory_bytes)),
-           str(max(1, int(timeout_s) + 1))]
+           str(max(1, int(timeout_s) + 1)), "outside" if allow_outside else "inside"]
     try:
         p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                              env=env, close_fds=True, start_new_session=True)
@@ -83,7 +84,7 @@ def validate_in_child(path: str | os.PathLike[str], timeout_s: float = RELOAD_TI
 
 
 def _child(argv: list[str]) -> int:
-    """``python -m mrctl.daemon.reload PATH MEMORY_BYTES CPU_S``: one pickled
+    """``python -m mrctl.daemon.reload PATH MEMORY_BYTES CPU_S inside|outside``: one pickled
     ``(kind, payload)`` on stdout; anything else the check prints is dropped."""
     import resource
 
@@ -92,6 +93,7 @@ def _child(argv: list[str]) -> int:
     os.dup2(devnull, 1)
     os.dup2(devnull, 2)
     path, memory, cpu = argv[0], int(argv[1]), int(argv[2])
+    allow_outside = len(argv) > 3 and argv[3] == "outside"
     try:
         os.nice(19)  # a background job: on a busy 2-core box it must not take the loop's CPU
     except OSError:
@@ -107,7 +109,7 @@ def _child(argv: list[str]) -> int:
         from mrctl.config import load_experiment
         from mrctl.experiment import build
 
-        node = load_experiment(path)
+        node = load_experiment(path, allow_outside=allow_outside)
         build(node)  # the laws import, construct and reset here first
         result = ("ok", node)
     except ConfigError as exc:

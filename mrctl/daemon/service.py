@@ -94,6 +94,7 @@ class RunOptions:
     stream_every: int | None = None
     stream_columns: tuple[str, ...] | None = None
     log_priorities: bool | None = None  # <N> prefixes on stderr; None: when stderr is the journal
+    allow_outside_paths: bool = False  # data files outside the config's directory (--allow-outside-paths)
 
 
 class Service:
@@ -191,7 +192,7 @@ class Service:
         o = self.opts
         # everything the user gave is checked before the device is touched
         override = check_duration(o.duration_s, "--duration")
-        exp = self.exp = build(load_experiment(o.config_path))
+        exp = self.exp = build(load_experiment(o.config_path, allow_outside=o.allow_outside_paths))
         self.loaded = exp.config
         duration = override if override is not None else exp.config.duration_s
         if o.out:
@@ -267,10 +268,7 @@ class Service:
         fh, self._log_fh = self._log_fh, None
         if fh is not None and self.opts.out:
             fh.close()
-            try:
-                os.unlink(self.opts.out)
-            except OSError:
-                pass
+            files.drop_log(self.opts.out)
 
     # -- start-up steps ----------------------------------------------------------
     def _check_link(self, exp: Experiment, link: Link) -> Experiment:
@@ -336,8 +334,7 @@ class Service:
                                     fmt=RUN_FORMATS, defer_format=host_paced, opener=lambda _p: fh,
                                     header=sidecar_header("run", Path(o.out).name, self._provenance()))
             except OSError as exc:
-                with contextlib.suppress(OSError):
-                    os.unlink(o.out)
+                files.drop_log(o.out)
                 raise LogIncomplete(f"{o.out}: cannot write the run log: {exc.strerror or exc}") from None
             ctl.record = self.rec.record
             if host_paced:
@@ -428,7 +425,7 @@ class Service:
         actually runs and hand them to the controller."""
         assert self.exp is not None and self.ctl is not None and self.loaded is not None
         try:
-            new = build(validate_in_child(self.opts.config_path))
+            new = build(validate_in_child(self.opts.config_path, allow_outside=self.opts.allow_outside_paths))
             changed = [k for k in ("backend", "rate_hz", "safety", "plant", "excitation", "parameters", "loop", "rt",
                                    "sensing", "stream")
                        if _as_plain(new.config.get(k)) != _as_plain(self.loaded.get(k))]

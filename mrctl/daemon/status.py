@@ -189,7 +189,7 @@ def _read_request(conn: socket.socket) -> dict[str, Any] | None:
         return None
     try:
         req = json.loads(data.split(b"\n", 1)[0].decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
+    except (UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: '[' * 200 000
         return None
     return req if isinstance(req, dict) else None
 
@@ -250,7 +250,7 @@ def query_status(path: str, timeout_s: float = 2.0) -> dict[str, Any]:
     raw = b"".join(chunks)
     try:
         st = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
+    except (UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: '[' * 200 000
         st = None
     if not isinstance(st, dict):
         shown = raw[:60].decode("utf-8", "replace").strip() or "nothing"

@@ -361,7 +361,7 @@ def tap(path: str, out: BinaryIO, rows: int | None = None, columns: Sequence[str
         s.settimeout(None)  # then a trigger may wait long; Ctrl-C ends it
         try:
             head = json.loads(first.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
+        except (UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: '[' * 200 000
             head = None
         if not isinstance(head, dict):
             shown = first[:60].decode("utf-8", "replace").strip() or "nothing"

@@ -10,6 +10,7 @@ here (``mrctl[plot]``); the identification package never imports this module.
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from mrctl.errors import BadInput
 from mrctl.offline.identify.dataset_result import DatasetResult, Trace
+from mrctl.runlog.files import write_outputs
 
 __all__ = ["make_dataset_report", "FORMATS"]
 
@@ -61,8 +63,10 @@ def _window(tr: Trace, show_s: float) -> slice:
 
 
 def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], title: str | None = None,
-                        dpi: int = 110) -> None:
-    """Write the figure of a :class:`DatasetResult` to ``out_path`` (.png/.pdf/.svg; ``dpi`` for PNG)."""
+                        dpi: int = 110, force: bool = False, write: bool = True) -> bytes:
+    """Write the figure of a :class:`DatasetResult` to ``out_path`` (.png/.pdf/.svg; ``dpi`` for PNG),
+    whole or not at all (an existing file refused unless ``force``); returns its bytes.
+    ``write=False`` only renders them (the CLI writes them with the parameters)."""
     ext = Path(out_path).suffix.lower().lstrip(".")
     if ext not in FORMATS:
         raise FigureError(f"{out_path}: unknown figure format {ext or '(none)'!r}; use .png, .pdf or .svg")
@@ -119,7 +123,11 @@ def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], ti
     head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
     fig.suptitle(f"{head}\nF_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input {1e3 * p.tau_input:.3g} ms"
                  f"{extra}; red: the fitted model on data the fit never saw", fontsize="large")
-    try:
-        fig.savefig(out_path, format=ext)
-    except OSError as exc:
-        raise FigureError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+    buf = io.BytesIO()
+    fig.savefig(buf, format=ext)
+    if write:
+        try:
+            write_outputs([(out_path, buf.getvalue())], force)
+        except OSError as exc:
+            raise FigureError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+    return buf.getvalue()

@@ -15,6 +15,7 @@ imported only inside the figure functions: the daemon never needs it.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from pathlib import Path
@@ -23,8 +24,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from mrctl.errors import BadInput
+from mrctl.runlog.files import check_output_path, write_outputs
 from mrctl.runlog.metrics import tracked_force, tracking_summary
-from mrctl.runlog.read import read_run_table, try_sidecar
+from mrctl.runlog.read import read_run_table, sidecar_path, try_sidecar
 from mrctl.util.csvtable import CsvError
 
 __all__ = ["REQUIRED_COLUMNS", "FORMATS", "ReportError", "load_run", "summarize", "make_report",
@@ -156,7 +158,7 @@ _COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab
 
 
 def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], out_path: str | os.PathLike[str],
-                title: str | None = None, settle: float | None = None) -> list[dict[str, Any]]:
+                title: str | None = None, settle: float | None = None, force: bool = False) -> list[dict[str, Any]]:
     """Write the Fig-5-style figure of one or several runs to ``out_path``
     (format by its extension: png, pdf, svg); returns each run's label and
     figures (:func:`summarize`'s, with ``I_max``, ``label``, ``path``).
@@ -165,12 +167,16 @@ def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     else :data:`DEFAULT_SETTLE_S`). Uses explicit Figure/canvas objects (no
     pyplot, no global backend state) so it works on a headless controller
     and cannot disturb a caller's matplotlib state. ``title`` replaces
-    the default title (the run files' names).
+    the default title (the run files' names). The figure is refused over
+    an existing file unless ``force``, and over a run or its sidecar always
+    (:func:`mrctl.runlog.files.check_output_path`); checked before any run
+    is read.
     """
     paths = [Path(runs)] if isinstance(runs, (str, os.PathLike)) else [Path(r) for r in runs]
     if not paths:
         raise ReportError("no run to report on")
     fmt = figure_format(out_path)
+    check_output_path(out_path, force, inputs=[q for p in paths for q in (p, sidecar_path(p))], what="the figure")
     loaded = []
     for p in paths:
         cols = load_run(p)
@@ -239,7 +245,7 @@ def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
                frameon=False, fontsize="medium")
     head = title if title is not None else ", ".join(Path(m["path"]).name for _, m in loaded)
     fig.suptitle(head + "\n" + "\n".join(lines), fontsize="large" if single else "medium")
-    _save(fig, out_path, fmt)
+    _save(fig, out_path, fmt, force)
     return [m for _, m in loaded]
 
 
@@ -250,11 +256,23 @@ def _same_demand(loaded: list, n: int) -> bool:
     return len(a["t"]) == len(b["t"]) and np.allclose(a["F_des"], b["F_des"], rtol=1e-6, atol=1e-6, equal_nan=True)
 
 
-def _save(fig: Any, out_path: str | os.PathLike[str], fmt: str) -> None:
-    try:
-        fig.savefig(out_path, format=fmt)
-    except OSError as exc:
-        raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+def figure_bytes(fig: Any, fmt: str) -> bytes:
+    """The rendered figure (png, pdf or svg) as bytes, for
+    :func:`mrctl.runlog.files.write_outputs`."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=fmt)
+    return buf.getvalue()
+
+
+def _save(fig: Any, out_path: str | os.PathLike[str] | None, fmt: str, force: bool = False) -> bytes:
+    """Render ``fig``; write it to ``out_path`` (whole or not at all) unless None."""
+    data = figure_bytes(fig, fmt)
+    if out_path is not None:
+        try:
+            write_outputs([(out_path, data)], force)
+        except OSError as exc:
+            raise ReportError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+    return data
 
 
 # -- identification figure (paper's Figs 2 and 3) -----------------------------
@@ -299,7 +317,8 @@ def _as_identification_result(runs_or_result, **identify_kwargs):
 
 
 def make_identification_report(runs_or_result, out_path: str | os.PathLike[str], title: str | None = None,
-                               reference=None, show_reference: bool = True, **identify_kwargs) -> None:
+                               reference=None, show_reference: bool = True, force: bool = False,
+                               write: bool = True, **identify_kwargs) -> bytes:
     """Write the identification PNG: the paper's Fig 2 and Fig 3 for this damper.
 
     ``runs_or_result``: an :class:`mrctl.offline.identify.IdentificationResult`, or run
@@ -313,8 +332,14 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     vs current, identified values with ±2 standard errors (hollow where
     poorly determined) and the fitted approximating law; Table I of the paper
     (``reference``, default) as a thin grey line for comparison.
+
+    Returns the figure's bytes; ``write=False`` only renders them (the CLI
+    writes them with the parameters, all or nothing); an existing file is
+    refused unless ``force``.
     """
     fmt = figure_format(out_path)  # before the fit, not after it
+    if write:
+        check_output_path(out_path, force, what="the figure")
     res = _as_identification_result(runs_or_result, **identify_kwargs)
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -415,4 +440,4 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     fig.suptitle(f"{head}\n{len(fits)} currents {I.min():.2f}–{I.max():.2f} A · optimiser {res.method} · "
                  f"fit NRMSE {100 * min(nr):.2f}–{100 * max(nr):.2f} % · Fc law rms {res.laws['Fc'].rms:.3g} N"
                  + (f" · poorly determined: {', '.join(poor)}" if poor else ""), fontsize="large")
-    _save(fig, out_path, fmt)
+    return _save(fig, out_path if write else None, fmt, force)

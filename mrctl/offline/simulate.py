@@ -20,6 +20,7 @@ import time
 from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -136,10 +137,12 @@ def log_columns(result: SimResult) -> dict[str, np.ndarray]:
             "compute_us": nan, "fault": zero, "link_errors": zero}
 
 
-def write_csv(result: SimResult, path: str | Path, force: bool = False) -> None:
+def write_csv(result: SimResult, path: str | Path, force: bool = False, fh: BinaryIO | None = None) -> None:
     """The run log's CSV (plain: the header first; provenance goes in the
     sidecar). Created without following a symlink; an existing file is
-    refused unless ``force`` (:func:`mrctl.runlog.files.create_log`)."""
+    refused unless ``force`` (:func:`mrctl.runlog.files.create_log`).
+    ``fh``: the log already created (``mrctl simulate`` takes its names
+    before simulating), written and closed here."""
     cols = log_columns(result)
     extra = tuple(c for c in result.columns if c not in SIM_COLUMNS)  # a bench's channels (quarter car)
     names = CSV_COLUMNS + extra
@@ -147,6 +150,6 @@ def write_csv(result: SimResult, path: str | Path, force: bool = False) -> None:
     text = io.StringIO()
     text.write(",".join(names) + "\n")
     np.savetxt(text, data, delimiter=",", fmt=[RUN_FORMATS.get(c, "%.9g") for c in names])
-    with files.create_log(path, force) as fh:
-        fh.write(text.getvalue().encode("ascii"))
-        os.fsync(fh.fileno())
+    with (fh if fh is not None else files.create_log(path, force)) as out:
+        out.write(text.getvalue().encode("ascii"))
+        os.fsync(out.fileno())

@@ -6,7 +6,14 @@
   unless ``force``.
 * :func:`create_log` creates the CSV with ``O_CREAT | O_EXCL | O_NOFOLLOW``:
   a symlink planted at the path is never followed; with ``force`` an
-  existing file (or symlink) is unlinked first, its target untouched.
+  existing file (or symlink) is unlinked first, its target untouched. The
+  sidecar's name is taken the same way at once (an empty file until the
+  first :func:`write_json`): two logs with one stem (``run.csv`` and
+  ``run.tsv``) cannot share one sidecar; the second is refused.
+* :func:`check_output_path` and :func:`write_outputs`: the same rules for
+  the other files mrctl writes (identify's parameters and summary, report
+  figures): an existing file is refused unless ``force``, a symlink is never
+  followed, an input is never an output; the files appear whole or not at all.
 * :func:`write_json` writes a sidecar through a temp file (created the same
   way) and ``os.replace`` (which replaces a symlink, never follows it). The
   start-up sidecar is padded with spaces to ``reserve`` bytes (valid JSON),
@@ -16,17 +23,19 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import stat
 import threading
 from pathlib import Path
-from typing import Any, BinaryIO, Mapping
+from typing import Any, BinaryIO, Mapping, Sequence
 
 from mrctl.errors import BadInput
 from mrctl.util.jsonutil import jsonable
 
-__all__ = ["SIDECAR_RESERVE_BYTES", "sidecar_path", "check_log_path", "create_log", "write_json", "fsync_dir"]
+__all__ = ["SIDECAR_RESERVE_BYTES", "sidecar_path", "check_log_path", "create_log", "write_json", "fsync_dir",
+           "check_output_path", "write_outputs", "drop_log"]
 
 #: the start-up sidecar's size on disk: room for the final one on a full disk
 SIDECAR_RESERVE_BYTES = 64 * 1024
@@ -43,22 +52,98 @@ def check_log_path(path: str | os.PathLike[str], force: bool = False) -> Path:
     """``BadInput`` if ``path`` cannot be a new run log (see the module doc);
     touches nothing."""
     p = Path(path)
+    if not str(path):
+        raise BadInput("--out '': an empty name; give the run log's file name (or leave --out out for no log)")
     if p.suffix.lower() == ".json":
         raise BadInput(f"{p}: the run log is a CSV; a .json name would be its own sidecar's")
-    side = sidecar_path(p)
-    for q, what in ((p, "the run log"), (side, f"the sidecar of {p.name}")):
-        if q.is_dir() and not q.is_symlink():
-            raise BadInput(f"{q}: is a directory; --out names the run log's CSV file" if q == p
-                           else f"{q}: {what} would go there, but it is a directory")
-        if os.path.lexists(q) and not force:
-            kind = "a symlink" if q.is_symlink() else "a file"
-            raise BadInput(f"{q}: {what} would replace {kind} that exists; refusing (pass --force to replace it)")
+    check_output_path(p, force, what="the run log")
+    check_output_path(sidecar_path(p), force, what=f"the sidecar of {p.name}")
+    return p
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.resolve() == b.resolve():
+            return True
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except (OSError, RuntimeError):
+        return False
+
+
+def check_output_path(path: str | os.PathLike[str], force: bool = False,
+                      inputs: Sequence[str | os.PathLike[str]] = (), what: str = "the output") -> Path:
+    """``BadInput`` unless ``path`` can be a new output file: not empty, not a
+    directory, not one of ``inputs`` (not even with ``force``, nor through a
+    symlink), not an existing file or symlink unless ``force``, under a
+    parent that is (or can be made) a directory. Touches nothing."""
+    if not str(path):
+        raise BadInput(f"'': an empty file name for {what}")
+    p = Path(path)
+    for q in inputs:
+        if _same_file(p, Path(q)):
+            raise BadInput(f"{p}: {what} would overwrite {q}, an input of this command; refusing (choose another "
+                           "name)")
+    if p.is_dir() and not p.is_symlink():
+        raise BadInput(f"{p}: is a directory; {what} is a file" if what != "the run log"
+                       else f"{p}: is a directory; --out names the run log's CSV file")
+    if os.path.lexists(p) and not force:
+        kind = "a symlink" if p.is_symlink() else "a file"
+        raise BadInput(f"{p}: {what} would replace {kind} that exists; refusing (pass --force to replace it)")
     parent = p.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
         raise BadInput(f"{p}: cannot create it: {parent} is not a directory")
     return p
+
+
+def write_outputs(items: Sequence[tuple[str | os.PathLike[str], bytes]], force: bool = False,
+                  mkdir: bool = False) -> None:
+    """Write each ``(path, bytes)`` whole or not at all: a temp file beside it
+    (``O_EXCL | O_NOFOLLOW``), fsync, then linked to its name (refused if
+    the name exists: another writer got there first) or, with ``force``,
+    renamed over it (a symlink there is replaced, never followed). If one
+    fails, the ones already written are removed: ``BadInput`` (the name is
+    taken) or ``OSError``. ``mkdir``: create missing parent directories."""
+    done: list[Path] = []
+    try:
+        for path, data in items:
+            p = Path(path)
+            if mkdir:
+                p.parent.mkdir(parents=True, exist_ok=True)
+            tmp = p.with_name(f".{p.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+            fd = os.open(tmp, _CREATE, 0o644)
+            try:
+                try:
+                    _write_all(fd, data, 0)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                if force:
+                    os.replace(tmp, p)
+                else:
+                    try:
+                        os.link(tmp, p, follow_symlinks=False)
+                    except FileExistsError:
+                        raise BadInput(f"{p}: appeared while writing; refusing to replace it (pass --force)") from None
+                    except OSError as exc:  # no hard links here (vfat, some FUSE): create it exclusively instead
+                        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EXDEV, errno.EMLINK, errno.ENOSYS):
+                            raise
+                        _create_whole(p, data)
+            finally:
+                try:
+                    os.unlink(tmp)
+                except FileNotFoundError:
+                    pass
+            done.append(p)
+            fsync_dir(p.parent)
+    except BaseException:
+        for p in done:
+            try:
+                os.unlink(p)
+            except OSError:
+                pass
+        raise
 
 
 def create_log(path: str | os.PathLike[str], force: bool = False) -> BinaryIO:
@@ -84,7 +169,33 @@ def create_log(path: str | os.PathLike[str], force: bool = False) -> BinaryIO:
         raise BadInput(f"{p}: appeared while starting; refusing to replace it (pass --force)") from None
     except OSError as exc:
         raise BadInput(f"{p}: cannot create the run log: {exc.strerror or exc}") from None
+    side = sidecar_path(p)
+    try:  # the sidecar's name is ours from now on: a run logging to run.tsv cannot take it
+        os.close(os.open(side, _CREATE, 0o644))
+    except OSError as exc:
+        os.close(fd)
+        os.unlink(p)
+        if isinstance(exc, FileExistsError):
+            raise BadInput(f"{side}: the sidecar of {p.name} appeared while starting (another run with the same "
+                           "stem?); refusing to share it") from None
+        raise BadInput(f"{side}: cannot create the sidecar: {exc.strerror or exc}") from None
     return os.fdopen(fd, "wb", buffering=0)
+
+
+def drop_log(path: str | os.PathLike[str]) -> None:
+    """Remove a run log that was created but never used (a start refused after
+    :func:`create_log`): the CSV and the sidecar reservation if it is still
+    the empty file create_log left (a written sidecar is never removed)."""
+    p = Path(path)
+    for q, only_empty in ((p, False), (sidecar_path(p), True)):
+        try:
+            if only_empty:
+                st = os.lstat(q)
+                if not stat.S_ISREG(st.st_mode) or st.st_size:
+                    continue
+            os.unlink(q)
+        except OSError:
+            pass
 
 
 def write_json(path: str | os.PathLike[str], data: Mapping[str, Any], reserve: int = 0) -> None:
@@ -113,6 +224,22 @@ def write_json(path: str | os.PathLike[str], data: Mapping[str, Any], reserve: i
             raise
         return
     fsync_dir(p.parent)
+
+
+def _create_whole(p: Path, data: bytes) -> None:
+    """Create ``p`` exclusively (never through a symlink) with ``data``; removed again if the write fails."""
+    try:
+        fd = os.open(p, _CREATE, 0o644)
+    except FileExistsError:
+        raise BadInput(f"{p}: appeared while writing; refusing to replace it (pass --force)") from None
+    try:
+        _write_all(fd, data, 0)
+        os.fsync(fd)
+    except OSError:
+        os.close(fd)
+        os.unlink(p)
+        raise
+    os.close(fd)
 
 
 def _write_all(fd: int, data: bytes, offset: int) -> None:

@@ -15,8 +15,13 @@ import numpy as np
 
 from mrctl.runlog.files import sidecar_path
 from mrctl.util.csvtable import Table, read_table
+from mrctl.util.files import FileProblem, MiB, read_regular_file
 
-__all__ = ["read_run", "read_run_table", "read_sidecar", "try_sidecar", "sidecar_path", "align_load_cell"]
+__all__ = ["read_run", "read_run_table", "read_sidecar", "try_sidecar", "sidecar_path", "align_load_cell",
+           "MAX_SIDECAR_BYTES"]
+
+#: the largest sidecar read back (mrctl writes ~10-64 KiB: the config, the summary)
+MAX_SIDECAR_BYTES = 16 * MiB
 
 
 def read_run_table(path: str | os.PathLike[str], columns: Sequence[str] | None = None, *,
@@ -37,11 +42,18 @@ def read_run(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 
 
 def read_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The JSON sidecar of a run CSV (pass the CSV or the .json path)."""
+    """The JSON sidecar of a run CSV (pass the CSV or the .json path): a
+    regular file of at most :data:`MAX_SIDECAR_BYTES` (``/dev/zero`` or a
+    FIFO planted there is refused, not read). ``FileProblem`` (a
+    ``BadInput``) or ``ValueError`` (not JSON, or nested beyond reason)."""
     p = Path(path)
     if p.suffix.lower() != ".json":
         p = sidecar_path(p)
-    return json.loads(p.read_text(encoding="utf-8"))
+    text = read_regular_file(p, MAX_SIDECAR_BYTES).decode("utf-8")
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{p}: nested too deeply to be a sidecar") from None
 
 
 def try_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -49,7 +61,7 @@ def try_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
     for tools that use it when present (a CSV written by hand has none)."""
     try:
         side = read_sidecar(path)
-    except (OSError, ValueError):
+    except (OSError, ValueError, FileProblem):
         return {}
     return side if isinstance(side, dict) else {}
 

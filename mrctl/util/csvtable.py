@@ -17,6 +17,7 @@ fault names a daemon log carries.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -25,7 +26,7 @@ import numpy as np
 from mrctl.errors import BadInput
 from mrctl.util.files import FileProblem, MiB, read_regular_file
 
-__all__ = ["CsvError", "Table", "read_table", "load_series", "MAX_CSV_BYTES", "MAX_SERIES_BYTES"]
+__all__ = ["CsvError", "Table", "read_table", "load_series", "shown_header", "MAX_CSV_BYTES", "MAX_SERIES_BYTES"]
 
 #: the largest CSV read: a run log of ~4 h at 1 kHz (~150 B per row)
 MAX_CSV_BYTES = 2048 * MiB
@@ -57,6 +58,22 @@ class Table(NamedTuple):
         if bad.any():
             k = int(np.argmax(bad))
             raise CsvError(f"{self.path}: line {self.lines[k]}: column {column} is not finite: {float(col[k])!r}")
+
+
+_COLUMN_NAME = re.compile(r"[A-Za-z0-9_ .()\[\]%/+*-]{1,40}")
+
+
+def shown_header(header: Sequence[str], limit: int = 200) -> str:
+    """A header's names for an error message, only if they look like column
+    names: a file that is not a CSV (``/etc/shadow`` named by mistake or
+    malice) has its first line kept out of the message."""
+    names = [h for h in header if h]
+    if not names:
+        return "(none)"
+    if not all(_COLUMN_NAME.fullmatch(h) for h in names):
+        return f"{len(names)} field(s) that are not column names (not shown: is it a CSV?)"
+    text = ", ".join(names)
+    return text if len(text) <= limit else text[:limit] + "…"
 
 
 def read_table(
@@ -103,8 +120,7 @@ def read_table(
         raise CsvError(f"{p}: empty file (no header line)")
     missing = [c for c in require if c not in header]
     if missing:
-        found = ", ".join(h for h in header if h) or "(none)"
-        raise CsvError(f"{p}: missing required column(s) {', '.join(missing)}; found: {found}")
+        raise CsvError(f"{p}: missing required column(s) {', '.join(missing)}; found: {shown_header(header)}")
     wanted = [c for c in header if c] if columns is None else [c for c in columns if c in header]
     wanted = sorted(set(wanted), key=header.index)
     dupes = [c for c in wanted if header.count(c) > 1]

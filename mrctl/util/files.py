@@ -19,7 +19,7 @@ from pathlib import Path
 
 from mrctl.errors import BadInput
 
-__all__ = ["FileProblem", "read_regular_file", "per_user_dir", "private_dir", "MiB"]
+__all__ = ["FileProblem", "read_regular_file", "not_regular", "per_user_dir", "private_dir", "MiB"]
 
 MiB = 1 << 20
 
@@ -35,11 +35,25 @@ class FileProblem(BadInput):
 
 
 def _kind(mode: int) -> str:
-    for test, name in ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+    for test, name in ((stat.S_ISREG, "a regular file"), (stat.S_ISLNK, "a symlink"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
                        (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory")):
         if test(mode):
             return name
     return "not a plain file"
+
+
+def not_regular(path: str | os.PathLike[str]) -> str | None:
+    """None if ``path`` is a regular file (symlinks followed); else what it
+    is, for a message: ``"missing"``, ``"a directory"``, ``"a FIFO"``, …
+    (a FIFO or device is not "no such file")."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "missing"
+    except OSError as exc:
+        return f"unreadable ({exc.strerror or exc})"
+    return None if stat.S_ISREG(st.st_mode) else _kind(st.st_mode)
 
 
 def read_regular_file(path: str | os.PathLike[str], max_bytes: int) -> bytes:

@@ -171,6 +171,9 @@ def load_yaml(path: str | Path) -> Any:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError([f"{where}invalid YAML: {problem}"], str(p)) from None
+    except RecursionError:  # 200 000 '[': PyYAML's composer recurses per level
+        raise ConfigError(["invalid YAML: nested too deeply (lists or mappings inside each other hundreds of "
+                           "levels down); no config is"], str(p)) from None
 
 
 # --------------------------------------------------------------------------
@@ -244,9 +247,10 @@ class FilePath:
     doc: str = ""
 
 
-def bind_paths(fields_: Mapping[str, Any], base_dir: Path) -> dict[str, Any]:
-    """``fields_`` with every :class:`FilePath` resolved against ``base_dir``."""
-    return {k: (Custom(file_check(base_dir), default=v.default, doc=v.doc) if isinstance(v, FilePath) else v)
+def bind_paths(fields_: Mapping[str, Any], base_dir: Path, root: Path | None = None) -> dict[str, Any]:
+    """``fields_`` with every :class:`FilePath` resolved against ``base_dir``
+    (and kept under ``root``: :func:`file_check`)."""
+    return {k: (Custom(file_check(base_dir, root), default=v.default, doc=v.doc) if isinstance(v, FilePath) else v)
             for k, v in fields_.items()}
 
 
@@ -403,12 +407,22 @@ REQUIRED = _REQUIRED
 
 # --------------------------------------------------------------------------
 # Custom checks many schemas share
-def file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
+def file_check(base_dir: Path, root: Path | None = None) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    """A data file's path (a demand or excitation series): relative to
+    ``base_dir``, a regular file, and under ``root`` unless it is None (the
+    CLI's ``--allow-outside-paths``): a config from elsewhere cannot make
+    mrctl read ``/etc/shadow``."""
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if not isinstance(value, str) or not value:
             return None, [f"{path}: must be a file path, got {short_repr(value)}"]
         p = Path(value)
         full = p if p.is_absolute() else base_dir / p
+        if root is not None:
+            try:
+                full.resolve().relative_to(root.resolve())
+            except ValueError:
+                return None, [f"{path}: {full.resolve()} is outside {root.resolve()}, the config's directory, where "
+                              "data files must be; move it there or pass --allow-outside-paths"]
         if not full.exists():
             return None, [f"{path}: no such file: {full}"]
         if not full.is_file():

@@ -204,7 +204,8 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
 
 
 def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | None = None, progress: bool = False,
-                     method: str = "trf", model: dict[str, bool] | None = None, source: str | None = None
+                     method: str = "trf", model: dict[str, bool] | None = None, source: str | None = None,
+                     data_dir: str | os.PathLike[str] | None = None, allow_outside: bool = False
                      ) -> DatasetResult:
     """Identify a parameter set from the records a dataset description names.
 
@@ -215,6 +216,8 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
         progress: show a progress bar (tqdm, or plain lines without it).
         model: overrides of the description's ``model`` section (offset,
             stiffness, lag, inertia), e.g. ``{"lag": False}`` for a comparison.
+        data_dir, allow_outside: where data files may lie (default: under the
+            description's directory; :func:`mrctl.config.dataset.load_dataset`).
     Raises:
         ConfigError: the description is invalid (every error with its key path).
         IdentificationError: the data cannot be identified from, or the fit is not physical.
@@ -226,7 +229,7 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
         ds, src = dataset, source or "(dataset)"
     else:
         src = str(dataset)
-        ds = load_dataset(dataset)
+        ds = load_dataset(dataset, data_dir=data_dir, allow_outside=allow_outside)
     frac_cli, names = parse_holdout(holdout)
     records = read_records(ds)
     if names is not None:
@@ -264,10 +267,11 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
                          warnings, time.perf_counter() - t0, out["inertia"])
 
 
-def identify_dataset_file(dataset: str | os.PathLike[str], out: str | os.PathLike[str], **kwargs: Any
-                          ) -> DatasetResult:
+def identify_dataset_file(dataset: str | os.PathLike[str] | Node, out: str | os.PathLike[str], *,
+                          force: bool = False, **kwargs: Any) -> DatasetResult:
     """``mrctl identify --dataset``'s work: identify, then write the YAML and ``PARAMS.json``.
-    Nothing is written unless identification succeeds (errors as :func:`identify_dataset`)."""
+    Nothing is written unless identification succeeds (errors as :func:`identify_dataset`);
+    existing files are refused unless ``force``."""
     res = identify_dataset(dataset, **kwargs)
-    write_dataset_outputs(res, out)
+    write_dataset_outputs(res, out, force=force)
     return res

@@ -11,6 +11,7 @@ is what ``mrctl identify --dataset`` prints.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import dataclass, field
@@ -22,7 +23,8 @@ import numpy as np
 from mrctl.model.params import LuGreParams
 from mrctl.offline.identify.errors import IdentificationError
 
-__all__ = ["Score", "Trace", "DatasetResult", "write_dataset_outputs", "format_dataset_summary", "json_path"]
+__all__ = ["Score", "Trace", "DatasetResult", "write_dataset_outputs", "dataset_output_bytes", "format_dataset_summary",
+           "json_path"]
 
 
 @dataclass
@@ -123,8 +125,9 @@ def summary_dict(res: DatasetResult) -> dict[str, Any]:
     }
 
 
-def write_dataset_outputs(res: DatasetResult, out: str | Path) -> Path:
-    """The parameters YAML at ``out`` and the JSON summary beside it; returns the JSON path."""
+def dataset_output_bytes(res: DatasetResult, out: str | Path) -> list[tuple[Path, bytes]]:
+    """The parameters YAML for ``out`` and the JSON summary beside it, as
+    ``[(path, bytes), ...]`` for :func:`mrctl.runlog.files.write_outputs`."""
     import yaml
 
     from mrctl.offline.identify.result import _compact_dumper
@@ -151,17 +154,24 @@ def write_dataset_outputs(res: DatasetResult, out: str | Path) -> Path:
         "warnings": summary["warnings"],
     }
     out = Path(out)
-    jp = json_path(out)
+    text = io.StringIO()
+    text.write(f"# mrctl identify --dataset: LuGre parameters, laws (6)-(11) in the input ({res.unit}); SI units\n")
+    yaml.dump(doc, text, Dumper=_compact_dumper(), sort_keys=False, allow_unicode=True, width=120)
+    return [(out, text.getvalue().encode("utf-8")),
+            (json_path(out), (json.dumps(summary, indent=2, allow_nan=False) + "\n").encode("utf-8"))]
+
+
+def write_dataset_outputs(res: DatasetResult, out: str | Path, force: bool = False) -> Path:
+    """The parameters YAML at ``out`` and the JSON summary beside it, both or
+    neither (an existing file refused unless ``force``); returns the JSON path."""
+    from mrctl.runlog.files import write_outputs
+
+    items = dataset_output_bytes(res, out)
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with out.open("w", encoding="utf-8") as fh:
-            fh.write(f"# mrctl identify --dataset: LuGre parameters, laws (6)-(11) in the input ({res.unit}); "
-                     "SI units\n")
-            yaml.dump(doc, fh, Dumper=_compact_dumper(), sort_keys=False, allow_unicode=True, width=120)
-        jp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        write_outputs(items, force, mkdir=True)
     except OSError as exc:
-        raise IdentificationError(f"{out}: cannot write: {exc.strerror or exc}") from None
-    return jp
+        raise IdentificationError(f"{exc.filename or out}: cannot write: {exc.strerror or exc}") from None
+    return items[1][0]
 
 
 def format_dataset_summary(res: DatasetResult) -> str:

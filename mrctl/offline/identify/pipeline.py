@@ -166,14 +166,16 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
                                 sources=labels, time_s=time.perf_counter() - t_start, warnings=warnings)
 
 
-def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
-                   method: str = DEFAULT_METHOD, progress: ProgressFn | None = None,
+def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str] | None, *,
+                   method: str = DEFAULT_METHOD, progress: ProgressFn | None = None, force: bool = False,
                    **kwargs: Any) -> IdentificationResult:
     """``mrctl identify``'s work: read the run CSVs, identify, write the parameters YAML.
 
     ``progress`` as for :func:`identify` (called once per current); other
     keyword arguments go to :func:`identify`. Nothing is written unless
-    identification succeeds.
+    identification succeeds; ``out`` None writes nothing (the caller writes
+    :func:`~mrctl.offline.identify.result.params_yaml_bytes` with its other
+    outputs); an existing ``out`` is refused unless ``force``.
 
     Raises:
         IdentificationError: no path given, a file that cannot be read or
@@ -188,5 +190,6 @@ def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLi
     if kwargs.get("stiffness") == "auto":  # fit it where every run has a displacement column
         kwargs["stiffness"] = all(("x" in r or "x_meas" in r) for r in runs)
     result = identify(runs, method=method, progress=progress, sources=[str(p) for p in paths], **kwargs)
-    write_params_yaml(result, out)
+    if out is not None:
+        write_params_yaml(result, out, force=force)
     return result

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,8 +19,17 @@ from typing import Any
 import numpy as np
 
 from mrctl.offline.identify.errors import IdentificationError
+from mrctl.util.files import FileProblem, MiB, not_regular, read_regular_file
 
-__all__ = ["Record", "read_records", "read_signals"]
+__all__ = ["Record", "read_records", "read_signals", "MAX_DATA_BYTES", "MAX_MANIFEST_BYTES", "MAX_SI_MAGNITUDE"]
+
+#: the largest data file read (CSV or .mat): hours of a fast DAQ; read whole, so bounded
+MAX_DATA_BYTES = 1024 * MiB
+#: the largest manifest (one line per data file)
+MAX_MANIFEST_BYTES = 16 * MiB
+#: the largest magnitude of a scaled signal (SI units): no damper, stroke or time comes near it;
+#: beyond it the fit's arithmetic overflows
+MAX_SI_MAGNITUDE = 1e12
 
 _SIGNALS = ("time", "displacement", "velocity", "force", "input")
 
@@ -43,14 +53,21 @@ class Record:
     fs: float = 0.0  # sample rate (Hz)
 
 
+def _read_bytes(path: Path, max_bytes: int | None = None) -> bytes:
+    """A data file's bytes: a regular file, at most ``max_bytes`` (default
+    :data:`MAX_DATA_BYTES`; never /dev/zero or a FIFO)."""
+    try:
+        return read_regular_file(path, MAX_DATA_BYTES if max_bytes is None else max_bytes)
+    except FileProblem as exc:
+        raise IdentificationError(f"{path}: {exc}") from None
+
+
 def _read_csv(path: Path, names: dict[str, str], delimiter: str) -> dict[str, np.ndarray]:
     try:
-        text = path.read_bytes().decode("utf-8-sig")
+        text = _read_bytes(path).decode("utf-8-sig")
     except UnicodeDecodeError:
         raise IdentificationError(f"{path}: not a text (UTF-8) CSV file; is it a .mat file? "
                                   "(set format.type: mat)") from None
-    except OSError as exc:
-        raise IdentificationError(f"{path}: cannot read: {exc.strerror or exc}") from None
     lines = text.splitlines()
     k = 0
     while k < len(lines) and (not lines[k].strip() or lines[k].lstrip().startswith("#")):
@@ -60,10 +77,10 @@ def _read_csv(path: Path, names: dict[str, str], delimiter: str) -> dict[str, np
     header = [h.strip() for h in next(csv.reader(io.StringIO(lines[k]), delimiter=delimiter))]
     idx = {}
     for role, name in names.items():
-        if name not in header:
-            found = ", ".join(h for h in header if h) or "(none)"
-            raise IdentificationError(f"{path}: no column {name!r} (columns.{role}); the header (line {k + 1}) "
-                                      f"has: {found[:200]}")
+        if name not in header:  # the header is not echoed: the file may not be data at all
+            raise IdentificationError(f"{path}: no column {name!r} (columns.{role}) in the header (line {k + 1}, "
+                                      f"{len(header)} field(s) split at {delimiter!r}); check columns and "
+                                      "format.delimiter")
         idx[role] = header.index(name)
     rows = [ln for ln in lines[k + 1:] if ln.strip() and not ln.lstrip().startswith("#")]
     if len(rows) < 3:
@@ -91,8 +108,8 @@ def _first_bad(path: Path, lines: list[str], k: int, idx: dict[str, int], delimi
             try:
                 float(fields[j])
             except ValueError:
-                raise IdentificationError(f"{path}: line {n + 1}: column {role} is not a number: "
-                                          f"{fields[j].strip()!r}") from None
+                raise IdentificationError(f"{path}: line {n + 1}: column {role} (field {j + 1}) is not a "
+                                          "number") from None
 
 
 def _read_mat(path: Path, specs: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -102,13 +119,20 @@ def _read_mat(path: Path, specs: dict[str, Any]) -> dict[str, np.ndarray]:
         from mrctl.offline.identify.errors import SCIPY_MISSING, DependencyMissing
 
         raise DependencyMissing(SCIPY_MISSING) from None
+    data = _read_bytes(path)
+    if not data:
+        raise IdentificationError(f"{path}: empty file; not a MATLAB .mat file")
     try:
-        mat = loadmat(str(path))
+        mat = loadmat(io.BytesIO(data))
     except NotImplementedError:
         raise IdentificationError(f"{path}: a MATLAB v7.3 (HDF5) file; save it with save(..., '-v7') or export "
                                   "a CSV") from None
-    except (ValueError, TypeError, OSError) as exc:
-        raise IdentificationError(f"{path}: not a readable MATLAB .mat file ({exc})") from None
+    except (MemoryError, RecursionError):
+        raise IdentificationError(f"{path}: not a readable MATLAB .mat file (its structure is too large "
+                                  "or too deep)") from None
+    except Exception as exc:  # noqa: BLE001 - scipy's MatReadError, ValueError, struct.error …: all "not a .mat"
+        raise IdentificationError(f"{path}: not a readable MATLAB .mat file ({type(exc).__name__}: "
+                                  f"{str(exc)[:120]}); is it a CSV? (set format.type: csv)") from None
     out = {}
     have = ", ".join(k for k in mat if not k.startswith("__"))
     for role, spec in specs.items():
@@ -157,7 +181,20 @@ def read_signals(path: str, ds: Any) -> dict[str, np.ndarray]:
         if bad.size:
             raise IdentificationError(f"{p}: column {specs[r].name!r} (columns.{r}) is not finite at sample "
                                       f"{bad[0]} ({bad.size} sample(s) in all); cut it out with exclude: or use:")
-        out[r] = a * specs[r].scale + specs[r].offset
+        with np.errstate(over="ignore", invalid="ignore"):
+            si = a * specs[r].scale + specs[r].offset
+            big = np.flatnonzero(~(np.abs(si) <= MAX_SI_MAGNITUDE))
+        if big.size:
+            raise IdentificationError(f"{p}: column {specs[r].name!r} (columns.{r}) scaled by columns.{r}.scale "
+                                      f"{specs[r].scale:g} and columns.{r}.offset {specs[r].offset:g} is "
+                                      f"{'not finite' if not np.isfinite(si[big[0]]) else 'beyond 1e12'} at sample "
+                                      f"{big[0]}: check the scale and offset (SI value = raw · scale + offset)")
+        out[r] = si
+    F = out.get("force")
+    if F is not None and F.size and float(np.ptp(F)) == 0.0:
+        raise IdentificationError(f"{p}: column {specs['force'].name!r} (columns.force) is constant "
+                                  f"({F[0]:g} N in every sample): no force to identify from; is it the right "
+                                  "column?")
     return out
 
 
@@ -206,21 +243,39 @@ def read_records(ds: Any) -> list[Record]:
 def _manifest_entries(man: Any) -> list:
     p = Path(man.path)
     try:
-        with p.open(newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        text = _read_bytes(p, MAX_MANIFEST_BYTES).decode("utf-8-sig")
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    except (UnicodeDecodeError, csv.Error) as exc:
         raise IdentificationError(f"{p}: cannot read the manifest: {exc}") from None
+    root = Path(man.root) if man.get("root") else None
     out = []
     for i, row in enumerate(rows, start=2):
         if man.file not in row or man.level not in row:
             raise IdentificationError(f"{p}: no column {man.file!r} or {man.level!r} (manifest.file, manifest.level)")
-        f = (p.parent / row[man.file].strip()).resolve()
+        name = (row[man.file] or "").strip()
+        if not name:
+            raise IdentificationError(f"{p}: line {i}: no file name in column {man.file!r}")
+        f = (p.parent / name).resolve()
+        if root is not None:
+            try:
+                f.relative_to(root)
+            except ValueError:
+                from mrctl.config.dataset import outside_message
+
+                raise IdentificationError(f"{p}: line {i}: " + outside_message("the file", f, root)) from None
         try:
             level = float(row[man.level])
         except (TypeError, ValueError):
-            raise IdentificationError(f"{p}: line {i}: level {row[man.level]!r} is not a number") from None
-        if not f.is_file():
+            raise IdentificationError(f"{p}: line {i}: level {str(row[man.level])[:24]!r} is not a "
+                                      "number") from None
+        if not math.isfinite(level):
+            raise IdentificationError(f"{p}: line {i}: level {level!r} (column {man.level!r}) is not a finite "
+                                      "number")
+        kind = not_regular(f)
+        if kind == "missing":
             raise IdentificationError(f"{p}: line {i}: no such file: {f}")
+        if kind is not None:
+            raise IdentificationError(f"{p}: line {i}: {f} is not a regular file ({kind})")
         out.append((str(f), None, "fit", [], [], level, []))
     if not out:
         raise IdentificationError(f"{p}: the manifest lists no files")

@@ -9,6 +9,7 @@ constants is :func:`result_metadata`); :func:`format_summary` is the table
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +23,8 @@ from mrctl.offline.identify.fit import _WELL_REL_SE, _WELL_SENS
 from mrctl.offline.identify.laws import LawFit
 from mrctl.offline.identify.model import THETA_NAMES
 
-__all__ = ["CurrentFit", "IdentificationResult", "result_metadata", "write_params_yaml", "format_summary"]
+__all__ = ["CurrentFit", "IdentificationResult", "result_metadata", "write_params_yaml", "params_yaml_bytes",
+           "format_summary"]
 
 
 @dataclass
@@ -180,8 +182,8 @@ def _compact_dumper():
     return Dumper
 
 
-def write_params_yaml(result: IdentificationResult, path: str | Path, description: str | None = None) -> None:
-    """Parameters YAML: the 13 spec names at top level, ``fit:`` metadata below.
+def params_yaml_bytes(result: IdentificationResult, description: str | None = None) -> bytes:
+    """The parameters YAML: the 13 spec names at top level, ``fit:`` metadata below.
 
     ``mrctl.config.load_params_file`` reads it (metadata keys are ignored there)."""
     import yaml
@@ -202,14 +204,24 @@ def write_params_yaml(result: IdentificationResult, path: str | Path, descriptio
     doc.update({k: float(values[k]) for k in p.names()})
     doc.update({k: float(values[k]) for k in p.bench_names() if values[k] != 0.0})  # only the terms a fit set
     doc["fit"] = result_metadata(result)
-    out = Path(path)
+    text = io.StringIO()
+    text.write("# mrctl identify: LuGre parameters (SI units), laws (6)-(11) of Palka & Maslanka 2013\n")
+    yaml.dump(doc, text, Dumper=_CompactDumper, sort_keys=False, allow_unicode=True, width=120)
+    return text.getvalue().encode("utf-8")
+
+
+def write_params_yaml(result: IdentificationResult, path: str | Path, description: str | None = None,
+                      force: bool = False) -> None:
+    """Write :func:`params_yaml_bytes` to ``path``, whole or not at all; an
+    existing file is refused unless ``force``, a symlink never followed
+    (:func:`mrctl.runlog.files.write_outputs`)."""
+    from mrctl.runlog.files import write_outputs
+
+    data = params_yaml_bytes(result, description)
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with out.open("w", encoding="utf-8") as fh:
-            fh.write("# mrctl identify: LuGre parameters (SI units), laws (6)-(11) of Palka & Maslanka 2013\n")
-            yaml.dump(doc, fh, Dumper=_CompactDumper, sort_keys=False, allow_unicode=True, width=120)
+        write_outputs([(path, data)], force, mkdir=True)
     except OSError as exc:
-        raise IdentificationError(f"{out}: cannot write: {exc.strerror or exc}") from None
+        raise IdentificationError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
 def format_summary(result: IdentificationResult) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 
 from mrctl.offline.identify.errors import IdentificationError
 from mrctl.runlog.read import align_load_cell, try_sidecar
-from mrctl.util.csvtable import CsvError, read_table
+from mrctl.util.csvtable import CsvError, read_table, shown_header
 
 __all__ = ["load_identification_run", "estimate_period"]
 
@@ -52,9 +52,8 @@ def load_identification_run(path: str | Path) -> dict[str, np.ndarray]:
     except CsvError as exc:
         raise IdentificationError(str(exc)) from None
     if not table.columns:
-        found = ", ".join(h for h in table.header if h) or "(none)"
         raise IdentificationError(f"{p}: none of the columns t, I, F_meas/F, v_meas/v found "
-                                  f"(is this a run CSV?); header: {found[:80]}{'…' if len(found) > 80 else ''}")
+                                  f"(is this a run CSV?); header: {shown_header(table.header, 80)}")
     table = table._replace(columns=align_load_cell(table.columns, try_sidecar(p)))  # F at its own tick (runlog)
     return table.columns
 

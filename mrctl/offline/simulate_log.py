@@ -1,0 +1,72 @@
+"""``mrctl simulate --out``: the simulation's run log, kept as ``mrctl run`` keeps its own.
+
+The CSV's and the sidecar's names are taken before simulating
+(:func:`mrctl.runlog.files.create_log`: exclusive, never through a symlink)
+and the sidecar is reserved at its full size (``complete: false``): when the
+disk is full at the end, the final sidecar still fits over the reservation
+and says what was lost (exit 4). A simulation that fails leaves nothing
+behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import platform
+from pathlib import Path
+
+from mrctl import __version__
+from mrctl.build import tick_build
+from mrctl.errors import LogIncomplete
+from mrctl.experiment import Experiment
+from mrctl.offline.simulate import SimResult, simulate, write_csv
+from mrctl.runlog import files
+from mrctl.runlog.format import sidecar_header
+from mrctl.util.jsonutil import jsonable
+
+__all__ = ["simulate_logged"]
+
+
+def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_path: str, *, force: bool = False
+                    ) -> SimResult:
+    """Simulate ``exp`` for ``duration_s`` and write its run log to ``out``
+    and the sidecar beside it (see the module doc). ``BadInput`` if the
+    names cannot be taken, ``LogIncomplete`` (exit 4) if the disk cannot
+    take the log (the sidecar records it when it can)."""
+    side_path = files.sidecar_path(out)
+    head = sidecar_header("simulate", Path(out).name, {
+        "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(), "host": platform.node(),
+        "config_file": str(Path(config_path).resolve()), "config": jsonable(exp.config),
+        "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
+        "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
+        "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1})
+    fh = files.create_log(out, force)  # both names are ours from here
+    try:
+        files.write_json(side_path, {**head, "complete": False}, reserve=files.SIDECAR_RESERVE_BYTES)
+        res = simulate(exp, duration_s)
+    except BaseException as exc:  # nothing simulated: nothing left behind
+        fh.close()
+        for q in (Path(out), side_path):
+            with contextlib.suppress(OSError):
+                os.unlink(q)
+        if isinstance(exc, OSError):
+            raise LogIncomplete(f"{exc.filename or side_path}: cannot write the run log: "
+                                f"{exc.strerror or exc}") from None
+        raise
+    side = {**head, "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
+            "exit_code": 1 if res.fault is not None else 0, "summary": res.summary,
+            "law_fault": str(res.fault) if res.fault is not None else None, "notices": res.notices}
+    try:
+        write_csv(res, out, fh=fh)
+    except OSError as exc:
+        err = f"{type(exc).__name__}: {exc.strerror or exc}"
+        with contextlib.suppress(OSError):  # over the reservation: this fits on a full disk
+            files.write_json(side_path, {**side, "complete": False, "rows_written": None, "exit_code": 4,
+                                         "error": f"the CSV could not be written whole: {err}"})
+        raise LogIncomplete(f"{out}: cannot write the run log: {exc.strerror or exc}; the sidecar "
+                            f"{side_path} says so") from None
+    try:
+        files.write_json(side_path, side)
+    except OSError as exc:
+        raise LogIncomplete(f"{exc.filename or side_path}: cannot write the sidecar: {exc.strerror or exc}") from None
+    return res
