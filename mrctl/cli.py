@@ -2,7 +2,8 @@
 
 The one place that turns errors into exit codes: every user-facing error is
 a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
-1 internal error, 2 bad input, 3 link failure, 4 run log incomplete), and
+1 internal error, 2 bad input, 3 link failure, 4 run log incomplete; a run
+or simulation that completed but broke an acceptance bound returns 5), and
 :func:`main` prints it as one line on stderr, never a traceback.
 """
 
@@ -38,8 +39,10 @@ def _load(config_path: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from mrctl.offline.simulate import run_duration, simulate, write_csv
+    from mrctl.config.acceptance import bounds
+    from mrctl.offline.simulate import log_columns, run_duration, simulate, write_csv
     from mrctl.runlog import files
+    from mrctl.runlog.acceptance import format_verdict, judge, row_figures
     from mrctl.runlog.format import sidecar_header
     from mrctl.runlog.metrics import format_summary
     from mrctl.util.options import check_duration
@@ -51,6 +54,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     duration = run_duration(exp, override)
     res = simulate(exp, duration)
     s = res.summary
+    # acceptance where it means something offline: faults, forced 0 A, tracking
+    # (no real clock: no skipped deadlines or gaps)
+    figs = row_figures(log_columns(res), 1.0 / exp.config.rate_hz) if res.ticks else {}
+    figs.pop("longest_gap_s", None)
+    figs["force_nrmse"] = s.get("force_nrmse")
+    verdict = judge(figs, bounds(exp.config), 1.0 / exp.config.rate_hz)
+    code = EXIT_FAILURE if res.fault is not None else (
+        ExitCode.DEGRADED if verdict["verdict"] == "degraded" else EXIT_OK)
     if args.out:
         side = {**sidecar_header("simulate", Path(args.out).name, {
                     "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
@@ -59,7 +70,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
                     "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
                 "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
-                "exit_code": 1 if res.fault is not None else 0, "summary": s,
+                "exit_code": int(code), "verdict": verdict["verdict"], "verdict_reasons": verdict["reasons"],
+                "summary": {**s, "acceptance": verdict},
                 "law_fault": str(res.fault) if res.fault is not None else None,
                 "notices": res.notices}
         try:
@@ -83,7 +95,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
         return EXIT_FAILURE
-    return EXIT_OK
+    if verdict["verdict"] == "degraded":
+        _err(format_verdict(verdict))
+    else:
+        print(format_verdict(verdict))
+    return int(code)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -94,12 +110,46 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+#: where ``mrctl run`` logs without ``--out`` (under the working directory; the
+#: systemd units use the same pattern under their state directory)
+DEFAULT_LOG = "runs/{name}-%Y%m%d-%H%M%S.csv"
+
+
+def default_log_path(config_path: str) -> str:
+    """``runs/<name>-<date>-<time>.csv`` for an experiment file: its
+    ``name``, or the file's stem if it has none (or cannot be read: the run
+    then reports the config's errors itself)."""
+    import re
+    import time
+
+    name = Path(config_path).stem
+    try:
+        from mrctl.config import load_experiment
+
+        name = load_experiment(config_path).get("name") or name
+    except Exception:  # noqa: BLE001 - the run reports a bad config with its key paths
+        pass
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or "run"
+    return time.strftime(DEFAULT_LOG.format(name=safe))
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import time
 
     from mrctl.daemon.service import RunOptions, run
 
-    out = time.strftime(args.out) if args.out and "%" in args.out else args.out
+    if args.no_log and args.out:
+        raise BadInput("run: --out and --no-log contradict each other")
+    if args.out:
+        out = time.strftime(args.out) if "%" in args.out else args.out
+    elif args.no_log:
+        out = None
+        print("no run log (--no-log): nothing of this run is recorded", flush=True)
+    else:
+        out = default_log_path(args.config)
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+    if out:
+        print(f"run log: {out}", flush=True)  # first, so a forgotten --out loses nothing
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
                           status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
@@ -282,17 +332,32 @@ def cmd_check(args: argparse.Namespace) -> int:
                 return EXIT_BAD_INPUT
         else:
             print(f.message)
+    from mrctl.config.acceptance import bounds
+    from mrctl.runlog.acceptance import format_bounds
+
+    print(format_bounds(bounds(cfg)))
     print("\n".join(laws_report(cfg)))
     print(f"{args.config}: OK")
     return EXIT_OK
 
 
+def exit_codes_epilog() -> str:
+    """The exit-code table for ``--help`` (the run log format's one list)."""
+    from mrctl.runlog.format import EXIT_CODES
+
+    return "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
+    epilog = exit_codes_epilog()
+    raw = argparse.RawDescriptionHelpFormatter
+    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon",
+                                 epilog=epilog, formatter_class=raw)
     ap.add_argument("--version", action="version", version=f"mrctl {__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)")
+    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)", epilog=epilog,
+                        formatter_class=raw)
     sp.add_argument("config", help="experiment YAML")
     sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
     sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
@@ -305,10 +370,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--title", help="figure title (default: the run file names)")
     rp.set_defaults(func=cmd_report)
 
-    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
+    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)", epilog=epilog,
+                        formatter_class=raw)
     rn.add_argument("config", help="experiment YAML")
     rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it); "
-                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
+                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded; "
+                                  "default runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv under the working directory")
+    rn.add_argument("--no-log", action="store_true",
+                    help="record nothing (default without --out: runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv)")
     rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
     rn.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")

@@ -67,7 +67,7 @@ def test_under_systemd_stderr_is_detected_and_prefixed(tmp_path):
         st = os.fstat(f.fileno())
         env = dict(os.environ, JOURNAL_STREAM=f"{st.st_dev}:{st.st_ino}")
         res = subprocess.run([sys.executable, "-m", "mrctl", "run", str(_fault_config(tmp_path, False)),
-                              "--duration", "1", "--quiet", "--status-socket", str(tmp_path / "s.sock")],
+                              "--duration", "1", "--quiet", "--no-log", "--status-socket", str(tmp_path / "s.sock")],
                              cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=f, text=True, timeout=120)
         bad = subprocess.run([sys.executable, "-m", "mrctl", "check", str(tmp_path / "missing.yaml")],
                              cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=f, text=True, timeout=60)

@@ -243,7 +243,7 @@ def test_status_answers_while_a_run_is_live(tmp_path):
     cfg = _config(tmp_path)
     sock = tmp_path / "status.sock"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "mrctl", "run", str(cfg), "--duration", "20",
+    proc = subprocess.Popen([sys.executable, "-m", "mrctl", "run", str(cfg), "--duration", "20", "--no-log",
                              "--status-socket", str(sock), "--quiet"], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -185,7 +185,7 @@ def test_tap_refused_request_is_a_clean_error(tmp_path, capsys):
 def _daemon(tmp_path: Path, seconds: float, out: bool = True) -> tuple[subprocess.Popen, str]:
     sock = str(tmp_path / "d.sock")
     cmd = [sys.executable, "-m", "mrctl", "run", str(FIG5), "--duration", str(seconds), "--quiet",
-           "--status-socket", sock] + (["--out", str(tmp_path / "run.csv")] if out else [])
+           "--status-socket", sock] + (["--out", str(tmp_path / "run.csv")] if out else ["--no-log"])
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
