@@ -244,14 +244,19 @@ class Service:
         """Feasibility of the configured rate on this link (docs/design.md):
         the experiment to run, maybe at a reduced rate; LinkFailure to refuse."""
         cfg = exp.config
-        rtts, errors = probe(link, cfg.link.probe_exchanges)
-        f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type)
+        timeouts: list[int] = []
+        rtts, errors = probe(link, cfg.link.probe_exchanges, clock=lambda: self.opts.clock_ns() * 1e-9,
+                             timeouts=timeouts)
+        f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type,
+                   timeouts=timeouts[0])
         if f.ok:
             self.say(f.message)
             return exp
         if cfg.link.on_infeasible == "reduce_rate" and f.suggested_rate_hz:
             self.warn(f"{f.message} Running at {f.suggested_rate_hz:g} Hz instead.")
             return exp.at_rate(f.suggested_rate_hz)
+        if f.suggested_rate_hz and "reduce_rate" not in f.message:
+            raise LinkFailure(f"refusing to start: {f.message}; or set link.on_infeasible: reduce_rate")
         raise LinkFailure(f"refusing to start: {f.message}")
 
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
