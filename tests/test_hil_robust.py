@@ -13,25 +13,24 @@ from pathlib import Path
 
 import pytest
 
-from hil_util import ROOT, HilSim, hil_tracking, run_hil as _run_hil
+from hil_util import (ROOT, HilSim, bench_at_test_rate, expected_rows, experiment_at_test_rate, hil_tracking,
+                      run_hil as _run_hil)
 from mrctl.daemon.recorder import read_run, read_sidecar
 
 pytestmark = pytest.mark.hil
 EXP = ROOT / "config" / "experiments"
-#: smooth on these benches, in simulation: 5.6 % (mismatch), 2.9 % (Bouc-Wen)
-BOUND = {"mismatch": 0.035, "bouc_wen": 0.025}
+#: smooth on these benches, in simulation at 1 kHz: 5.6 % (mismatch), 2.9 % (Bouc-Wen). The tests run
+#: at 200 Hz (hil_util): the Bouc-Wen run is device-paced, both at 200 Hz, one 5 ms tick of actuation
+#: latency (2.2-2.6 % measured on 2026-11-25 under load); the mismatch run is host-paced at 200 Hz
+#: against the bench's own 1 kHz clock (1.16 %)
+BOUND = {"mismatch": 0.035, "bouc_wen": 0.029}
 BENCH = {"mismatch": ROOT / "config" / "hil_mismatch_bench.yaml",
          "bouc_wen": ROOT / "config" / "hil_bouc_wen_bench.yaml"}
 PARAMS = {"mismatch": "parameters: table1", "bouc_wen": "parameters: {tau_input: 0.005}"}
 
 
 def _experiment(d: Path, name: str, bench: str, **replace: str) -> Path:
-    text = (EXP / name).read_text().replace("parameters: table1", PARAMS[bench])
-    for old, new in replace.items():
-        text = text.replace(old, new)
-    p = d / name
-    p.write_text(text)
-    return p
+    return experiment_at_test_rate(EXP / name, d, **{"parameters: table1": PARAMS[bench], **replace})
 
 
 def _check(tmp_path, bench, start, make_cfg):
@@ -46,14 +45,14 @@ def _check(tmp_path, bench, start, make_cfg):
     tr = hil_tracking(read_run(out), truth)
     print(f"{bench}/{cfg.name}: HIL force NRMSE {100 * tr['nrmse']:.3f} % over {tr['rows']} ticks, "
           f"skipped deadlines {side['summary']['timing']['skipped_deadlines']}")
-    assert tr["rows"] > 1500 and tr["nrmse"] < BOUND[bench], tr
+    assert tr["rows"] > 0.5 * expected_rows(side) and tr["nrmse"] < BOUND[bench], tr
     assert truth["I_cmd"][-1] == 0.0
     assert not any("no load-cell force" in m for m in side["summary"]["messages"])
 
 
 def test_closed_law_over_serial_against_the_bouc_wen_bench(tmp_path):
     def start(d):
-        return HilSim("--config", str(BENCH["bouc_wen"]), "--transport", "serial", "--link", str(d / "tty"),
+        return HilSim("--config", bench_at_test_rate(BENCH["bouc_wen"], d), "--transport", "serial", "--link", str(d / "tty"),
                       "--truth", str(d / "truth.csv"), "--duration", "30")
 
     _check(tmp_path, "bouc_wen", start, lambda d, hil: _experiment(
