@@ -41,6 +41,7 @@ def _check(tmp_path, bench, start, make_cfg):
     side = read_sidecar(out)
     assert side["complete"] is True and side["summary"]["exit_current_A"] == 0.0
     assert side["rows_written"] == side["summary"]["ticks"]
+    assert side["summary"]["link_errors"] < 0.05 * side["summary"]["ticks"], side["summary"]["link_errors"]
     truth = read_run(d / "truth.csv")
     tr = hil_tracking(read_run(out), truth)
     print(f"{bench}/{cfg.name}: HIL force NRMSE {100 * tr['nrmse']:.3f} % over {tr['rows']} ticks, "
