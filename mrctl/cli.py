@@ -103,9 +103,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from mrctl.offline.report import make_report
+    from mrctl.offline.report import make_report, parse_pair
 
-    make_report(args.runs, args.out, title=args.title)
+    size = parse_pair(args.size, "--size", positive=True) if args.size else None
+    window = parse_pair(args.time, "--time") if args.time else None
+    panels = [p.strip() for p in args.panels.split(",") if p.strip()] if args.panels is not None else None
+    make_report(args.runs, args.out, title=args.title, size=size, time=window, panels=panels)
     print(f"wrote {args.out}")
     return EXIT_OK
 
@@ -364,10 +367,16 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     sp.set_defaults(func=cmd_simulate)
 
-    rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops")
+    rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "
+                                       "faults and skipped deadlines shaded, the verdict in the caption")
     rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
     rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
-    rp.add_argument("--title", help="figure title (default: the run file names)")
+    rp.add_argument("--title", help="figure title (default: the runs' file names and laws)")
+    rp.add_argument("--size", metavar="W,H", help="figure size in inches (default: 12 wide, by the panels)")
+    rp.add_argument("--time", metavar="T0,T1", help="draw only T0 <= t <= T1 (s); the figures stay the whole run's")
+    rp.add_argument("--panels", metavar="P,P,...",
+                    help="panels in this order, from force, error, current, fv, fx, body_acc, stroke, tyre "
+                         "(default force,error,current,fv,fx; quarter-car runs body_acc,stroke,tyre,current)")
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)", epilog=epilog,
