@@ -5,11 +5,9 @@
                       [--duration S] [--seed N] [--truth truth.csv] [--wait hybrid]
                       [--fault KIND@AT_S+FOR_S[,param=value]] ...
 
-Prints one ``hil_sim ready ...`` line on stdout once it serves (and, with
-``--ready-file PATH``, writes that line to PATH then, for a shell that
-started it in the background: ``until [ -e PATH ]; do sleep 0.1; done``;
-removed again at exit); SIGTERM or SIGINT (or ``--duration``) stops it
-cleanly: 0 A, truth log flushed, symlink removed, exit 0. Start-up errors (bad config, unusable link path, port in
+Prints one ``hil_sim ready ...`` line on stdout once it serves (also to
+``--ready-file PATH``, removed at exit); SIGTERM or SIGINT (or
+``--duration``) stops it cleanly: 0 A, truth log flushed, symlink removed, exit 0. Start-up errors (bad config, unusable link path, port in
 use, missing transport) are one line per problem on stderr and exit 2.
 Details: docs/hil_sim.md.
 """

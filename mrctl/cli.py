@@ -42,7 +42,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from mrctl.config.acceptance import bounds
     from mrctl.offline.simulate import log_columns, run_duration, simulate, write_csv
     from mrctl.runlog import files
-    from mrctl.runlog.acceptance import format_verdict, judge, row_figures
+    from mrctl.runlog.acceptance import format_verdict, offline_verdict
     from mrctl.runlog.format import sidecar_header
     from mrctl.runlog.metrics import format_summary
     from mrctl.util.options import check_duration
@@ -54,12 +54,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     duration = run_duration(exp, override)
     res = simulate(exp, duration)
     s = res.summary
-    # acceptance where it means something offline: faults, forced 0 A, tracking
-    # (no real clock: no skipped deadlines or gaps)
-    figs = row_figures(log_columns(res), 1.0 / exp.config.rate_hz) if res.ticks else {}
-    figs.pop("longest_gap_s", None)
-    figs["force_nrmse"] = s.get("force_nrmse")
-    verdict = judge(figs, bounds(exp.config), 1.0 / exp.config.rate_hz)
+    verdict = offline_verdict(log_columns(res), s, bounds(exp.config), 1.0 / exp.config.rate_hz)
     code = EXIT_FAILURE if res.fault is not None else (
         ExitCode.DEGRADED if verdict["verdict"] == "degraded" else EXIT_OK)
     if args.out:
@@ -113,17 +108,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-#: where ``mrctl run`` logs without ``--out`` (under the working directory; the
-#: systemd units use the same pattern under their state directory)
-DEFAULT_LOG = "runs/{name}-%Y%m%d-%H%M%S.csv"
-
-
 def default_log_path(config_path: str) -> str:
-    """``runs/<name>-<date>-<time>.csv`` for an experiment file: its
-    ``name``, or the file's stem if it has none (or cannot be read: the run
-    then reports the config's errors itself)."""
-    import re
-    import time
+    """``runs/<name>-<date>-<time>.csv`` for an experiment file (its ``name``,
+    else the file's stem; a bad config is reported by the run itself)."""
+    from mrctl.runlog.files import default_log_path as path_for
 
     name = Path(config_path).stem
     try:
@@ -132,8 +120,7 @@ def default_log_path(config_path: str) -> str:
         name = load_experiment(config_path).get("name") or name
     except Exception:  # noqa: BLE001 - the run reports a bad config with its key paths
         pass
-    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or "run"
-    return time.strftime(DEFAULT_LOG.format(name=safe))
+    return path_for(str(name))
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -150,7 +137,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         print("no run log (--no-log): nothing of this run is recorded", flush=True)
     else:
         out = default_log_path(args.config)
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
     if out:
         print(f"run log: {out}", flush=True)  # first, so a forgotten --out loses nothing
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
@@ -344,15 +330,10 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def exit_codes_epilog() -> str:
-    """The exit-code table for ``--help`` (the run log format's one list)."""
-    from mrctl.runlog.format import EXIT_CODES
-
-    return "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
-
-
 def build_parser() -> argparse.ArgumentParser:
-    epilog = exit_codes_epilog()
+    from mrctl.runlog.format import exit_codes_text
+
+    epilog = exit_codes_text()
     raw = argparse.RawDescriptionHelpFormatter
     ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon",
                                  epilog=epilog, formatter_class=raw)

@@ -104,6 +104,16 @@ def judge(figures: Mapping[str, Any], bounds: Mapping[str, Any], dt_s: float) ->
     return {"verdict": DEGRADED if reasons else OK, "reasons": reasons, "figures": figs, "bounds": b}
 
 
+def offline_verdict(cols: Mapping[str, np.ndarray], summary: Mapping[str, Any], bounds: Mapping[str, Any],
+                    dt_s: float) -> dict[str, Any]:
+    """The verdict of an offline run (``mrctl simulate``) on what it has:
+    faults, forced 0 A, tracking; no real clock, so no skips or gaps."""
+    figs = row_figures(cols, dt_s) if len(cols["t"]) else {}
+    figs.pop("longest_gap_s", None)
+    figs["force_nrmse"] = summary.get("force_nrmse")
+    return judge(figs, bounds, dt_s)
+
+
 def format_verdict(v: Mapping[str, Any]) -> str:
     """One line: ``verdict: ok (...)`` or ``verdict: degraded: reason; reason``."""
     if v.get("verdict") == DEGRADED:

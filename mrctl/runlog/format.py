@@ -84,6 +84,11 @@ EXIT_CODES: dict[str, str] = {
 }
 
 
+def exit_codes_text() -> str:
+    """The exit-code table as ``--help`` epilogs print it."""
+    return "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
+
+
 def describe_columns(columns: tuple[str, ...] = RUN_COLUMNS) -> dict[str, Any]:
     """The self-describing part of a sidecar: columns, units, meanings, the
     fault legend, the exit codes."""
