@@ -447,3 +447,37 @@ def test_reduced_rate_rebuilds_every_tick_count_and_filter(tmp_path, monkeypatch
     # a reload at the reduced rate builds its laws for that rate too
     svc._reload()
     assert ctl.pending is not None and ctl.pending[0].dt == pytest.approx(2e-3)
+
+
+class TimeoutProbeLink(SlowProbeLink):
+    """Every third exchange of the start-up probe times out (a slow link or a
+    busy host), the rest answer at once; afterwards every exchange answers."""
+
+    def _transact(self, current_A, deadline, wake_ns):
+        self.n += 1
+        if 1 < self.n <= self.slow_until and self.n % 3 == 0:
+            raise LinkTimeout("no reply")
+        k = self.n
+        return Sample(k, k * 2e-3, 0.0, 0.06 * math.cos(k * 2e-3 * 2 * math.pi), math.nan, 0)
+
+
+def test_reduce_rate_also_covers_a_probe_whose_failures_are_timeouts(tmp_path, monkeypatch):
+    vc = VirtualClock()
+    link = TimeoutProbeLink(probe_exchanges=30, silent_from=10**9, advance=vc.sleep)
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
+    cfg = _config(tmp_path, extra="link: {on_infeasible: reduce_rate, probe_exchanges: 30}\n",
+                  **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    svc, code, out = _run(cfg, tmp_path, duration=0.5, clock_ns=vc.now, sleep=vc.sleep)
+    said = " ".join(svc.messages)
+    assert svc.loop.rate_hz == 500.0, said
+    assert "(10 timeouts)" in said and "Running at 500 Hz instead" in said
+    # refused without reduce_rate, saying what to try
+    link2 = TimeoutProbeLink(probe_exchanges=30, silent_from=10**9, advance=vc.sleep)
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link2)
+    cfg = _config(tmp_path, name="refuse.yaml", extra="link: {probe_exchanges: 30}\n",
+                  **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    (tmp_path / "r").mkdir()
+    svc, code, out = _run(cfg, tmp_path / "r", duration=0.5, clock_ns=vc.now, sleep=vc.sleep)
+    assert code == 3
+    said = " ".join(svc.messages)
+    assert "refusing to start" in said and "reduce_rate" in said and "cable" in said
