@@ -347,10 +347,10 @@ def _run(args: argparse.Namespace) -> int:
         if not stop.is_set():
             fields = " ".join(f"{k}={v}" for k, v in ready_info.items())
             line = f"hil_sim ready {fields} rate_hz={cfg.rate_hz:g} seed={cfg.seed}"
-            print(line, flush=True)
-            if args.ready_file is not None:
+            if args.ready_file is not None:  # before stdout: whoever reads either finds both
                 _write_ready(args.ready_file, line)
                 cleanups.append(lambda: args.ready_file.unlink(missing_ok=True))
+            print(line, flush=True)
 
         while not stop.is_set():
             stop.wait(0.2)
