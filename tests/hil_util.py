@@ -87,9 +87,18 @@ def run_hil(tmp_path, start, make_cfg, duration_s: float = RUN_S):
         res = run_daemon(cfg, d / "run.csv", duration_s=duration_s)
     finally:
         code = hil.stop()
-    if res.returncode != 0:
+    # 0, or 5: completed, its verdict degraded by this machine's load (the
+    # verdict itself is tested in test_hil_verdict.py); anything else failed
+    if res.returncode not in (0, 5):
         pytest.fail(f"HIL run failed: exit {res.returncode}: {res.stderr.strip()[-2000:]}")
     return d, cfg, res, code
+
+
+def protocol_errors(side: dict[str, Any]) -> tuple[int, int]:
+    """(frame and device errors, exchanges) of a run: what a protocol
+    regression raises; timeouts are the machine's, not counted."""
+    link = side["summary"].get("link") or {}
+    return link.get("frame_errors", 0) + link.get("device_errors", 0), link.get("exchanges", 0)
 
 
 def expected_rows(side: dict[str, Any], settle_s: float = 1.0, duration_s: float = RUN_S) -> float:

@@ -140,7 +140,6 @@ def test_skyhook_over_serial_reads_the_quarter_cars_channels(tmp_path):
     d, cfg, res, code = run_hil(tmp_path, start, lambda d, hil: experiment_at_test_rate(
         ROOT / "config" / "experiments" / "hil_quarter_car.yaml", d, **{"/tmp/mrctl-sim-tty": str(d / "tty")}),
         duration_s=3.0)
-    assert res.returncode == 0, res.stderr
     assert code == 0
     run = read_run(d / "run.csv")
     on = np.mean(run["I"] > 0.5)

@@ -488,6 +488,10 @@ class Service:
                                    "rt": [str(r) for r in self.rt_results],
                                    "exit_current_A": self.exit_current_A,
                                    "law_fault": str(self.ctl.law_fault) if self.ctl.law_fault else None}
+        try:  # the link's failures by kind (timeouts, frame and device errors, ...): protocol health
+            summary["link"] = self.link.counters() if self.link is not None else None
+        except Exception:  # noqa: BLE001 - a plugin link may not have them
+            summary["link"] = None
         if self.obs is not None:
             summary.update(self.obs.close(self.rec))  # the last rows to the stream and taps, before the log closes
         if self.rec is not None:
