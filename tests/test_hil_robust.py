@@ -48,7 +48,7 @@ def _check(tmp_path, bench, start, make_cfg):
     tr = hil_tracking(read_run(out), truth)
     print(f"{bench}/{cfg.name}: HIL force NRMSE {100 * tr['nrmse']:.3f} % over {tr['rows']} ticks, "
           f"skipped deadlines {side['summary']['timing']['skipped_deadlines']}")
-    assert tr["rows"] > 0.5 * expected_rows(side) and tr["nrmse"] < BOUND[bench], tr
+    assert tr["rows"] > 0.3 * expected_rows(side) and tr["nrmse"] < BOUND[bench], tr
     assert truth["I_cmd"][-1] == 0.0
     assert not any("no load-cell force" in m for m in side["summary"]["messages"])
 
