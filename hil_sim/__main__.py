@@ -5,9 +5,9 @@
                       [--duration S] [--seed N] [--truth truth.csv] [--wait hybrid]
                       [--fault KIND@AT_S+FOR_S[,param=value]] ...
 
-Prints one ``hil_sim ready ...`` line on stdout once it serves; SIGTERM or
-SIGINT (or ``--duration``) stops it cleanly: 0 A, truth log flushed, symlink
-removed, exit 0. Start-up errors (bad config, unusable link path, port in
+Prints one ``hil_sim ready ...`` line on stdout once it serves (also to
+``--ready-file PATH``, removed at exit); SIGTERM or SIGINT (or
+``--duration``) stops it cleanly: 0 A, truth log flushed, symlink removed, exit 0. Start-up errors (bad config, unusable link path, port in
 use, missing transport) are one line per problem on stderr and exit 2.
 Details: docs/hil_sim.md.
 """
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import socket
 import sys
@@ -114,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "server threads")
     ap.add_argument("--wait", choices=("hybrid", "sleep", "spin"), default="hybrid",
                     help="clock wait strategy (default hybrid: sleep, then spin the last 0.2 ms)")
+    ap.add_argument("--ready-file", type=Path, default=None, metavar="PATH",
+                    help="write the ready line to PATH once the bench serves (a stale PATH is removed at start, "
+                         "PATH is removed at exit): a script waits for it before starting mrctl run")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND@AT_S+FOR_S[,param=value]",
                     help="schedule a fault on the device clock (repeatable; added to the config's faults), "
                          "e.g. drop_replies@2.0+0.05 or delay_replies@3+0.3,delay_s=0.003; kinds: "
@@ -226,6 +230,11 @@ def _run(args: argparse.Namespace) -> int:
     clock_thread = None
     status = 0
     inline = args.serve == "inline"
+    if args.ready_file is not None:
+        try:  # a file left by an earlier bench must not announce this one
+            args.ready_file.unlink(missing_ok=True)
+        except OSError as e:
+            raise StartupError(f"--ready-file {args.ready_file}: cannot remove the old file: {e.strerror}") from None
     try:
         if args.truth is not None:
             try:
@@ -337,7 +346,11 @@ def _run(args: argparse.Namespace) -> int:
         device.first_tick.wait(READY_TIMEOUT_S)
         if not stop.is_set():
             fields = " ".join(f"{k}={v}" for k, v in ready_info.items())
-            print(f"hil_sim ready {fields} rate_hz={cfg.rate_hz:g} seed={cfg.seed}", flush=True)
+            line = f"hil_sim ready {fields} rate_hz={cfg.rate_hz:g} seed={cfg.seed}"
+            if args.ready_file is not None:  # before stdout: whoever reads either finds both
+                _write_ready(args.ready_file, line)
+                cleanups.append(lambda: args.ready_file.unlink(missing_ok=True))
+            print(line, flush=True)
 
         while not stop.is_set():
             stop.wait(0.2)
@@ -367,6 +380,17 @@ def _run(args: argparse.Namespace) -> int:
     if failed:
         status = 1
     return status
+
+
+def _write_ready(path: Path, line: str) -> None:
+    """The ready line to ``path``, whole or not at all (written beside it,
+    then renamed): a waiting script never reads half a line."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(line + "\n")
+        os.replace(tmp, path)
+    except OSError as e:
+        print(f"hil_sim: warning: --ready-file {path}: {e.strerror}", file=sys.stderr, flush=True)
 
 
 def _print_summary(summary: dict[str, Any]) -> None:

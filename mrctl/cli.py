@@ -2,7 +2,8 @@
 
 The one place that turns errors into exit codes: every user-facing error is
 a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
-1 internal error, 2 bad input, 3 link failure, 4 run log incomplete), and
+1 internal error, 2 bad input, 3 link failure, 4 run log incomplete; a run
+or simulation that completed but broke an acceptance bound returns 5), and
 :func:`main` prints it as one line on stderr, never a traceback.
 """
 
@@ -39,7 +40,7 @@ def _load(args: argparse.Namespace) -> Any:
 def cmd_simulate(args: argparse.Namespace) -> int:
     """The offline closed loop; ``--out``: :func:`mrctl.offline.simulate_log.simulate_logged`."""
     from mrctl.offline.simulate import run_duration, simulate
-    from mrctl.offline.simulate_log import simulate_logged
+    from mrctl.offline.simulate_log import simulate_logged, simulate_verdict
     from mrctl.runlog import files
     from mrctl.util.options import check_duration
 
@@ -48,13 +49,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         files.check_log_path(args.out, args.force)  # before a long simulation, not after
     exp = _load(args)
     duration = run_duration(exp, override)
-    res = simulate(exp, duration) if args.out is None else simulate_logged(exp, duration, args.out, args.config,
-                                                                           force=args.force)
-    return _simulated(args, exp, res)
+    if args.out is None:
+        res = simulate(exp, duration)
+        verdict, code = simulate_verdict(exp, res)
+    else:
+        res, verdict, code = simulate_logged(exp, duration, args.out, args.config, force=args.force)
+    return _simulated(args, exp, res, verdict, code)
 
 
-def _simulated(args: argparse.Namespace, exp: Any, res: Any) -> int:
+def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, Any], code: int) -> int:
     """What ``mrctl simulate`` prints after the run (and its exit code)."""
+    from mrctl.runlog.acceptance import format_verdict
     from mrctl.runlog.metrics import format_summary
 
     s, law = res.summary, exp.config.inverse.law
@@ -72,15 +77,38 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any) -> int:
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
         return EXIT_FAILURE
-    return EXIT_OK
+    if verdict["verdict"] == "degraded":
+        _err(format_verdict(verdict))
+    else:
+        print(format_verdict(verdict))
+    return int(code)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from mrctl.offline.report import make_report
+    from mrctl.offline.report import make_report, parse_pair
 
-    make_report(args.runs, args.out, title=args.title, force=args.force)
+    size = parse_pair(args.size, "--size", positive=True) if args.size else None
+    window = parse_pair(args.time, "--time") if args.time else None
+    panels = [p.strip() for p in args.panels.split(",") if p.strip()] if args.panels is not None else None
+    make_report(args.runs, args.out, title=args.title, size=size, time=window, panels=panels,
+                force=args.force)
     print(f"wrote {args.out}")
     return EXIT_OK
+
+
+def default_log_path(config_path: str, allow_outside: bool = False) -> str:
+    """``runs/<name>-<date>-<time>.csv`` for an experiment file (its ``name``,
+    else the file's stem; a bad config is reported by the run itself)."""
+    from mrctl.runlog.files import default_log_path as path_for
+
+    name = Path(config_path).stem
+    try:
+        from mrctl.config import load_experiment
+
+        name = load_experiment(config_path, allow_outside=allow_outside).get("name") or name
+    except Exception:  # noqa: BLE001 - the run reports a bad config with its key paths
+        pass
+    return path_for(str(name))
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -91,7 +119,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     for opt, value in (("--out", args.out), ("--stream", args.stream)):
         if value is not None and not value.strip():  # not a silent "off": leaving the option out is
             raise BadInput(f"{opt} '': an empty value would silently turn it off; leave {opt} out for none")
-    out = time.strftime(args.out) if args.out and "%" in args.out else args.out
+    if args.no_log and args.out:
+        raise BadInput("run: --out and --no-log contradict each other")
+    if args.out:
+        out = time.strftime(args.out) if "%" in args.out else args.out
+    elif args.no_log:
+        out = None
+        print("no run log (--no-log): nothing of this run is recorded", flush=True)
+    else:
+        out = default_log_path(args.config, args.allow_outside_paths)
+    if out:
+        print(f"run log: {out}", flush=True)  # first, so a forgotten --out loses nothing
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
                           status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
@@ -227,6 +265,10 @@ def cmd_check(args: argparse.Namespace) -> int:
                 return EXIT_BAD_INPUT
         else:
             print(f.message)
+    from mrctl.config.acceptance import bounds
+    from mrctl.runlog.acceptance import format_bounds
+
+    print(format_bounds(bounds(cfg)))
     print("\n".join(laws_report(cfg)))
     print(f"tick: {tick_build()} build")
     print(f"{args.config}: OK")
@@ -239,11 +281,17 @@ def _outside_option(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
+    from mrctl.runlog.format import exit_codes_text
+
+    epilog = exit_codes_text()
+    raw = argparse.RawDescriptionHelpFormatter
+    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon",
+                                 epilog=epilog, formatter_class=raw)
     ap.add_argument("--version", action="version", version=f"mrctl {__version__} ({tick_build()})")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)")
+    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)", epilog=epilog,
+                        formatter_class=raw)
     sp.add_argument("config", help="experiment YAML")
     sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
     sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
@@ -251,17 +299,27 @@ def build_parser() -> argparse.ArgumentParser:
     _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 
-    rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops")
+    rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "
+                                       "faults and skipped deadlines shaded, the verdict in the caption")
     rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
     rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
-    rp.add_argument("--title", help="figure title (default: the run file names)")
+    rp.add_argument("--title", help="figure title (default: the runs' file names and laws)")
+    rp.add_argument("--size", metavar="W,H", help="figure size in inches (default: 12 wide, by the panels)")
+    rp.add_argument("--time", metavar="T0,T1", help="draw only T0 <= t <= T1 (s); the figures stay the whole run's")
+    rp.add_argument("--panels", metavar="P,P,...",
+                    help="panels in this order, from force, error, current, fv, fx, body_acc, stroke, tyre "
+                         "(default force,error,current,fv,fx; quarter-car runs body_acc,stroke,tyre,current)")
     rp.add_argument("--force", action="store_true", help="replace an existing figure")
     rp.set_defaults(func=cmd_report)
 
-    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
+    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)", epilog=epilog,
+                        formatter_class=raw)
     rn.add_argument("config", help="experiment YAML")
     rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it); "
-                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
+                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded; "
+                                  "default runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv under the working directory")
+    rn.add_argument("--no-log", action="store_true",
+                    help="record nothing (default without --out: runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv)")
     rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
     rn.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")

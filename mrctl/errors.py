@@ -10,6 +10,8 @@ exceptions to codes. The codes are README's:
     2 bad input (config, dataset, CSV, command line)
     3 link failure (cannot open, infeasible rate, driver lost, device owned)
     4 run log incomplete (rows lost, disk error)
+    5 run completed but degraded (an ``acceptance`` bound broken: faults,
+      skipped deadlines, gaps, forced 0 A, tracking; the sidecar's verdict)
 
 This module imports nothing of mrctl, so every layer may use it.
 """
@@ -27,6 +29,7 @@ class ExitCode(enum.IntEnum):
     BAD_INPUT = 2
     LINK = 3
     LOG = 4
+    DEGRADED = 5
     INTERRUPTED = 130
 
 

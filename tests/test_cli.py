@@ -78,7 +78,7 @@ def test_report_of_a_daemon_run_with_faults(tmp_path):
                    "demand: {type: viscous, c_des: 500}\ninverse: {law: smooth}\n"
                    "safety: {I_max: 0.6, hold_ticks: 2, v_range_mps: [-0.05, 0.05], auto_resume: true}\n")
     out = tmp_path / "run.csv"
-    assert main(["run", str(cfg), "--out", str(out), "--quiet", "--status-socket", str(tmp_path / "s")]) == 0
+    assert main(["run", str(cfg), "--out", str(out), "--quiet", "--status-socket", str(tmp_path / "s")]) == 5
     text = out.read_text()
     assert "nan" in text  # the supervisor did fault (|v| > 0.05 m/s near the peaks)
     png = tmp_path / "r.png"

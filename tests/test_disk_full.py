@@ -20,16 +20,22 @@ FIG5 = ROOT / "config" / "experiments" / "fig5.yaml"
 
 
 class FailingFile:
-    """A log file that takes ``ok_writes`` writes, then fails with ENOSPC."""
+    """A log file that takes its first ``ok_lines`` lines (the header is the
+    first), then fails with ENOSPC on every write. Counted in lines, not in
+    writes: how many rows a block holds depends on the machine's timing
+    (a loaded machine wrote fewer blocks in a 1 s run than a count of writes
+    assumed), the number of rows a run reaches does not."""
 
-    def __init__(self, path: Path, ok_writes: int) -> None:
+    def __init__(self, path: Path, ok_lines: int) -> None:
         self.fh = open(path, "wb", buffering=0)
-        self.left = ok_writes
+        self.left = ok_lines
 
     def write(self, data):
-        if self.left > 0:
-            self.left -= 1
+        n = bytes(data).count(b"\n")
+        if 0 < self.left and n <= self.left:
+            self.left -= n
             return self.fh.write(data)
+        self.left = 0
         raise OSError(errno.ENOSPC, "No space left on device")
 
     def fileno(self):
@@ -39,7 +45,7 @@ class FailingFile:
         self.fh.close()
 
 
-def _failing_log(monkeypatch, ok_writes: int) -> None:
+def _failing_log(monkeypatch, ok_lines: int) -> None:
     import mrctl.runlog.files as files
 
     real = files.create_log
@@ -47,13 +53,13 @@ def _failing_log(monkeypatch, ok_writes: int) -> None:
     def create(path, force=False):
         fh = real(path, force)
         fh.close()
-        return FailingFile(Path(path), ok_writes)
+        return FailingFile(Path(path), ok_lines)
 
     monkeypatch.setattr(files, "create_log", create)
 
 
 def test_injected_write_failure_is_warned_in_status_and_on_stderr_and_exits_4(tmp_path, monkeypatch):
-    _failing_log(monkeypatch, ok_writes=4)  # the header, then 3 blocks
+    _failing_log(monkeypatch, ok_lines=51)  # the header and 50 rows: any 1 s run has far more
     out = tmp_path / "run.csv"
     err = io.StringIO()
     svc = Service(RunOptions(str(FIG5), out=str(out), duration_s=2.0, live=False, err=err, stream=io.StringIO(),
@@ -90,7 +96,7 @@ def test_injected_write_failure_is_warned_in_status_and_on_stderr_and_exits_4(tm
 
 
 def test_sidecar_that_cannot_be_written_is_reported_with_the_counts(tmp_path, monkeypatch):
-    _failing_log(monkeypatch, ok_writes=4)
+    _failing_log(monkeypatch, ok_lines=51)
     import mrctl.runlog.files as files
 
     real = files.write_json

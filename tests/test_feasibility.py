@@ -96,3 +96,20 @@ def test_device_pacing_check_refuses_a_device_that_ignores_sync():
     why = check_device_pacing(Link(0.0), 1e-3)
     assert why is not None and "ignores the SYNC flag" in why and "loop.pacing: host" in why
     assert check_device_pacing(Link(1e-3), 1e-3) is None
+
+
+def test_probe_timeouts_suggest_a_lower_rate_and_every_refusal_says_what_to_try():
+    """Timeouts in the probe are a slow link (or host): a lower rate is
+    suggested, which link.on_infeasible: reduce_rate takes; other failures
+    leave no rate to suggest. Either way the message says what to try."""
+    timeouts: list[int] = []
+    t = iter(range(0, 10**6, 100))  # a virtual clock: 100 us per reading
+    rtts, errors = probe(SlowLink(0.0, fail_every=3), 30, clock=lambda: next(t) * 1e-6, timeouts=timeouts)
+    assert errors == 10 and timeouts == [10]
+    assert rtts == [pytest.approx(1e-4)] * 20  # measured on the clock handed in
+    f = assess(1000.0, None, rtts, errors, timeouts=timeouts[0])
+    assert not f.ok and f.suggested_rate_hz == 500.0
+    assert "10 timeouts" in f.message and "reduce_rate" in f.message and "cable" in f.message
+    f = assess(1000.0, None, rtts, errors, timeouts=0)  # not timeouts: no rate helps
+    assert not f.ok and f.suggested_rate_hz is None
+    assert "unreliable" in f.message and "lower rate_hz" in f.message and "cable" in f.message

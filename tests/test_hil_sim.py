@@ -941,3 +941,22 @@ def test_sync_reply_owed_across_a_hangup_is_lost_not_raised() -> None:
     dev.tick(1, state.setpoint()[2])  # runs the owed reply: must not raise
     assert ser.replies == 0 and ser.replies_dropped == 1
     assert state.latest_sample().seq == 1
+
+
+def test_ready_file_is_written_when_serving_and_removed_at_exit(tmp_path: Path) -> None:
+    """--ready-file: a stale file from an earlier bench is removed at start,
+    the ready line is written once the bench serves, and removed at exit
+    (README's HIL recipe waits for it)."""
+    from hil_sim.testing.harness import HilSim
+
+    ready = tmp_path / "ready"
+    ready.write_text("stale\n")
+    hil = HilSim("--transport", "modbus-tcp", "--bind", "127.0.0.1:0", "--duration", "30",
+                 "--ready-file", str(ready), workdir=tmp_path)
+    try:
+        text = ready.read_text()
+        assert text == hil.ready + "\n" and text.startswith("hil_sim ready transport=modbus-tcp bind=127.0.0.1:")
+    finally:
+        code = hil.stop()
+    assert code == 0 and not ready.exists()
+    assert not list(tmp_path.glob(".ready.*.tmp"))

@@ -214,12 +214,12 @@ def test_second_daemon_on_a_device_in_use_is_refused_naming_the_owner(tmp_path, 
     from hil_sim.testing.daemon_faults import ownership
 
     r = ownership(transport, tmp_path, lock_dir=tmp_path / "locks")
-    if not r["a_in_loop"]:
-        pytest.skip(f"the first daemon did not reach its loop on this loaded machine: {r['a_messages']}")
+    assert r["a_in_loop"], f"the first daemon did not reach its loop: {r['a_messages']}"
     assert r["b_exit"] == 3, r
     assert r["b_names_owner_pid"] and r["b_names_device"], r["b_messages"]
     assert not r["b_wrote_log"]
-    assert r["a_exit"] == 0, r["a_messages"]
+    # A completed (its verdict may be degraded by two daemons starting beside it on a small machine)
+    assert r["a_exit"] in (0, 5), r["a_messages"]
 
 
 def _as_user(uid: int, fn) -> tuple[int, int, int]:

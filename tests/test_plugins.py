@@ -92,7 +92,9 @@ def test_simulate_runs_the_plugin(site, tmp_path):
 
 def test_run_runs_the_plugin_on_the_sim_bench(site, tmp_path):
     out = tmp_path / "run.csv"
-    r = _mrctl(site, "run", str(EXAMPLE / "example.yaml"), "--duration", "1.5", "--quiet", "--out", str(out),
+    cfg = tmp_path / "example.yaml"  # timing not judged: a shared machine
+    cfg.write_text((EXAMPLE / "example.yaml").read_text() + "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n")
+    r = _mrctl(site, "run", str(cfg), "--duration", "1.5", "--quiet", "--out", str(out),
                "--status-socket", str(tmp_path / "st.sock"))
     assert r.returncode == 0, r.stderr
     assert "law force_pi" in r.stdout and "safety: OK" in r.stdout

@@ -88,7 +88,7 @@ def test_sidecar_describes_every_column_the_fault_bits_and_the_exit_code(tmp_pat
         members = {f.name: int(f) for f in Fault if f.name not in ("NONE", "SAMPLE")}
         assert {k: v["value"] for k, v in bits.items()} == members
         assert all(len(v["meaning"]) > 10 for v in bits.values())
-        assert set(side["exit_codes"]) == {"0", "1", "2", "3", "4"}
+        assert set(side["exit_codes"]) == {"0", "1", "2", "3", "4", "5"}
         # provenance: what ran, with what
         assert side["config"]["inverse"]["law"] == "smooth" and side["mrctl_version"]
         assert side["I_max_A"] == 0.6 and side["rate_hz"] == 1000

@@ -24,12 +24,18 @@ ROOT = Path(__file__).resolve().parents[1]
 FIG5 = (ROOT / "config" / "experiments" / "fig5.yaml").read_text()
 
 
+#: these tests judge currents, faults and logs on a real clock: the run's
+#: timing on a shared CI machine (skipped deadlines, gaps) is a bench/ figure,
+#: so the timing bounds are opened here; the fault bounds keep their defaults
+TIMING_NOT_JUDGED = "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n"
+
+
 def _config(tmp_path, extra="", name="exp.yaml", **replace):
     text = FIG5
     for old, new in replace.items():
         text = text.replace(old, new)
     p = tmp_path / name
-    p.write_text(text + extra)
+    p.write_text(text + TIMING_NOT_JUDGED + extra)
     return p
 
 
@@ -143,7 +149,11 @@ def test_each_sample_fault_gives_zero_amps_within_the_hold(tmp_path, spy_backend
     cfg = _config(tmp_path, extra="", **{"safety: {I_max: 0.6}":
                   f"safety: {{I_max: 0.6, hold_ticks: {hold}, x_range_m: [-0.05, 0.05], auto_resume: true}}"})
     svc, code, out = _run(cfg, tmp_path, duration=1.0)
-    assert code == 0
+    # 200 of 1000 ticks bad: the run completes, degraded, and says why
+    assert code == 5
+    side = read_sidecar(out)
+    assert side["verdict"] == "degraded" and side["exit_code"] == 5
+    assert any(r.startswith("ticks in fault") for r in side["verdict_reasons"]), side["verdict_reasons"]
     w = dict(h["spy"].writes)
     # which ticks ran is up to the machine's timing (skipped deadlines): use the ones that did
     fault_ticks = sorted(k for k in w if 300 <= k < 500)
@@ -243,7 +253,7 @@ def test_status_answers_while_a_run_is_live(tmp_path):
     cfg = _config(tmp_path)
     sock = tmp_path / "status.sock"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "mrctl", "run", str(cfg), "--duration", "20",
+    proc = subprocess.Popen([sys.executable, "-m", "mrctl", "run", str(cfg), "--duration", "20", "--no-log",
                              "--status-socket", str(sock), "--quiet"], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -368,12 +378,16 @@ def test_device_pacing_without_an_enable_register_exits_2_at_0A(tmp_path, capsys
 class SlowProbeLink(Link):
     """An exchange link whose round trip is 1.2 ms while the start-up probe
     runs (too slow for 1 kHz, fine for 500 Hz), instant afterwards, and
-    silent from exchange ``silent_from`` on (the link is lost)."""
+    silent from exchange ``silent_from`` on (the link is lost). The 1.2 ms
+    pass on the test's virtual clock (``advance``), never on the machine's:
+    a busy-wait on the real clock measured 1.7 ms on a loaded machine and
+    moved the run to 250 Hz."""
 
     kinds = ("slow",)
 
-    def __init__(self, probe_exchanges, silent_from):
+    def __init__(self, probe_exchanges, silent_from, advance):
         super().__init__(timeout_s=0.01)
+        self.advance = advance
         self.slow_until = 1 + probe_exchanges  # the start-up 0 A, then the probe
         self.silent_from = silent_from
         self.n = 0
@@ -399,9 +413,7 @@ class SlowProbeLink(Link):
     def _transact(self, current_A, deadline, wake_ns):
         self.n += 1
         if self.n <= self.slow_until:
-            end = time.perf_counter() + 1.2e-3
-            while time.perf_counter() < end:
-                pass
+            self.advance(1.2e-3)
         if self.n >= self.silent_from:
             raise LinkTimeout("no reply")
         k = self.n
@@ -412,13 +424,13 @@ def test_reduced_rate_rebuilds_every_tick_count_and_filter(tmp_path, monkeypatch
     """link.on_infeasible: reduce_rate: the link-loss and reconnect tick
     counts, the velocity-lead filter, the laws and the loop all run at the
     reduced rate, so link_loss_s lasts what the user configured."""
-    link = SlowProbeLink(probe_exchanges=20, silent_from=400)
+    vc = VirtualClock()
+    link = SlowProbeLink(probe_exchanges=20, silent_from=400, advance=vc.sleep)
     monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
     cfg = _config(tmp_path, extra="link: {on_infeasible: reduce_rate, probe_exchanges: 20}\n"
                                   "latency: {lead_s: auto}\n",
                   **{"safety: {I_max: 0.6}": "safety: {I_max: 0.6, link_loss_s: 0.1, reconnect_interval_s: 0.05}",
                      "backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
-    vc = VirtualClock()
     svc, code, out = _run(cfg, tmp_path, duration=10.0, clock_ns=vc.now, sleep=vc.sleep)
     assert code == 3 and "link lost" in " ".join(svc.messages)
     assert svc.loop.rate_hz == 500.0 and svc.exp.dt == pytest.approx(2e-3)
@@ -435,3 +447,37 @@ def test_reduced_rate_rebuilds_every_tick_count_and_filter(tmp_path, monkeypatch
     # a reload at the reduced rate builds its laws for that rate too
     svc._reload()
     assert ctl.pending is not None and ctl.pending[0].dt == pytest.approx(2e-3)
+
+
+class TimeoutProbeLink(SlowProbeLink):
+    """Every third exchange of the start-up probe times out (a slow link or a
+    busy host), the rest answer at once; afterwards every exchange answers."""
+
+    def _transact(self, current_A, deadline, wake_ns):
+        self.n += 1
+        if 1 < self.n <= self.slow_until and self.n % 3 == 0:
+            raise LinkTimeout("no reply")
+        k = self.n
+        return Sample(k, k * 2e-3, 0.0, 0.06 * math.cos(k * 2e-3 * 2 * math.pi), math.nan, 0)
+
+
+def test_reduce_rate_also_covers_a_probe_whose_failures_are_timeouts(tmp_path, monkeypatch):
+    vc = VirtualClock()
+    link = TimeoutProbeLink(probe_exchanges=30, silent_from=10**9, advance=vc.sleep)
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
+    cfg = _config(tmp_path, extra="link: {on_infeasible: reduce_rate, probe_exchanges: 30}\n",
+                  **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    svc, code, out = _run(cfg, tmp_path, duration=0.5, clock_ns=vc.now, sleep=vc.sleep)
+    said = " ".join(svc.messages)
+    assert svc.loop.rate_hz == 500.0, said
+    assert "(10 timeouts)" in said and "Running at 500 Hz instead" in said
+    # refused without reduce_rate, saying what to try
+    link2 = TimeoutProbeLink(probe_exchanges=30, silent_from=10**9, advance=vc.sleep)
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link2)
+    cfg = _config(tmp_path, name="refuse.yaml", extra="link: {probe_exchanges: 30}\n",
+                  **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    (tmp_path / "r").mkdir()
+    svc, code, out = _run(cfg, tmp_path / "r", duration=0.5, clock_ns=vc.now, sleep=vc.sleep)
+    assert code == 3
+    said = " ".join(svc.messages)
+    assert "refusing to start" in said and "reduce_rate" in said and "cable" in said

@@ -25,6 +25,14 @@ from mrctl.runlog.read import read_run, read_sidecar
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG5 = ROOT / "config" / "experiments" / "fig5.yaml"
+
+
+def _timing_open(d: Path) -> Path:
+    """fig5 with the timing bounds opened: these runs are about rows, on a
+    shared machine whose timing is a bench/ figure (docs/runlog.md: the verdict)."""
+    p = d / "fig5.yaml"
+    p.write_text(FIG5.read_text() + "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n")
+    return p
 COLS = ("t", "F_des", "F", "I", "k")
 NEVER = 1 << 62
 
@@ -213,7 +221,7 @@ def test_an_unresolvable_stream_host_is_refused_before_the_device(tmp_path):
 
 
 def _run_daemon(tmp_path: Path, url: str, seconds: float = 2.0, *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "mrctl", "run", str(FIG5), "--duration", str(seconds), "--quiet",
+    return subprocess.run([sys.executable, "-m", "mrctl", "run", str(_timing_open(tmp_path)), "--duration", str(seconds), "--quiet",
                            "--out", str(tmp_path / "run.csv"), "--status-socket", str(tmp_path / "s.sock"),
                            "--stream", url, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)
 

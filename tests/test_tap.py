@@ -24,6 +24,14 @@ from mrctl.runlog.read import read_sidecar
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG5 = ROOT / "config" / "experiments" / "fig5.yaml"
+
+
+def _timing_open(d: Path) -> Path:
+    """fig5 with the timing bounds opened: these runs are about rows, on a
+    shared machine whose timing is a bench/ figure (docs/runlog.md: the verdict)."""
+    p = d / "fig5.yaml"
+    p.write_text(FIG5.read_text() + "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n")
+    return p
 COLS = ("t", "F", "fault", "k")
 NEVER = 1 << 62
 
@@ -184,8 +192,8 @@ def test_tap_refused_request_is_a_clean_error(tmp_path, capsys):
 # -- against a running daemon --------------------------------------------------
 def _daemon(tmp_path: Path, seconds: float, out: bool = True) -> tuple[subprocess.Popen, str]:
     sock = str(tmp_path / "d.sock")
-    cmd = [sys.executable, "-m", "mrctl", "run", str(FIG5), "--duration", str(seconds), "--quiet",
-           "--status-socket", sock] + (["--out", str(tmp_path / "run.csv")] if out else [])
+    cmd = [sys.executable, "-m", "mrctl", "run", str(_timing_open(tmp_path)), "--duration", str(seconds), "--quiet",
+           "--status-socket", sock] + (["--out", str(tmp_path / "run.csv")] if out else ["--no-log"])
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:

@@ -89,16 +89,19 @@ def run_daemon(config: Path, out: Path, duration_s: float, timeout_s: float = 60
 def scored_run(config: Path, out: Path, seconds: float, hil: "HilSim", truth: Path) -> dict:
     """Run the daemon against a started ``hil``, stop the bench, and score the
     run against its truth log: ``{"error": last stderr line}`` if the daemon
-    failed, else ``{"nrmse", "summary"}`` (the sidecar's summary)."""
+    failed, else ``{"nrmse", "summary", "verdict", "verdict_reasons"}`` (the
+    sidecar's); a degraded run (exit 5) is scored too."""
     from mrctl.runlog.read import read_run, read_sidecar
 
     try:
         res = run_daemon(config, out, seconds)
     finally:
         hil.stop()
-    if res.returncode != 0:
+    if res.returncode not in (0, 5):  # 5: completed, degraded (its verdict is kept): still a figure
         return {"error": res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}"}
-    return {"nrmse": hil_tracking(read_run(out), read_run(truth))["nrmse"], "summary": read_sidecar(out)["summary"]}
+    side = read_sidecar(out)
+    return {"nrmse": hil_tracking(read_run(out), read_run(truth))["nrmse"], "summary": side["summary"],
+            "verdict": side.get("verdict"), "verdict_reasons": side.get("verdict_reasons", [])}
 
 
 def hil_tracking(run: dict, truth: dict, settle_s: float = 1.0) -> dict:

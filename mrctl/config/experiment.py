@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from mrctl.config.acceptance import acceptance_section
 from mrctl.config.bench import bench_fields, road_excitations
 from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
 from mrctl.config.observe import stream_section
@@ -238,6 +239,7 @@ def experiment_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any
             "probe_exchanges": Num(default=50, integer=True, min=0, max=10000,
                                    doc="round trips measured at start-up (0 = wire-time estimate only)"),
         }, doc="start-up feasibility check of real links"),
+        "acceptance": acceptance_section(),
         # -- observability (docs/observe.md): kept together, in mrctl/config/observe.py --
         "stream": stream_section(),
     }

@@ -25,9 +25,9 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
-from mrctl.io.base import LinkError
+from mrctl.io.base import LinkError, LinkTimeout
 
 LINK_SHARE = 0.8
 STANDARD_RATES_HZ = (1000.0, 500.0, 250.0, 200.0, 100.0, 50.0, 20.0, 10.0)
@@ -53,11 +53,15 @@ def wire_time_s(backend_cfg: Any) -> float | None:
     return link_class(backend_cfg.type).wire_time_s(backend_cfg)
 
 
-def probe(link: Any, n: int) -> tuple[list[float], int]:
-    """n exchanges at 0 A; returns (durations in s of the successful ones, error count)."""
+def probe(link: Any, n: int, clock: Callable[[], float] = time.perf_counter,
+          timeouts: list[int] | None = None) -> tuple[list[float], int]:
+    """n exchanges at 0 A; returns (durations in s of the successful ones,
+    error count). ``clock`` (s) is the run's clock (a test's virtual one);
+    ``timeouts``, if given, gets the number of failures that were timeouts
+    appended (a slow link, not a broken one)."""
     times: list[float] = []
-    errors = 0
-    pc = time.perf_counter
+    errors = n_timeouts = 0
+    pc = clock
     for _ in range(n):
         t0 = pc()
         try:
@@ -66,23 +70,42 @@ def probe(link: Any, n: int) -> tuple[list[float], int]:
                 link.write(0.0)
             else:
                 link.exchange(0.0)
+        except LinkTimeout:
+            errors += 1
+            n_timeouts += 1
+            continue
         except LinkError:
             errors += 1
             continue
         times.append(pc() - t0)
+    if timeouts is not None:
+        timeouts.append(n_timeouts)
     return times, errors
 
 
+#: what to try when a link is refused: said with every refusal
+ADVICE = ("try a lower rate_hz, or link.on_infeasible: reduce_rate to let mrctl run at the rate that fits; "
+          "check the cable, the port and the baud rate; a longer backend.timeout_s; "
+          "a busy host delays replies (stop other jobs)")
+
+
 def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), errors: int = 0,
-           what: str = "link") -> Feasibility:
-    """Decide, and say why in one message a lab user can act on."""
+           what: str = "link", timeouts: int = 0) -> Feasibility:
+    """Decide, and say why in one message a lab user can act on.
+
+    ``timeouts``: how many of the ``errors`` were timeouts. Timeouts mean a
+    slow link (or host), not a broken one: with too many of them the run is
+    refused but a lower rate is suggested (``link.on_infeasible:
+    reduce_rate`` takes it); other errors (bad frames, exceptions) say the
+    link is unreliable at any rate."""
     budget = LINK_SHARE / rate_hz
     p50 = statistics.median(rtts) if rtts else None
     p99 = sorted(rtts)[min(len(rtts) - 1, int(0.99 * len(rtts)))] if rtts else None
     need = max(x for x in (wire_s, p50, 0.0) if x is not None)
     if rtts == [] and errors:
         return Feasibility(rate_hz, wire_s, None, None, errors, False, None,
-                           f"{what}: no reply to any of {errors} probe exchanges; check the cable, address and baud rate")
+                           f"{what}: no reply to any of {errors} probe exchanges; check the cable, address and baud "
+                           "rate, and that the device is running and serving")
     parts = []
     if wire_s is not None:
         parts.append(f"{wire_s * 1e3:.2f} ms on the wire")
@@ -97,8 +120,18 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
         return Feasibility(rate_hz, wire_s, p50, p99, errors, True, None,
                            f"{what}: {how} per tick fits {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed){tail}")
     if need <= budget:
+        lower = [r for r in STANDARD_RATES_HZ if r < rate_hz]
+        if timeouts and timeouts >= errors - errors // 10 and lower:
+            # a slow link at times: the next standard rate leaves the device and the host more slack per tick
+            fits = [r for r in lower if p99 is not None and p99 <= LINK_SHARE / r]
+            best = fits[0] if fits else lower[0]
+            return Feasibility(rate_hz, wire_s, p50, p99, errors, False, best,
+                               f"{what}: {errors} of {errors + len(rtts)} probe exchanges failed "
+                               f"({timeouts} timeouts) at {rate_hz:g} Hz; {how}. Suggested rate {best:g} Hz; "
+                               + ADVICE)
         return Feasibility(rate_hz, wire_s, p50, p99, errors, False, None,
-                           f"{what}: {errors} of {errors + len(rtts)} probe exchanges failed; the link is unreliable")
+                           f"{what}: {errors} of {errors + len(rtts)} probe exchanges failed "
+                           f"({timeouts} timeouts); the link is unreliable; " + ADVICE)
     fits = [r for r in STANDARD_RATES_HZ if r < rate_hz and need <= LINK_SHARE / r]
     best = fits[0] if fits else None
     msg = (f"{what}: {how} per tick does not fit {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed for the link). "

@@ -58,17 +58,23 @@ class LogWatch:
         self.notify(f"STATUS=run log losing rows: {why}")
 
 
-def tracking(path: str | None, I_max: float, settle_s: float) -> dict[str, float] | None:
-    """The tracking figures of a run log, or None (no log, too short, unreadable)."""
+def read_log(path: str | None) -> dict[str, Any] | None:
+    """The run log's columns, or None (no log, unreadable)."""
     if not path:
         return None
     from mrctl.runlog.read import read_run
 
     try:
-        cols = read_run(path)
+        return read_run(path)
     except Exception:  # noqa: BLE001 - figures are a bonus; the log itself was reported
         return None
-    if len(cols.get("t", ())) < 2:
+
+
+def tracking(path: str | None, I_max: float, settle_s: float,
+             cols: dict[str, Any] | None = None) -> dict[str, float] | None:
+    """The tracking figures of a run log, or None (no log, too short, unreadable)."""
+    cols = cols if cols is not None else read_log(path)
+    if cols is None or len(cols.get("t", ())) < 2:
         return None
     F, _ = tracked_force(cols)
     try:
@@ -77,24 +83,43 @@ def tracking(path: str | None, I_max: float, settle_s: float) -> dict[str, float
         return None
 
 
+def verdict_exit(v: dict[str, Any], exit_code: int) -> int:
+    """The exit code after a verdict: 5 for a degraded run that would
+    otherwise exit 0; a worse ending keeps its own code."""
+    return exit_code or (ExitCode.DEGRADED if v["verdict"] == "degraded" else exit_code)
+
+
 def close_log(rec: Any, out: str, summary: dict[str, Any], exit_code: int, messages: list[str], *,
               I_max: float, settle_s: float, say: Callable[[str], None], warn: Callable[[str], None],
-              format_tracking: Callable[[dict[str, float]], str]) -> int:
+              format_tracking: Callable[[dict[str, float]], str],
+              verdict: Callable[[dict[str, Any] | None, dict[str, float] | None], dict[str, Any]] | None = None) -> int:
     """Drain the recorder, judge the log, write the final sidecar once;
-    returns the exit code (4 if anything was lost and nothing worse happened)."""
+    returns the exit code (4 if anything was lost and nothing worse happened,
+    5 if the run broke an acceptance bound and nothing worse happened).
+
+    ``verdict(cols, tracking)`` judges the run from its rows (None when the
+    log cannot be read) and its tracking figures
+    (:func:`mrctl.runlog.acceptance.judge`'s dict)."""
     st = rec.close(write_sidecar=False)
     lost = st["dropped_rows"]
     if st["error"] or lost:
         warn(f"run log incomplete: {lost} of {st['ticks']} rows lost{tick_span(st)}"
              + (f"; {st['error']}" if st["error"] else "") + "; the sidecar records it")
         exit_code = exit_code or ExitCode.LOG
-    track = tracking(out, I_max, settle_s)
+    cols = read_log(out)
+    track = tracking(out, I_max, settle_s, cols)
     if track:
         summary["tracking"] = track
         say(format_tracking(track))
+    extra: dict[str, Any] = {}
+    if verdict is not None:
+        v = verdict(cols, track)
+        exit_code = verdict_exit(v, exit_code)
+        summary["acceptance"] = v
+        extra.update(verdict=v["verdict"], verdict_reasons=v["reasons"])
     summary["exit_code"] = exit_code
     summary["messages"] = messages[-50:]
-    err = rec.write_sidecar(summary, extra={"exit_code": exit_code})
+    err = rec.write_sidecar(summary, extra={"exit_code": exit_code, **extra})
     if err:
         warn(f"could not write the sidecar {sidecar_path(out)}: {err}; the run log has {st['rows_written']} "
              f"rows written and {lost} lost{tick_span(st)} of {st['ticks']} ticks; exit {exit_code or ExitCode.LOG}")

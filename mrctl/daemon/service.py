@@ -28,7 +28,8 @@ device's lock is released last.
 Exit codes are carried by the error that ends a start-up
 (:mod:`mrctl.errors`): 2 bad input, 3 link failure or device owned; a run
 ends 0, 3 when the driver was lost, 4 when the log is incomplete
-(:mod:`mrctl.daemon.logcheck`), 1 on an internal error.
+(:mod:`mrctl.daemon.logcheck`), 5 when it completed but broke an
+``acceptance`` bound (:meth:`Service.acceptance`), 1 on an internal error.
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ from mrctl.daemon import ownership
 from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
-from mrctl.daemon.logcheck import LogWatch, close_log
+from mrctl.config.acceptance import bounds as acceptance_bounds
+from mrctl.daemon.logcheck import LogWatch, close_log, verdict_exit
 from mrctl.daemon.loop import FixedRateLoop
 from mrctl.daemon.monitor import Monitor, live_line
 from mrctl.daemon.notify import Notifier
@@ -66,6 +68,7 @@ from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlEr
 from mrctl.experiment import Experiment, build, check_channels, link_channels
 from mrctl.io.base import Link, LinkError
 from mrctl.runlog import files
+from mrctl.runlog.acceptance import format_verdict, judge, row_figures
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
 from mrctl.runlog.metrics import format_summary
 from mrctl.util.journal import CRIT, ERR, NOTICE, WARNING, Journal
@@ -123,6 +126,7 @@ class Service:
         self.exit_current_A = math.nan  # what the way out commanded (0.0 unless it failed)
         self._zero_error: str | None = "not attempted"
         self._total_ticks: int | None = None
+        self.verdict: dict[str, Any] | None = None  # the run's acceptance verdict, once it ended
         self._log_fh: Any = None  # the run log, created before the link opens, until the recorder takes it
         self.journal = Journal(opts.err, opts.log_priorities)
         self.log_watch = LogWatch(bool(opts.out), self.warn, self.notifier.send)
@@ -275,14 +279,19 @@ class Service:
         """Feasibility of the configured rate on this link (docs/design.md):
         the experiment to run, maybe at a reduced rate; LinkFailure to refuse."""
         cfg = exp.config
-        rtts, errors = probe(link, cfg.link.probe_exchanges)
-        f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type)
+        timeouts: list[int] = []
+        rtts, errors = probe(link, cfg.link.probe_exchanges, clock=lambda: self.opts.clock_ns() * 1e-9,
+                             timeouts=timeouts)
+        f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type,
+                   timeouts=timeouts[0])
         if f.ok:
             self.say(f.message)
             return exp
         if cfg.link.on_infeasible == "reduce_rate" and f.suggested_rate_hz:
             self.warn(f"{f.message} Running at {f.suggested_rate_hz:g} Hz instead.")
             return exp.at_rate(f.suggested_rate_hz)
+        if f.suggested_rate_hz and "reduce_rate" not in f.message:
+            raise LinkFailure(f"refusing to start: {f.message}; or set link.on_infeasible: reduce_rate")
         raise LinkFailure(f"refusing to start: {f.message}")
 
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
@@ -381,6 +390,49 @@ class Service:
             "load_cell_delay_ticks": 1 if exp.config.backend.type == "sim" else 0,
         }
 
+    # -- acceptance (docs/config.md: acceptance) ------------------------------------
+    def acceptance(self, cols: dict[str, Any] | None = None, track: dict[str, float] | None = None) -> dict[str, Any]:
+        """The run judged against its ``acceptance`` bounds, from the counters
+        the loop and the supervisor keep (ticks in fault, skipped deadlines,
+        the longest gap) and, once the run has ended, from its rows (the
+        longest forced-0 A stretch) and tracking figures. Without rows the
+        stretch is estimated from the longest run of bad samples."""
+        assert self.exp is not None and self.loop is not None and self.ctl is not None and self.sup is not None
+        dt = 1.0 / self.loop.rate_hz
+        c = self.sup.counters()
+        st = self.loop.stats
+        ticks, skipped = st.ticks, st.skipped_deadlines
+        figs: dict[str, Any] = {
+            "ticks": ticks,
+            "fault_share": c.ticks_in_fault / ticks if ticks else 0.0,
+            "skipped_share": skipped / (ticks + skipped) if ticks + skipped else 0.0,
+            "longest_gap_s": st.max_gap_ns / 1e9,
+        }
+        if cols is not None and len(cols.get("t", ())):
+            figs["longest_zero_stretch_s"] = row_figures(cols, dt)["longest_zero_stretch_s"]
+        else:
+            cfg = self.sup.config
+            bad = max(0, c.longest_bad_run - cfg.hold_ticks)
+            figs["longest_zero_stretch_s"] = (bad + (cfg.resume_good_ticks if c.faults_entered else 0)) * dt
+            figs["zero_stretch_estimated"] = True
+        figs["force_nrmse"] = track.get("force_nrmse") if track else None
+        v = judge({k: v for k, v in figs.items() if k not in ("ticks", "zero_stretch_estimated")},
+                  acceptance_bounds(self.exp.config), dt)
+        v["figures"]["ticks"] = ticks
+        if figs.get("zero_stretch_estimated"):
+            v["figures"]["zero_stretch_estimated"] = True
+        return v
+
+    def _final_verdict(self, cols: dict[str, Any] | None, track: dict[str, float] | None) -> dict[str, Any]:
+        """The verdict at the end of the run, said once: stdout if ok, stderr
+        (and the sidecar's messages) if degraded."""
+        v = self.verdict = self.acceptance(cols, track)
+        if v["verdict"] == "degraded":
+            self.warn(format_verdict(v) + " (exit 5 unless the run failed otherwise)", ERR)
+        else:
+            self.say(format_verdict(v))
+        return v
+
     # -- status, live line, reload ------------------------------------------------
     def snapshot(self) -> dict[str, Any]:
         loop, ctl, sup = self.loop, self.ctl, self.sup
@@ -407,6 +459,13 @@ class Service:
         if self.obs is not None:
             d.update(self.obs.stats())
         d["log"] = self.log_watch.state
+        if self.verdict is not None:
+            d["acceptance"] = self.verdict
+        elif ctl is not None and loop is not None and sup is not None:
+            try:
+                d["acceptance"] = self.acceptance()  # so far, from the counters
+            except Exception:  # noqa: BLE001 - status must answer
+                pass
         d["warnings"] = self.messages[-5:]
         return d
 
@@ -468,13 +527,20 @@ class Service:
                                    "rt": [str(r) for r in self.rt_results],
                                    "exit_current_A": self.exit_current_A,
                                    "law_fault": str(self.ctl.law_fault) if self.ctl.law_fault else None}
+        try:  # the link's failures by kind (timeouts, frame and device errors, ...): protocol health
+            summary["link"] = self.link.counters() if self.link is not None else None
+        except Exception:  # noqa: BLE001 - a plugin link may not have them
+            summary["link"] = None
         if self.obs is not None:
             summary.update(self.obs.close(self.rec))  # the last rows to the stream and taps, before the log closes
         if self.rec is not None:
             exit_code = close_log(self.rec, self.opts.out or "", summary, exit_code, self.messages,
                                   I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,
                                   warn=lambda m: self.warn(m, ERR),
-                                  format_tracking=lambda t: format_summary(t, self.exp.I_max))
+                                  format_tracking=lambda t: format_summary(t, self.exp.I_max),
+                                  verdict=self._final_verdict)
+        else:
+            exit_code = verdict_exit(self._final_verdict(None, None), exit_code)
         if self.faults is not None:
             self.faults.check()  # a fault in the last 50 ms, after the monitor's last look
         s = self.sup

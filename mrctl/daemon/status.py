@@ -285,6 +285,14 @@ def format_status(st: dict[str, Any]) -> str:
         state = g("log") if isinstance(g("log"), str) else "ok"
         lines.append(f"log: {rec.get('rows_written')} rows written, {rec.get('dropped_rows')} lost"
                      + ("" if state == "ok" else f"; {state}"))
+    acc = g("acceptance")
+    if isinstance(acc, dict) and isinstance(acc.get("figures"), dict):
+        from mrctl.runlog.acceptance import format_verdict
+
+        try:
+            lines.append("acceptance so far: " + format_verdict(acc))
+        except (TypeError, ValueError, KeyError):
+            lines.append(f"acceptance: {acc.get('verdict')}")
     stream, taps = g("stream"), g("taps")
     if isinstance(stream, dict):
         lines.append(f"stream {stream.get('url')}: {stream.get('datagrams')} datagrams sent, "

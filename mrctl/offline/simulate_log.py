@@ -14,25 +14,39 @@ import contextlib
 import os
 import platform
 from pathlib import Path
+from typing import Any
 
 from mrctl import __version__
 from mrctl.build import tick_build
-from mrctl.errors import LogIncomplete
+from mrctl.config.acceptance import bounds
+from mrctl.errors import ExitCode, LogIncomplete
 from mrctl.experiment import Experiment
-from mrctl.offline.simulate import SimResult, simulate, write_csv
+from mrctl.offline.simulate import SimResult, log_columns, simulate, write_csv
+from mrctl.runlog.acceptance import offline_verdict
 from mrctl.runlog import files
 from mrctl.runlog.format import sidecar_header
 from mrctl.util.jsonutil import jsonable
 
-__all__ = ["simulate_logged"]
+__all__ = ["simulate_logged", "simulate_verdict"]
+
+
+def simulate_verdict(exp: Experiment, res: SimResult) -> tuple[dict[str, Any], int]:
+    """The run's verdict against the experiment's ``acceptance`` bounds
+    (:func:`mrctl.runlog.acceptance.offline_verdict`) and the exit code it
+    means: 1 for a law fault, 5 for a degraded run, else 0."""
+    verdict = offline_verdict(log_columns(res), res.summary, bounds(exp.config), 1.0 / exp.config.rate_hz)
+    code = ExitCode.FAILURE if res.fault is not None else (
+        ExitCode.DEGRADED if verdict["verdict"] == "degraded" else ExitCode.OK)
+    return verdict, int(code)
 
 
 def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_path: str, *, force: bool = False
-                    ) -> SimResult:
+                    ) -> tuple[SimResult, dict[str, Any], int]:
     """Simulate ``exp`` for ``duration_s`` and write its run log to ``out``
     and the sidecar beside it (see the module doc). ``BadInput`` if the
     names cannot be taken, ``LogIncomplete`` (exit 4) if the disk cannot
-    take the log (the sidecar records it when it can)."""
+    take the log (the sidecar records it when it can). Returns the result,
+    its verdict and exit code (:func:`simulate_verdict`)."""
     side_path = files.sidecar_path(out)
     head = sidecar_header("simulate", Path(out).name, {
         "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(), "host": platform.node(),
@@ -53,8 +67,10 @@ def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_
             raise LogIncomplete(f"{exc.filename or side_path}: cannot write the run log: "
                                 f"{exc.strerror or exc}") from None
         raise
+    verdict, code = simulate_verdict(exp, res)
     side = {**head, "complete": True, "rows_written": res.ticks, "ticks": res.ticks, "dropped_rows": 0,
-            "exit_code": 1 if res.fault is not None else 0, "summary": res.summary,
+            "exit_code": code, "verdict": verdict["verdict"], "verdict_reasons": verdict["reasons"],
+            "summary": {**res.summary, "acceptance": verdict},
             "law_fault": str(res.fault) if res.fault is not None else None, "notices": res.notices}
     try:
         write_csv(res, out, fh=fh)
@@ -69,4 +85,4 @@ def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_
         files.write_json(side_path, side)
     except OSError as exc:
         raise LogIncomplete(f"{exc.filename or side_path}: cannot write the sidecar: {exc.strerror or exc}") from None
-    return res
+    return res, verdict, code

@@ -284,3 +284,20 @@ def fsync_dir(directory: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+#: where ``mrctl run`` logs without ``--out``, under the working directory
+#: (the systemd units use the same pattern under their state directory)
+DEFAULT_LOG = "runs/{name}-%Y%m%d-%H%M%S.csv"
+
+
+def default_log_path(name: str) -> str:
+    """``runs/<name>-<date>-<time>.csv`` (the name made safe for a file name),
+    its directory created: a forgotten ``--out`` loses no experiment."""
+    import re
+    import time
+
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "run"
+    path = time.strftime(DEFAULT_LOG.format(name=safe))
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    return path

@@ -79,7 +79,14 @@ EXIT_CODES: dict[str, str] = {
     "2": "bad input (config, option, file)",
     "3": "link failure (cannot open, infeasible rate, driver lost, device owned by another mrctl)",
     "4": "run log incomplete (rows lost, disk full or failing)",
+    "5": "run completed but degraded: an acceptance bound was broken (share of ticks in fault or of skipped "
+         "deadlines, longest gap between ticks, longest forced 0 A, force NRMSE); the sidecar's verdict says which",
 }
+
+
+def exit_codes_text() -> str:
+    """The exit-code table as ``--help`` epilogs print it."""
+    return "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
 
 
 def describe_columns(columns: tuple[str, ...] = RUN_COLUMNS) -> dict[str, Any]:
