@@ -133,6 +133,15 @@ class DeviceSetup:
         c = self.dac
         return current_A * c.per_V + c.offset_V
 
+    def to_dict(self) -> dict[str, Any]:
+        """What the run log's sidecar records: the device, its wiring and set-up."""
+        return {"device": self.preset.name, "source": self.preset.source,
+                "channels": {r: {c.kind: c.n, CHANNEL_ROLES[r][2]: c.per_V, "offset_V": c.offset_V}
+                             for r, c in self.channels.items()},
+                "ain_range_V": self.ain_range_V, "ain_resolution_index": self.ain_resolution_index,
+                "device_watchdog_s": self.watchdog_s, "enable_dio": self.enable_dio,
+                "enable_toggle_s": self.enable_toggle_s}
+
     def describe(self) -> str:
         wired = ", ".join(f"{r}={c.kind.upper()}{c.n}" for r, c in self.channels.items())
         en = f", enable DIO{self.enable_dio} toggled every {self.enable_toggle_s * 1e3:g} ms" \
@@ -240,7 +249,7 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
     wd_s = 1 if wd_s is None else wd_s
     if wd is not None:
         wlo, whi = wd["timeout_s_range"]
-        if isinstance(wd_s, bool) or not isinstance(wd_s, int) or not wlo <= wd_s <= whi:
+        if not _number(wd_s) or not float(wd_s).is_integer() or not wlo <= wd_s <= whi:
             errors.append(f"{path}.device_watchdog_s: {wd_s!r} not allowed (a {preset.name}'s watchdog counts "
                           f"whole seconds, {wlo} or more; faster protection: enable_dio, docs/hardware.md)")
     dio = options.get("enable_dio")

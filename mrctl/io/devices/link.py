@@ -105,12 +105,12 @@ class PresetTcpLink(ModbusTcpLink):
     def _open_transport(self) -> None:
         super()._open_transport()
         try:
-            self._configure()
+            self._setup_device()
         except BaseException:
             self._close_transport()
             raise
 
-    def _configure(self) -> None:
+    def _setup_device(self) -> None:
         s, p = self.setup, self.setup.preset
         self.setup_report = []
         for name, ident in (p.data.get("identity") or {}).items():

@@ -1,0 +1,222 @@
+"""``mrctl calibrate CONFIG --out CAL.yaml``: day one on a bench.
+
+With the damper at rest and 0 A the link is read for ``rest_s``: the mean
+of each analog input (in volts, through the channel's own scaling) is its
+offset, the spread its noise: the displacement's sets the observer's
+``sensing.x_noise_m``, the load cell's is reported. With a current-monitor
+channel the current then steps between 0 and ``step_A`` (``steps`` times up
+and down, ``step_s`` each) and a first-order lag with a dead time is fitted
+to the monitor's reading: τ (the driver + coil, ``parameters.tau_input``)
+and the dead time (the link and the DAQ, not the coil). The result is a
+YAML file an experiment names with ``calibration: CAL.yaml``
+(:mod:`mrctl.config.calibration`).
+
+Host time: each exchange is stamped on the host (a T7 has no sample
+clock); the command's time is when its exchange began, the reading's when
+its reply came. The dead time absorbs the constant part of that; the
+jitter is noise in the fit. The exchanges are paced at ``rate_hz``
+(absolute deadlines, a rate the link sustains: the default 200 Hz suits a T7).
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from mrctl.errors import BadInput, LinkFailure
+from mrctl.io.base import LinkError
+
+__all__ = ["CalibrationOptions", "calibrate", "fit_lag", "write_calibration"]
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    rest_s: float = 2.0
+    step_A: float | None = None  #: None = half of safety.I_max
+    steps: int = 4
+    step_s: float = 0.15
+    rate_hz: float = 200.0
+
+
+def _step_response(t: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, tau: float, delay: float) -> np.ndarray:
+    """A first-order lag (τ) with dead time (``delay``) of the command history,
+    at times ``t``: the sum of each command change's exponential approach."""
+    y = np.zeros_like(t)
+    prev = 0.0
+    for tc, I in zip(t_cmd, I_cmd):
+        d = I - prev
+        if d != 0.0:
+            s = t - (tc + delay)
+            y += np.where(s > 0.0, d * (1.0 - np.exp(-np.maximum(s, 0.0) / tau)), 0.0)
+        prev = I
+    return y
+
+
+def fit_lag(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray,
+            max_delay_s: float = 0.03) -> tuple[float, float, float]:
+    """(τ s, dead time s, rms residual A) of a first-order lag with dead time
+    fitted to readings ``y`` at ``t`` of the command steps (``t_cmd``,
+    ``I_cmd``: the time and value of each command change). Least squares on
+    a grid of dead times, golden-section search in log τ for each, then the
+    grid refined around the best."""
+    t, y = np.asarray(t, float), np.asarray(y, float)
+    ok = np.isfinite(y)
+    t, y = t[ok], y[ok]
+
+    def sse(tau: float, d: float) -> float:
+        r = _step_response(t, t_cmd, I_cmd, tau, d) - y
+        return float(r @ r)
+
+    def best_tau(d: float) -> tuple[float, float]:
+        lo, hi = math.log(2e-4), math.log(0.5)
+        g = (math.sqrt(5) - 1) / 2
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        fa, fb = sse(math.exp(a), d), sse(math.exp(b), d)
+        for _ in range(40):
+            if fa < fb:
+                hi, b, fb = b, a, fa
+                a = hi - g * (hi - lo)
+                fa = sse(math.exp(a), d)
+            else:
+                lo, a, fa = a, b, fb
+                b = lo + g * (hi - lo)
+                fb = sse(math.exp(b), d)
+        tau = math.exp((lo + hi) / 2)
+        return tau, sse(tau, d)
+
+    grid = np.linspace(0.0, max_delay_s, 31)
+    results = [(best_tau(float(d)), float(d)) for d in grid]
+    (tau, err), d = min(results, key=lambda r: r[0][1])
+    step = grid[1] - grid[0]
+    for dd in np.linspace(max(0.0, d - step), d + step, 21):
+        (tau2, err2) = best_tau(float(dd))
+        if err2 < err:
+            tau, err, d = tau2, err2, float(dd)
+    return tau, d, math.sqrt(err / max(1, len(y)))
+
+
+def _paced(link: Any, period_s: float, schedule: list[float]) -> list[tuple[float, float, Any]]:
+    """One exchange per period with the currents of ``schedule``:
+    [(t command sent, I, sample or None)], host monotonic seconds."""
+    out = []
+    t_next = time.monotonic()
+    for I in schedule:
+        now = time.monotonic()
+        if t_next > now:
+            time.sleep(t_next - now)
+        t0 = time.monotonic()
+        try:
+            s = link.exchange(I)
+        except LinkError:
+            s = None
+        out.append((t0, I, s, time.monotonic()))
+        t_next += period_s
+        if t_next < time.monotonic() - period_s:  # fell behind (a stall): do not burst
+            t_next = time.monotonic()
+    return out
+
+
+def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str, Any]:
+    """Measure offsets, noise and the driver lag on ``exp``'s link (a built
+    :class:`~mrctl.experiment.Experiment` whose backend is a device preset).
+    Returns the calibration mapping (the CAL.yaml content)."""
+    cfg = exp.config
+    setup = cfg.backend.get("device") if cfg.backend.get("device") is not None else None
+    if setup is None or not hasattr(setup, "channels"):
+        raise BadInput("calibrate: the experiment's backend has no device preset (backend.device, "
+                       "backend.channels: docs/hardware.md); mrctl calibrate measures a DAQ's channels in volts")
+    I_max = float(cfg.safety.I_max)
+    step_A = opts.step_A if opts.step_A is not None else 0.5 * I_max
+    if not 0 < step_A <= I_max:
+        raise BadInput(f"--step-A: {step_A:g} A must be > 0 and <= safety.I_max ({I_max:g} A)")
+    period = 1.0 / opts.rate_hz
+    link = exp.make_link()
+    try:
+        link.open()
+    except LinkError as e:
+        raise LinkFailure(f"calibrate: cannot open {link.describe()}: {e}") from None
+    try:
+        n_rest = max(10, round(opts.rest_s / period))
+        say(f"calibrate: {n_rest} samples at rest, 0 A ({opts.rest_s:g} s at {opts.rate_hz:g} Hz)")
+        rest = [r for r in _paced(link, period, [0.0] * n_rest) if r[2] is not None]
+        if len(rest) < n_rest // 2:
+            raise LinkFailure(f"calibrate: only {len(rest)} of {n_rest} exchanges answered at rest")
+        samples = [r[2] for r in rest]
+        field = {"x": "x_m", "v": "v_mps", "F": "F_N", "current_monitor": "current_A"}
+        channels: dict[str, Any] = {}
+        noise: dict[str, float] = {}
+        for role, ch in setup.channels.items():
+            if ch.kind != "ain":
+                continue
+            phys = np.array([getattr(s, field[role]) for s in samples], float)
+            phys = phys[np.isfinite(phys)]
+            if len(phys) < 2:
+                continue
+            volts = phys / ch.per_V + ch.offset_V
+            channels[role] = {"offset_V": float(np.mean(volts)), "noise_V": float(np.std(volts, ddof=1))}
+            if role == "x":
+                noise["x_m"] = max(float(np.std(phys, ddof=1)), 1e-9)
+            elif role == "F":
+                noise["F_N"] = float(np.std(phys, ddof=1))
+        out: dict[str, Any] = {
+            "version": 1,
+            "written_by": f"mrctl calibrate on {datetime.date.today().isoformat()}",
+            "device": setup.preset.name,
+            "channels": channels,
+            "noise": noise,
+        }
+        if "current_monitor" in setup.channels and opts.steps > 0:
+            n_step = max(4, round(opts.step_s / period))
+            sched: list[float] = []
+            for _ in range(opts.steps):
+                sched += [step_A] * n_step + [0.0] * n_step
+            say(f"calibrate: {opts.steps} current steps 0 <-> {step_A:g} A, {opts.step_s:g} s each")
+            rows = _paced(link, period, sched)
+            t_cmd, I_cmd, prev = [], [], 0.0
+            for t0, I, _s, _t1 in rows:
+                if I != prev:
+                    t_cmd.append(t0)
+                    I_cmd.append(I)
+                    prev = I
+            t = np.array([t1 for _t0, _I, s, t1 in rows if s is not None])
+            y = np.array([s.current_A for _t0, _I, s, _t1 in rows if s is not None])
+            # the monitor's own zero, from the rest phase (its offset is calibrated above)
+            tau, delay, rms = fit_lag(t, y, np.array(t_cmd), np.array(I_cmd))
+            out["driver"] = {"tau_s": float(tau), "delay_s": float(delay), "steps": 2 * opts.steps}
+            say(f"calibrate: driver+coil lag tau {tau * 1e3:.2f} ms, dead time {delay * 1e3:.2f} ms "
+                f"(fit rms {rms * 1e3:.1f} mA)")
+        return out
+    finally:
+        link.close()
+
+
+def write_calibration(path: str | os.PathLike[str], cal: dict[str, Any], force: bool = False) -> Path:
+    """Write ``cal`` as YAML; an existing file only with ``force`` (atomically replaced)."""
+    p = Path(path)
+    if p.is_dir():
+        raise BadInput(f"{p}: is a directory; --out names the calibration YAML file")
+    if os.path.lexists(p) and not force:
+        raise BadInput(f"{p}: exists; refusing to replace it (pass --force)")
+    text = ("# driver lag, offsets and noise measured by mrctl calibrate (docs/hardware.md);\n"
+            "# an experiment takes them with  calibration: " + p.name + "\n"
+            + yaml.safe_dump(cal, sort_keys=False))
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, p)
+    except OSError as exc:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise BadInput(f"{p}: cannot write it: {exc.strerror or exc}") from None
+    return p
