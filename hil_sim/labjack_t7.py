@@ -111,8 +111,9 @@ class T7Device:
     ``reply_now``, ``counters``), plus :meth:`check`: the watchdog and the
     monostable, run from the clock's idle loop."""
 
-    def __init__(self, state: DeviceState, wiring: Any) -> None:
+    def __init__(self, state: DeviceState, wiring: Any, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self.state = state
+        self.clock_ns = clock_ns  #: the watchdog's and the monostable's clock (tests: a virtual one)
         self.w = wiring
         self.preset = p = load_preset("labjack_t7")
         self.latency_s = float(wiring.latency_s)
@@ -139,7 +140,7 @@ class T7Device:
         self.hold_ns = 0 if wiring.enable is None else round(float(wiring.enable.hold_s) * 1e9)
         self._t_edge_ns = 0
         self._enabled = self.en_dio is None
-        self._last_comm_ns = time.monotonic_ns()
+        self._last_comm_ns = clock_ns()
         self._tripped = False
         self._regs = self._build()
         # counters and events (monotonic ns: tests compare them with their own clock)
@@ -210,7 +211,7 @@ class T7Device:
         if v not in (0, 1):
             return ILLEGAL_DATA_VALUE
         if n == self.en_dio and v != self.dio[n]:
-            self._t_edge_ns = time.monotonic_ns()
+            self._t_edge_ns = self.clock_ns()
             if not self._enabled:
                 self._enabled = True
                 self.dio[n] = v
@@ -234,7 +235,7 @@ class T7Device:
 
     # -- timers: the watchdog and the monostable (the clock's idle loop) -----------------
     def check(self) -> None:
-        now = time.monotonic_ns()
+        now = self.clock_ns()
         with self._lock:
             if self.en_dio is not None and self._enabled and now - self._t_edge_ns > self.hold_ns:
                 self._enabled = False
@@ -279,7 +280,7 @@ class T7Device:
         self.requests += 1
         fc = pdu[0]
         with self._lock:
-            self._last_comm_ns = time.monotonic_ns()
+            self._last_comm_ns = self.clock_ns()
             self._tripped = False
             if fc in (FC_READ_HOLDING, FC_READ_INPUT):
                 if len(pdu) != 5:

@@ -29,7 +29,7 @@ import struct
 import time
 from typing import Any
 
-from mrctl.io.base import DeviceError
+from mrctl.io.base import DeviceError, Disconnected, LinkError
 from mrctl.io.devices import DeviceSetup
 from mrctl.io.modbus.codec import FC_READ_HOLDING, FC_WRITE_MULTIPLE, Tx, read_request_pdu, write_request_pdu
 from mrctl.io.modbus.tcp import ModbusTcpLink
@@ -48,8 +48,16 @@ class DeviceSetupError(DeviceError):
 
 
 class PresetTcpLink(ModbusTcpLink):
-    """``backend: {type: modbus-tcp, device: NAME, channels: ...}``."""
+    """``backend: {type: modbus-tcp, device: NAME, channels: ...}``.
 
+    A split link: the tick reads the inputs (FC3), the laws run, and the
+    current goes out (FC16) in the same tick, about one command-response
+    time after its sample, not one period later as with an exchange (the
+    device has no combined read/write, so a tick is two requests either
+    way). :meth:`exchange` (write, then read) still serves the start-up probe
+    of the old kind and the safe close."""
+
+    split = True
     COUNTERS = ModbusTcpLink.COUNTERS + ("enable_toggles",)
 
     def __init__(self, setup: DeviceSetup, **options: Any) -> None:
@@ -172,8 +180,44 @@ class PresetTcpLink(ModbusTcpLink):
             self.setup_report.append((f"WATCHDOG {k}", v))
 
     # -- the tick -----------------------------------------------------------------------------
+    def read(self):  # type: ignore[override]
+        """The tick's sample: one FC3 (FC4) per read block."""
+        if self._io is None:
+            raise Disconnected(f"{self.describe()}: not open")
+        deadline = time.monotonic() + self.timeout_s
+        bufs = self._read_bufs
+        try:
+            for tx in self._txs:
+                if tx.block >= 0:
+                    bufs[tx.block] = self._exchange_tx(tx, deadline, 0)
+                    self.transactions += 1
+        except LinkError as e:
+            self._note_error(e)
+            raise
+        self.exchanges += 1
+        return self._to_sample()
+
+    def write(self, current_A: float) -> None:
+        """The tick's current (FC16 to the DAC), then the enable output's toggle when due."""
+        if self._io is None:
+            raise Disconnected(f"{self.describe()}: not open")
+        if not -3.4e38 < current_A < 3.4e38:
+            raise ValueError(f"current_A must be finite, got {current_A!r}")
+        deadline = time.monotonic() + self.timeout_s
+        try:
+            self._request(self._txs[0], current_A if self.enabled else 0.0, 1 if self.enabled else 0, deadline, 0)
+            self._toggle(deadline)
+        except LinkError as e:
+            self._note_error(e)
+            raise
+
     def _transact(self, current_A: float, deadline: float, wake_ns: int):  # type: ignore[override]
         sample = super()._transact(current_A, deadline, wake_ns)
+        self._toggle(deadline)
+        return sample
+
+    def _toggle(self, deadline: float) -> None:
+        """Flip the enable output if ``enable_toggle_s`` has passed (held low while disabled)."""
         tx = self._toggle_tx
         if tx is not None:
             now = time.monotonic_ns()
@@ -186,7 +230,6 @@ class PresetTcpLink(ModbusTcpLink):
                     self.enable_toggles += 1
                     self._level = level
                 self._t_toggle_ns = now
-        return sample
 
     def _send_safe(self) -> None:
         """0 A on the DAC, then the enable output low."""
