@@ -212,14 +212,11 @@ def _run(args: argparse.Namespace) -> int:
     inline = args.serve == "inline"
     t7 = None
     if args.device is not None:
-        if args.transport != "modbus-tcp":
-            raise StartupError(f"--device {args.device}: needs --transport modbus-tcp")
-        if not inline:
-            raise StartupError(f"--device {args.device}: needs --serve inline")
-        if cfg.t7 is None:
-            raise StartupError(f"--device {args.device}: the config has no labjack_t7 section (the bench's wiring)")
-        if args.latency_s is not None and not 0 <= args.latency_s <= 0.1:
-            raise StartupError(f"--latency-s: must be 0-0.1 s, got {args.latency_s}")
+        from hil_sim.labjack_t7 import device_errors
+
+        errs = device_errors(args, cfg)
+        if errs:
+            raise StartupError(*errs)
     modbus = _import_modbus(args.transport) if args.transport.startswith("modbus") else None
     if args.transport == "modbus-tcp":
         _check_tcp_free(*args.bind)
@@ -306,9 +303,7 @@ def _run(args: argparse.Namespace) -> int:
             if args.device is not None:
                 from hil_sim.labjack_t7 import T7Device
 
-                t7 = T7Device(state, cfg.t7)
-                if args.latency_s is not None:
-                    t7.latency_s = args.latency_s
+                t7 = T7Device(state, cfg.t7, latency_s=args.latency_s)
                 ready_info["device"] = args.device
             try:
                 tcp = modbus.ModbusTcpInline(state, host, port, default_register_map(), device=t7)
@@ -317,13 +312,7 @@ def _run(args: argparse.Namespace) -> int:
             cleanups.append(tcp.close)
             modbus_dev.append(tcp.dev)
             ready_info["bind"] = f"{host}:{tcp.port}"
-            if t7 is not None:
-                def poll(tcp_poll=tcp.poll_once, check=t7.check) -> None:
-                    tcp_poll()
-                    check()
-                device = inline_device(poll)
-            else:
-                device = inline_device(tcp.poll_once)
+            device = inline_device(tcp.poll_once if t7 is None else t7.poll_with(tcp.poll_once))
             server_ready.set()
         else:  # modbus-tcp, threaded
             host, port = args.bind

@@ -93,6 +93,20 @@ def t7_fields() -> dict[str, Any]:
     }
 
 
+def device_errors(args: Any, cfg: Any) -> list[str]:
+    """Why ``python -m hil_sim --device labjack_t7 ...`` cannot start (empty: it can)."""
+    errors = []
+    if args.transport != "modbus-tcp":
+        errors.append(f"--device {args.device}: needs --transport modbus-tcp")
+    if args.serve != "inline":
+        errors.append(f"--device {args.device}: needs --serve inline (its timers run in the clock's idle loop)")
+    if cfg.t7 is None:
+        errors.append(f"--device {args.device}: the config has no labjack_t7 section (the bench's wiring)")
+    if args.latency_s is not None and not 0 <= args.latency_s <= 0.1:
+        errors.append(f"--latency-s: must be 0-0.1 s, got {args.latency_s}")
+    return errors
+
+
 class _Reg:
     __slots__ = ("name", "address", "fmt", "n", "get", "set")
 
@@ -111,12 +125,13 @@ class T7Device:
     ``reply_now``, ``counters``), plus :meth:`check`: the watchdog and the
     monostable, run from the clock's idle loop."""
 
-    def __init__(self, state: DeviceState, wiring: Any, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(self, state: DeviceState, wiring: Any, clock_ns: Callable[[], int] = time.monotonic_ns,
+                 latency_s: float | None = None) -> None:
         self.state = state
         self.clock_ns = clock_ns  #: the watchdog's and the monostable's clock (tests: a virtual one)
         self.w = wiring
         self.preset = p = load_preset("labjack_t7")
-        self.latency_s = float(wiring.latency_s)
+        self.latency_s = float(wiring.latency_s if latency_s is None else latency_s)
         self._lock = threading.Lock()
         ain, dac, dio = p.io("ain"), p.io("dac"), p.io("dio")
         self.n_ain, self.n_dac, self.n_dio = int(ain["count"]), int(dac["count"]), int(dio["count"])
@@ -234,6 +249,16 @@ class T7Device:
         self.state.set_setpoint(I, self._enabled, watchdog_ms=_NO_BENCH_WATCHDOG_MS)
 
     # -- timers: the watchdog and the monostable (the clock's idle loop) -----------------
+    def poll_with(self, serve: Callable[[], object]) -> Callable[[], None]:
+        """The clock's idle work: serve requests, then run the timers."""
+        check = self.check
+
+        def poll() -> None:
+            serve()
+            check()
+
+        return poll
+
     def check(self) -> None:
         now = self.clock_ns()
         with self._lock:

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import os
 import platform
 import sys
 from pathlib import Path
@@ -289,31 +287,10 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return v
-
-
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from mrctl.daemon.calibrate import CalibrationOptions, calibrate, write_calibration
+    from mrctl.daemon.calibrate import run_from_args
 
-    if args.steps < 0:
-        raise BadInput(f"--steps: must be >= 0, got {args.steps}")
-    exp = _load(args.config)
-    if os.path.lexists(args.out) and not args.force:
-        raise BadInput(f"{args.out}: exists; refusing to replace it (pass --force)")
-    cal = calibrate(exp, CalibrationOptions(rest_s=args.rest_s, step_A=args.step_A, steps=args.steps,
-                                            step_s=args.step_s, rate_hz=args.rate_hz))
-    p = write_calibration(args.out, cal, force=args.force)
-    for role, ch in cal.get("channels", {}).items():
-        print(f"  {role}: offset {ch['offset_V']:.5f} V, noise {ch['noise_V'] * 1e3:.3f} mV rms")
-    print(f"wrote {Path(p)}")
-    return EXIT_OK
+    return run_from_args(args, _load)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -403,11 +380,11 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("config", help="experiment YAML with a device backend (backend.device, backend.channels)")
     ca.add_argument("--out", required=True, help="calibration YAML to write")
     ca.add_argument("--force", action="store_true", help="replace --out if it exists")
-    ca.add_argument("--rest-s", type=_positive, default=2.0, help="seconds read at rest, 0 A (default 2)")
-    ca.add_argument("--step-A", type=_positive, default=None, help="current step (A; default half of safety.I_max)")
-    ca.add_argument("--steps", type=int, default=4, help="steps up and down (0 = no lag fit; default 4)")
-    ca.add_argument("--step-s", type=_positive, default=0.15, help="seconds per step (default 0.15)")
-    ca.add_argument("--rate-hz", type=_positive, default=200.0, help="exchanges per second (default 200)")
+    ca.add_argument("--rest-s", type=float, default=2.0, help="seconds read at rest, 0 A (default 2)")
+    ca.add_argument("--step-A", type=float, default=None, help="current step (A; default half of safety.I_max)")
+    ca.add_argument("--steps", type=int, default=8, help="steps up and down (0 = no lag fit; default 8)")
+    ca.add_argument("--step-s", type=float, default=0.08, help="seconds per step (default 0.08)")
+    ca.add_argument("--rate-hz", type=float, default=200.0, help="exchanges per second (default 200)")
     ca.set_defaults(func=cmd_calibrate)
 
     ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")

@@ -309,8 +309,6 @@ def test_hil_run_over_the_emulated_t7_at_the_probes_rate(tmp_path) -> None:
     finally:
         hil.stop()
     assert res.returncode == 0, res.stderr
-    side = json.loads(out.with_suffix(".json").read_text())
-    rate = side["config"]["rate_hz"] if "config" in side and "rate_hz" in side["config"] else None
     m = re.search(r"Running at (\d+) Hz instead", res.stderr)
     rate = float(m.group(1)) if m else 1000.0
     sim_exp = _exp_for(tmp_path, port, duration_s=4.0, rate_hz=rate)

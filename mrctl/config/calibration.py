@@ -60,8 +60,9 @@ def calibration_schema() -> dict[str, Any]:
         "driver": Section({
             "tau_s": Num(default=None, optional=True, min=0.0, max=1.0,
                          doc="driver+coil first-order lag (s): parameters.tau_input"),
-            "delay_s": Num(default=None, optional=True, min=0.0, max=1.0,
-                           doc="dead time of a current step as the host sees it (s): link and DAQ, not the coil"),
+            "delay_s": Num(default=None, optional=True, min=-1.0, max=1.0,
+                           doc="dead time of a current step as the host's stamps see it (s): link and DAQ, "
+                               "not the coil; below 0 when a reading is older than its stamp"),
             "steps": Num(default=None, optional=True, integer=True, min=0, doc="current steps fitted"),
         }),
     }

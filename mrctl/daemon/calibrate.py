@@ -34,15 +34,15 @@ import yaml
 from mrctl.errors import BadInput, LinkFailure
 from mrctl.io.base import LinkError
 
-__all__ = ["CalibrationOptions", "calibrate", "fit_lag", "write_calibration"]
+__all__ = ["CalibrationOptions", "calibrate", "fit_lag", "run_from_args", "write_calibration"]
 
 
 @dataclass(frozen=True)
 class CalibrationOptions:
     rest_s: float = 2.0
     step_A: float | None = None  #: None = half of safety.I_max
-    steps: int = 4
-    step_s: float = 0.15
+    steps: int = 8
+    step_s: float = 0.08
     rate_hz: float = 200.0
 
 
@@ -61,7 +61,7 @@ def _step_response(t: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, tau: flo
 
 
 def fit_lag(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray,
-            max_delay_s: float = 0.03) -> tuple[float, float, float]:
+            min_delay_s: float = -0.005, max_delay_s: float = 0.03) -> tuple[float, float, float]:
     """(τ s, dead time s, rms residual A) of a first-order lag with dead time
     fitted to readings ``y`` at ``t`` of the command steps (``t_cmd``,
     ``I_cmd``: the time and value of each command change). Least squares on
@@ -70,6 +70,21 @@ def fit_lag(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray,
     t, y = np.asarray(t, float), np.asarray(y, float)
     ok = np.isfinite(y)
     t, y = t[ok], y[ok]
+    tau, d, _ = _fit(t, y, t_cmd, I_cmd, min_delay_s, max_delay_s)
+    # once more without the readings a stall made late (stamped long before
+    # the sampling they report): residuals beyond 3 robust sigmas
+    r = _step_response(t, t_cmd, I_cmd, tau, d) - y
+    mad = float(np.median(np.abs(r - np.median(r)))) * 1.4826
+    keep = np.abs(r) <= max(3.0 * mad, 1e-6)
+    if keep.sum() >= len(r) // 2 and not keep.all():
+        tau, d, _ = _fit(t[keep], y[keep], t_cmd, I_cmd, min_delay_s, max_delay_s)
+    r = _step_response(t, t_cmd, I_cmd, tau, d) - y
+    return tau, d, float(np.sqrt(np.mean(r[keep] ** 2)))
+
+
+def _fit(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, min_delay_s: float,
+         max_delay_s: float) -> tuple[float, float, float]:
+    """Least squares (τ, dead time) on a grid of dead times, τ by golden section."""
 
     def sse(tau: float, d: float) -> float:
         r = _step_response(t, t_cmd, I_cmd, tau, d) - y
@@ -92,32 +107,48 @@ def fit_lag(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray,
         tau = math.exp((lo + hi) / 2)
         return tau, sse(tau, d)
 
-    grid = np.linspace(0.0, max_delay_s, 31)
+    # a dead time below 0: the reading's stamp is later than the sampling it
+    # reports (a DAQ that answers with its last conversion), not physics
+    grid = np.linspace(min_delay_s, max_delay_s, 36)
     results = [(best_tau(float(d)), float(d)) for d in grid]
     (tau, err), d = min(results, key=lambda r: r[0][1])
     step = grid[1] - grid[0]
-    for dd in np.linspace(max(0.0, d - step), d + step, 21):
+    for dd in np.linspace(d - step, d + step, 21):
         (tau2, err2) = best_tau(float(dd))
         if err2 < err:
             tau, err, d = tau2, err2, float(dd)
     return tau, d, math.sqrt(err / max(1, len(y)))
 
 
-def _paced(link: Any, period_s: float, schedule: list[float]) -> list[tuple[float, float, Any]]:
-    """One exchange per period with the currents of ``schedule``:
-    [(t command sent, I, sample or None)], host monotonic seconds."""
+def _paced(link: Any, period_s: float, schedule: list[float]) -> list[tuple[float, float | None, Any, float]]:
+    """One tick per period with the currents of ``schedule``: [(t the command
+    went out, I or None if it did not get through, sample or None, t the
+    sample's request went out)], host monotonic seconds. A split link writes,
+    then reads, each stamped just before its request leaves (a late reply
+    then does not move the stamp); an exchange link's one request carries
+    both (its stamp for both)."""
     out = []
     t_next = time.monotonic()
+    split = link.split
     for I in schedule:
         now = time.monotonic()
         if t_next > now:
             time.sleep(t_next - now)
-        t0 = time.monotonic()
+        t0 = t1 = time.monotonic()
+        s = None
+        sent: float | None = None
         try:
-            s = link.exchange(I)
+            if split:
+                link.write(I)
+                sent = I
+                t1 = time.monotonic()
+                s = link.read()
+            else:
+                s = link.exchange(I)
+                sent = I
         except LinkError:
-            s = None
-        out.append((t0, I, s, time.monotonic()))
+            pass
+        out.append((t0, sent, s, t1))
         t_next += period_s
         if t_next < time.monotonic() - period_s:  # fell behind (a stall): do not burst
             t_next = time.monotonic()
@@ -143,6 +174,8 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
         link.open()
     except LinkError as e:
         raise LinkFailure(f"calibrate: cannot open {link.describe()}: {e}") from None
+    # not a control loop: a late reply is still a reading (its stamp is when it was asked for)
+    link.timeout_s = max(link.timeout_s, 0.05)
     try:
         n_rest = max(10, round(opts.rest_s / period))
         say(f"calibrate: {n_rest} samples at rest, 0 A ({opts.rest_s:g} s at {opts.rate_hz:g} Hz)")
@@ -181,21 +214,48 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
             say(f"calibrate: {opts.steps} current steps 0 <-> {step_A:g} A, {opts.step_s:g} s each")
             rows = _paced(link, period, sched)
             t_cmd, I_cmd, prev = [], [], 0.0
-            for t0, I, _s, _t1 in rows:
-                if I != prev:
+            for t0, I, _s, _t1 in rows:  # the changes that got through, when they did
+                if I is not None and I != prev:
                     t_cmd.append(t0)
                     I_cmd.append(I)
                     prev = I
             t = np.array([t1 for _t0, _I, s, t1 in rows if s is not None])
             y = np.array([s.current_A for _t0, _I, s, _t1 in rows if s is not None])
             # the monitor's own zero, from the rest phase (its offset is calibrated above)
+            if len(t) < 0.5 * len(rows):
+                raise LinkFailure(f"calibrate: only {len(t)} of {len(rows)} readings answered during the current "
+                                  "steps; the lag fit needs them all (a stalled host or link): run it again")
             tau, delay, rms = fit_lag(t, y, np.array(t_cmd), np.array(I_cmd))
+            if not (2.5e-4 < tau < 0.45 and -0.0049 < delay < 0.0299 and rms < 0.1 * step_A):
+                raise LinkFailure(f"calibrate: the lag fit did not settle (tau {tau * 1e3:.2f} ms, dead time "
+                                  f"{delay * 1e3:.2f} ms, rms {rms * 1e3:.1f} mA): a stalled host or link, or no "
+                                  "current monitor on that input; run it again")
             out["driver"] = {"tau_s": float(tau), "delay_s": float(delay), "steps": 2 * opts.steps}
             say(f"calibrate: driver+coil lag tau {tau * 1e3:.2f} ms, dead time {delay * 1e3:.2f} ms "
                 f"(fit rms {rms * 1e3:.1f} mA)")
         return out
     finally:
         link.close()
+
+
+def run_from_args(args: Any, load: Any) -> int:
+    """``mrctl calibrate``'s body: check the options, measure, write, print."""
+    for name in ("rest_s", "step_s", "rate_hz") + (("step_A",) if args.step_A is not None else ()):
+        v = getattr(args, name)
+        if not (v > 0 and math.isfinite(v)):
+            raise BadInput(f"--{name.replace('_', '-')}: must be > 0, got {v}")
+    if args.steps < 0:
+        raise BadInput(f"--steps: must be >= 0, got {args.steps}")
+    exp = load(args.config)
+    if os.path.lexists(args.out) and not args.force:
+        raise BadInput(f"{args.out}: exists; refusing to replace it (pass --force)")
+    cal = calibrate(exp, CalibrationOptions(rest_s=args.rest_s, step_A=args.step_A, steps=args.steps,
+                                            step_s=args.step_s, rate_hz=args.rate_hz))
+    p = write_calibration(args.out, cal, force=args.force)
+    for role, ch in cal.get("channels", {}).items():
+        print(f"  {role}: offset {ch['offset_V']:.5f} V, noise {ch['noise_V'] * 1e3:.3f} mV rms")
+    print(f"wrote {p}")
+    return 0
 
 
 def write_calibration(path: str | os.PathLike[str], cal: dict[str, Any], force: bool = False) -> Path:
