@@ -76,7 +76,7 @@ def t7_fields() -> dict[str, Any]:
                         "offset_V": Num(default=off, doc="volts at zero (what mrctl calibrate finds)")})
 
     return {
-        "latency_s": Num(default=0.0008, min=0.0, max=0.1, doc="command-response time per request (s)"),
+        "latency_s": Num(default=0.001, min=0.0, max=0.1, doc="command-response time per request (s)"),
         "x": ain("m_per_V", 2.5),
         "F": ain("N_per_V", 0.0),
         "current_monitor": _optional_section({
