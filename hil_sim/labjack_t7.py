@@ -11,8 +11,9 @@ true offsets to find. Served, per tick of the bench's clock:
 * ``DAC#`` (FLOAT32 at 1000 + 2n): the wired DAC drives the bench's current
   driver (``driver.A_per_V``, 0-5 V; the output saturates there);
 * ``DIO#`` (UINT16 at 2000 + n): 0/1; the wired enable line feeds a
-  retriggerable monostable: the driver is enabled while edges come within
-  ``enable.hold_s`` (a charge pump), off otherwise;
+  retriggerable monostable triggered by rising edges: the driver is enabled
+  while they come within ``enable.hold_s``, off otherwise (a line left high
+  or driven low by the watchdog does not keep it on);
 * ``AIN#_RANGE``, ``AIN#_RESOLUTION_INDEX``, the ``WATCHDOG_*_DEFAULT``
   registers, ``PRODUCT_ID`` (7) and ``TEST`` (0x00112233).
 
@@ -87,7 +88,7 @@ def t7_fields() -> dict[str, Any]:
                                           doc="driver gain: 0-5 V in -> 0-2 A out at 0.4")}),
         "enable": _optional_section({
             "dio": Num(integer=True, min=0, max=22, doc="DIO into the monostable"),
-            "hold_s": Num(default=0.02, min=0.0, min_exclusive=True, max=1.0,
+            "hold_s": Num(default=0.04, min=0.0, min_exclusive=True, max=1.0,
                           doc="monostable time: the driver stays enabled this long after an edge")},
             "the driver's enable input through a retriggerable monostable; null = not wired (always enabled)"),
     }
@@ -162,6 +163,7 @@ class T7Device:
         self.requests = self.exceptions = self.setpoints = self.frames_dropped = 0
         self.watchdog_trips: list[int] = []
         self.enable_drops: list[int] = []
+        self.enable_rises: list[int] = []
         self.fault_counts: dict[str, int] = {}
         self._apply()
 
@@ -225,10 +227,11 @@ class T7Device:
     def _set_dio(self, n: int, v: int) -> int | None:
         if v not in (0, 1):
             return ILLEGAL_DATA_VALUE
-        if n == self.en_dio and v != self.dio[n]:
+        if n == self.en_dio and v == 1 and self.dio[n] == 0:  # a rising edge retriggers the monostable
             self._t_edge_ns = self.clock_ns()
             if not self._enabled:
                 self._enabled = True
+                self.enable_rises.append(self._t_edge_ns)
                 self.dio[n] = v
                 self._apply()
         self.dio[n] = v
@@ -285,7 +288,8 @@ class T7Device:
     def counters(self) -> dict[str, Any]:
         return {"requests": self.requests, "exceptions": self.exceptions, "setpoints": self.setpoints,
                 "frames_dropped": self.frames_dropped, "dac_V": list(self.dac_V),
-                "watchdog_trips_ns": list(self.watchdog_trips), "enable_drops_ns": list(self.enable_drops)}
+                "watchdog_trips_ns": list(self.watchdog_trips), "enable_drops_ns": list(self.enable_drops),
+                "enable_rises_ns": list(self.enable_rises)}
 
     def _exc(self, fc: int, code: int) -> bytes:
         self.exceptions += 1

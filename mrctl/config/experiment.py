@@ -97,7 +97,7 @@ def device_fields() -> dict[str, Any]:
                           doc="device: digital output toggled while running, for the driver's enable "
                               "through a monostable (docs/hardware.md); null = not wired"),
         "enable_toggle_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0,
-                               doc="device: toggle period of enable_dio (s); null = 0.005"),
+                               doc="device: shortest toggle period of enable_dio (s), at most once a tick; null = 0.002"),
     }
 
 

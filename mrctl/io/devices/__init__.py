@@ -257,7 +257,7 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
     if dio is not None and (isinstance(dio, bool) or not isinstance(dio, int) or not 0 <= dio < dcount):
         errors.append(f"{path}.enable_dio: {dio!r} not allowed: a {preset.name} has DIO0-DIO{dcount - 1}")
     tog = options.get("enable_toggle_s")
-    tog = 0.005 if tog is None else tog
+    tog = 0.002 if tog is None else tog
     if not _number(tog) or not 0 < tog <= 1.0:
         errors.append(f"{path}.enable_toggle_s: {tog!r} not allowed (seconds, > 0 and <= 1)")
     if errors:
