@@ -302,10 +302,18 @@ def _nrmse_load_cell(path: Path) -> float:
 
 
 def test_hil_run_over_the_emulated_t7_at_the_probes_rate(tmp_path) -> None:
-    """Exit 0 at the rate the start-up probe picks; force tracking (load cell
-    against F_des, both runs) measured beside mrctl simulate at that rate."""
+    """Day one, then a run: calibrate on the bench at rest, run the experiment
+    with the calibration at the rate the start-up probe picks (exit 0), and
+    measure the force tracking (load cell against F_des) beside mrctl
+    simulate of the same experiment and calibration at that rate."""
+    hil, port = _start(tmp_path, _bench(tmp_path, rest=True))
+    try:
+        res = _mrctl("calibrate", str(_exp_for(tmp_path, port)), "--out", str(tmp_path / "cal.yaml"))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
     hil, port = _start(tmp_path, BENCH)
-    exp = _exp_for(tmp_path, port, duration_s=4.0)
+    exp = _exp_for(tmp_path, port, duration_s=4.0, calibration="cal.yaml")
     out = tmp_path / "run.csv"
     try:
         res = _mrctl("run", str(exp), "--out", str(out), "--quiet", "--status-socket", str(tmp_path / "s.sock"))
@@ -314,13 +322,13 @@ def test_hil_run_over_the_emulated_t7_at_the_probes_rate(tmp_path) -> None:
     assert res.returncode == 0, res.stderr
     m = re.search(r"Running at (\d+) Hz instead", res.stderr)
     rate = float(m.group(1)) if m else 1000.0
-    sim_exp = _exp_for(tmp_path, port, duration_s=4.0, rate_hz=rate)
+    sim_exp = _exp_for(tmp_path, port, duration_s=4.0, rate_hz=rate, calibration="cal.yaml")
     sim = _mrctl("simulate", str(sim_exp), "--out", str(tmp_path / "sim.csv"))
     assert sim.returncode == 0, sim.stderr
     hil_nrmse, sim_nrmse = _nrmse_load_cell(out), _nrmse_load_cell(tmp_path / "sim.csv")
     print(f"rate {rate:g} Hz: HIL force NRMSE {100 * hil_nrmse:.3f} %, simulate {100 * sim_nrmse:.3f} %, "
           f"ratio {hil_nrmse / sim_nrmse:.2f}")
-    assert math.isfinite(hil_nrmse) and hil_nrmse < 0.10, (hil_nrmse, sim_nrmse)
+    assert math.isfinite(hil_nrmse) and hil_nrmse < 0.12, (hil_nrmse, sim_nrmse)
 
 
 def _read_f32(port: int, address: int) -> float:

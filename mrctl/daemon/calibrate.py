@@ -62,24 +62,35 @@ def _step_response(t: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, tau: flo
 
 def fit_lag(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray,
             min_delay_s: float = -0.005, max_delay_s: float = 0.03) -> tuple[float, float, float]:
-    """(τ s, dead time s, rms residual A) of a first-order lag with dead time
+    """(τ s, dead time s, robust residual spread A: 1.4826 × median |r|) of a first-order lag with dead time
     fitted to readings ``y`` at ``t`` of the command steps (``t_cmd``,
-    ``I_cmd``: the time and value of each command change). Least squares on
-    a grid of dead times, golden-section search in log τ for each, then the
-    grid refined around the best."""
+    ``I_cmd``: the time and value of each command change).
+
+    Each step is fitted on its own (the readings until the next change,
+    normalised to a unit step), and the medians are taken: a stall of the
+    host or the link spoils one step's fit, not the result. The spread is
+    that of the whole record against the medians' model."""
     t, y = np.asarray(t, float), np.asarray(y, float)
     ok = np.isfinite(y)
     t, y = t[ok], y[ok]
-    tau, d, _ = _fit(t, y, t_cmd, I_cmd, min_delay_s, max_delay_s)
-    # once more without the readings a stall made late (stamped long before
-    # the sampling they report): residuals beyond 3 robust sigmas
+    t_cmd, I_cmd = np.asarray(t_cmd, float), np.asarray(I_cmd, float)
+    taus, delays = [], []
+    prev = 0.0
+    for i, (tc, I) in enumerate(zip(t_cmd, I_cmd)):
+        end = t_cmd[i + 1] if i + 1 < len(t_cmd) else math.inf
+        w = (t >= tc + min_delay_s) & (t < end + min_delay_s)
+        if w.sum() >= 6 and I != prev:
+            tau_i, d_i, _ = _fit(t[w] - tc, (y[w] - prev) / (I - prev), np.zeros(1), np.ones(1),
+                                 min_delay_s, max_delay_s)
+            taus.append(tau_i)
+            delays.append(d_i)
+        prev = I
+    if len(taus) >= 3:
+        tau, d = float(np.median(taus)), float(np.median(delays))
+    else:
+        tau, d, _ = _fit(t, y, t_cmd, I_cmd, min_delay_s, max_delay_s)
     r = _step_response(t, t_cmd, I_cmd, tau, d) - y
-    mad = float(np.median(np.abs(r - np.median(r)))) * 1.4826
-    keep = np.abs(r) <= max(3.0 * mad, 1e-6)
-    if keep.sum() >= len(r) // 2 and not keep.all():
-        tau, d, _ = _fit(t[keep], y[keep], t_cmd, I_cmd, min_delay_s, max_delay_s)
-    r = _step_response(t, t_cmd, I_cmd, tau, d) - y
-    return tau, d, float(np.sqrt(np.mean(r[keep] ** 2)))
+    return tau, d, float(1.4826 * np.median(np.abs(r))) if len(r) else math.nan
 
 
 def _fit(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, min_delay_s: float,
@@ -228,11 +239,11 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
             tau, delay, rms = fit_lag(t, y, np.array(t_cmd), np.array(I_cmd))
             if not (2.5e-4 < tau < 0.45 and -0.0049 < delay < 0.0299 and rms < 0.1 * step_A):
                 raise LinkFailure(f"calibrate: the lag fit did not settle (tau {tau * 1e3:.2f} ms, dead time "
-                                  f"{delay * 1e3:.2f} ms, rms {rms * 1e3:.1f} mA): a stalled host or link, or no "
+                                  f"{delay * 1e3:.2f} ms, residual {rms * 1e3:.1f} mA): a stalled host or link, or no "
                                   "current monitor on that input; run it again")
             out["driver"] = {"tau_s": float(tau), "delay_s": float(delay), "steps": 2 * opts.steps}
             say(f"calibrate: driver+coil lag tau {tau * 1e3:.2f} ms, dead time {delay * 1e3:.2f} ms "
-                f"(fit rms {rms * 1e3:.1f} mA)")
+                f"(residual {rms * 1e3:.1f} mA, robust)")
         return out
     finally:
         link.close()
