@@ -397,3 +397,35 @@ def test_mbpoll_reads_ain0_as_big_endian_float_at_address_0(tmp_path) -> None:
     # the LVDT: 2.47 V at the centre, +/-10 mm at 2.5 mm/V = +/-4 V, and the shaker moves
     assert all(2.47 - 4.1 < v < 2.47 + 4.1 for v in vals), vals
     assert len(set(vals)) > 1, vals
+
+
+def test_fit_lag_recovers_tau_and_dead_time_despite_a_stall() -> None:
+    """Synthetic steps of a 10 ms lag with a 1 ms dead time, 200 Hz readings
+    with jitter, one step spoiled by a 40 ms stall (readings stamped late)."""
+    from mrctl.daemon.calibrate import _step_response, fit_lag
+
+    rng = np.random.default_rng(3)
+    t_cmd = np.arange(16) * 0.08
+    I_cmd = np.array([0.3, 0.0] * 8)
+    t = np.arange(0, 1.28, 0.005) + rng.uniform(0, 3e-4, 256)
+    y = _step_response(t, t_cmd, I_cmd, 0.010, 0.001) + rng.normal(0, 1e-3, t.size)
+    stall = (t > 0.40) & (t < 0.44)
+    t[stall] += 0.02  # these readings were asked for earlier than their stamps say
+    tau, d, spread = fit_lag(t, y, t_cmd, I_cmd)
+    assert tau == pytest.approx(0.010, rel=0.03) and d == pytest.approx(0.001, abs=5e-4)
+    assert spread < 3e-3
+
+
+def test_a_device_that_is_not_a_t7_is_refused_at_start(tmp_path) -> None:
+    """mrctl's own register map (plain hil_sim) answers no PRODUCT_ID: exit 3, named."""
+    hil = HilSim("--transport", "modbus-tcp", "--bind", "127.0.0.1:0", workdir=tmp_path)
+    port = int(hil.field("bind").rpartition(":")[2])
+    try:
+        res = _mrctl("run", str(_exp_for(tmp_path, port, duration_s=1.0)), "--quiet",
+                     "--status-socket", str(tmp_path / "s.sock"))
+    finally:
+        hil.stop()
+    assert res.returncode == 3, res.stderr
+    assert "cannot open backend" in res.stderr and "reading register 60000 refused" in res.stderr, res.stderr
+    assert "is this a labjack_t7?" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr

@@ -86,6 +86,7 @@ class PresetTcpLink(ModbusTcpLink):
 
     def read_value(self, address: int, dtype: str, deadline: float | None = None) -> Any:
         """One register value (FC3), outside the tick."""
+        self._step = f"reading register {address}"
         st = _PACK[dtype]
         n = st.size // 2
         data = self._exchange_tx(self._tx(FC_READ_HOLDING, read_request_pdu(FC_READ_HOLDING, address, n), n),
@@ -95,6 +96,7 @@ class PresetTcpLink(ModbusTcpLink):
 
     def write_value(self, address: int, dtype: str, value: Any, deadline: float | None = None) -> None:
         """One register value (FC16), outside the tick."""
+        self._step = f"writing {value!r} to register {address}"
         data = _PACK[dtype].pack(value)
         self._exchange_tx(self._tx(FC_WRITE_MULTIPLE, write_request_pdu(address, data), len(data) // 2),
                           deadline or time.monotonic() + self.open_timeout_s, 0)
@@ -112,8 +114,16 @@ class PresetTcpLink(ModbusTcpLink):
     # -- open: set-up ----------------------------------------------------------------------
     def _open_transport(self) -> None:
         super()._open_transport()
+        self._step = "set-up"
         try:
             self._setup_device()
+        except DeviceSetupError:
+            self._close_transport()
+            raise
+        except DeviceError as e:  # the device refused a set-up register: say which, and what it means
+            self._close_transport()
+            raise DeviceSetupError(f"{self._where()}: {self._step} refused ({e}): is this a "
+                                   f"{self.setup.preset.name}?") from None
         except BaseException:
             self._close_transport()
             raise
