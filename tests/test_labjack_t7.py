@@ -429,3 +429,26 @@ def test_a_device_that_is_not_a_t7_is_refused_at_start(tmp_path) -> None:
     assert "cannot open backend" in res.stderr and "reading register 60000 refused" in res.stderr, res.stderr
     assert "is this a labjack_t7?" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_calibrate_refuses_bad_input_before_touching_a_device(tmp_path, capsys) -> None:
+    sim = ROOT / "config" / "experiments" / "fig5.yaml"
+    assert mrctl_main(["calibrate", str(sim), "--out", str(tmp_path / "cal.yaml")]) == 2
+    assert "backend has no device preset" in capsys.readouterr().err
+    exp = _exp_for(tmp_path, 1)  # nothing listens on port 1: the options are checked first
+    assert mrctl_main(["calibrate", str(exp), "--out", str(tmp_path / "cal.yaml"), "--steps", "-1"]) == 2
+    assert "--steps: must be >= 0" in capsys.readouterr().err
+    assert mrctl_main(["calibrate", str(exp), "--out", str(tmp_path / "cal.yaml"), "--rate-hz", "0"]) == 2
+    assert "--rate-hz: must be > 0" in capsys.readouterr().err
+    (tmp_path / "cal.yaml").write_text("x")
+    assert mrctl_main(["calibrate", str(exp), "--out", str(tmp_path / "cal.yaml")]) == 2
+    assert "exists; refusing to replace it" in capsys.readouterr().err
+
+
+def test_a_bad_calibration_file_is_a_clear_error(tmp_path, capsys) -> None:
+    (tmp_path / "cal.yaml").write_text("version: 1\nchannels: {x: {offset_V: nan}, z: {}}\ndriver: {tau_s: -1}\n")
+    exp = _exp_for(tmp_path, 5021, calibration="cal.yaml")
+    assert mrctl_main(["check", str(exp)]) == 2
+    err = capsys.readouterr().err
+    assert "calibration (" in err and "channels.z: unknown channel" in err and "driver.tau_s" in err, err
+    assert "Traceback" not in err
