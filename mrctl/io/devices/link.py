@@ -29,7 +29,7 @@ import struct
 import time
 from typing import Any
 
-from mrctl.io.base import DeviceError, Disconnected, LinkError
+from mrctl.io.base import DeviceError, Disconnected, LinkError, Sample
 from mrctl.io.devices import DeviceSetup
 from mrctl.io.modbus.codec import FC_READ_HOLDING, FC_WRITE_MULTIPLE, Tx, read_request_pdu, write_request_pdu
 from mrctl.io.modbus.tcp import ModbusTcpLink
@@ -61,6 +61,7 @@ class PresetTcpLink(ModbusTcpLink):
     COUNTERS = ModbusTcpLink.COUNTERS + ("enable_toggles",)
 
     def __init__(self, setup: DeviceSetup, **options: Any) -> None:
+        """``setup``: the checked preset and wiring; ``options``: ModbusTcpLink's (host, port, ...)."""
         self.setup = setup
         options.setdefault("port", setup.preset.port)
         super().__init__(register_map=setup.register_map, use_fc23=setup.preset.fc23 or False,
@@ -190,7 +191,7 @@ class PresetTcpLink(ModbusTcpLink):
             self.setup_report.append((f"WATCHDOG {k}", v))
 
     # -- the tick -----------------------------------------------------------------------------
-    def read(self):  # type: ignore[override]
+    def read(self) -> Sample:
         """The tick's sample: one FC3 (FC4) per read block."""
         if self._io is None:
             raise Disconnected(f"{self.describe()}: not open")
@@ -221,7 +222,7 @@ class PresetTcpLink(ModbusTcpLink):
             self._note_error(e)
             raise
 
-    def _transact(self, current_A: float, deadline: float, wake_ns: int):  # type: ignore[override]
+    def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
         sample = super()._transact(current_A, deadline, wake_ns)
         self._toggle(deadline)
         return sample
