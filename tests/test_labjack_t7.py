@@ -1,7 +1,7 @@
 """The LabJack T7 preset (mrctl/io/devices), hil_sim's T7 emulation, mrctl calibrate (issue 25).
 
 Runs the daemon against ``python -m hil_sim --device labjack_t7`` on loopback
-at the rate its start-up probe chooses (250 Hz with the emulator's 0.8 ms
+at the rate its start-up probe chooses (250 Hz with the emulator's 1 ms
 command-response time), a rate this machine holds.
 """
 
