@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 TRANSPORTS = ("serial", "modbus-tcp", "modbus-rtu")
+DEVICES = ("labjack_t7",)
 DEFAULT_LINK = "/tmp/mrctl-sim-tty"
 DEFAULT_BIND = "127.0.0.1:5020"
 DEFAULT_BAUD = 921600
@@ -96,6 +97,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--config", type=Path, default=None,
                     help=f"bench YAML (default: {DEFAULT_CONFIG.relative_to(DEFAULT_CONFIG.parent.parent)})")
     ap.add_argument("--transport", choices=TRANSPORTS, default="serial", help="protocol to serve (default serial)")
+    ap.add_argument("--device", choices=DEVICES, default=None,
+                    help="emulate a bought DAQ instead of mrctl's register map: labjack_t7 (with --transport "
+                         "modbus-tcp; the wiring is the config's labjack_t7 section, docs/hil_sim.md)")
+    ap.add_argument("--latency-s", type=float, default=None, metavar="S",
+                    help="--device: command-response time per request (overrides labjack_t7.latency_s)")
     ap.add_argument("--link", default=DEFAULT_LINK,
                     help=f"serial/modbus-rtu: symlink to create for the host side of the pty (default {DEFAULT_LINK})")
     ap.add_argument("--bind", type=_parse_bind, default=_parse_bind(DEFAULT_BIND), metavar="HOST:PORT",
@@ -207,6 +213,14 @@ def _run(args: argparse.Namespace) -> int:
     # thread answering a request must not wait 5 ms (the default) for the GIL.
     sys.setswitchinterval(2e-4)
 
+    inline = args.serve == "inline"
+    t7 = None
+    if args.device is not None:
+        from hil_sim.labjack_t7 import device_errors
+
+        errs = device_errors(args, cfg)
+        if errs:
+            raise StartupError(*errs)
     modbus = _import_modbus(args.transport) if args.transport.startswith("modbus") else None
     if args.transport == "modbus-tcp":
         _check_tcp_free(*args.bind)
@@ -229,7 +243,6 @@ def _run(args: argparse.Namespace) -> int:
     truth = None
     clock_thread = None
     status = 0
-    inline = args.serve == "inline"
     if args.ready_file is not None:
         try:  # a file left by an earlier bench must not announce this one
             args.ready_file.unlink(missing_ok=True)
@@ -296,14 +309,19 @@ def _run(args: argparse.Namespace) -> int:
                     "modbus-rtu", failed, stop))
         elif inline:  # modbus-tcp served from the clock thread
             host, port = args.bind
+            if args.device is not None:
+                from hil_sim.labjack_t7 import T7Device
+
+                t7 = T7Device(state, cfg.t7, latency_s=args.latency_s)
+                ready_info["device"] = args.device
             try:
-                tcp = modbus.ModbusTcpInline(state, host, port, default_register_map())
+                tcp = modbus.ModbusTcpInline(state, host, port, default_register_map(), device=t7)
             except OSError as e:
                 raise StartupError(f"--bind {host}:{port}: cannot listen: {e.strerror}") from None
             cleanups.append(tcp.close)
             modbus_dev.append(tcp.dev)
             ready_info["bind"] = f"{host}:{tcp.port}"
-            device = inline_device(tcp.poll_once)
+            device = inline_device(tcp.poll_once if t7 is None else t7.poll_with(tcp.poll_once))
             server_ready.set()
         else:  # modbus-tcp, threaded
             host, port = args.bind

@@ -75,7 +75,17 @@ def bench_schema(base_dir: Path) -> dict[str, Any]:
                        doc="driver range: larger setpoints are clamped and flagged CURRENT_CLAMPED"),
         "faults": Custom(check_fault_list, default=None,
                          doc="scheduled faults: [{kind, at_s, for_s, ...}] (hil_sim/faults.py)"),
+        "labjack_t7": Custom(_t7_check, default=None,
+                             doc="--device labjack_t7: the bench's wiring to the emulated T7 (hil_sim/labjack_t7.py)"),
     }
+
+
+def _t7_check(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value is None:
+        return None, []
+    from hil_sim.labjack_t7 import t7_fields
+
+    return validate_fields(t7_fields(), value, path)
 
 
 @dataclass
@@ -101,6 +111,8 @@ class BenchConfig:
     model: Node | None = None
     #: false: the DAQ measures displacement only (v reads NaN)
     has_velocity: bool = True
+    #: the bench's wiring to an emulated LabJack T7 (``labjack_t7`` section), or None
+    t7: Node | None = None
 
     @property
     def dt(self) -> float:
@@ -182,6 +194,7 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
         quarter_car=quarter_car_params(node.plant),
         model=node.plant.model,
         has_velocity=bool(s.velocity),
+        t7=node.get("labjack_t7"),
     )
 
 

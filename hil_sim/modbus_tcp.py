@@ -190,8 +190,9 @@ class ModbusTcpInline:
     """
 
     def __init__(self, state: DeviceState, host: str, port: int, register_map: RegisterMap | None = None,
-                 *, fc23: bool = True, max_clients: int = _MAX_CLIENTS) -> None:
-        self.dev = ModbusDevice(state, register_map, fc23=fc23)
+                 *, fc23: bool = True, max_clients: int = _MAX_CLIENTS, device: Any = None) -> None:
+        #: ``device``: another register space with ModbusDevice's face (hil_sim/labjack_t7.py)
+        self.dev = device if device is not None else ModbusDevice(state, register_map, fc23=fc23)
         self.state = state
         self.host = host
         self.max_clients = max_clients

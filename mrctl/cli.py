@@ -280,6 +280,12 @@ def _outside_option(p: argparse.ArgumentParser) -> None:
                    "series, a dataset's records) outside the config's or description's directory")
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from mrctl.daemon.calibrate import run_from_args
+
+    return run_from_args(args, _load)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from mrctl.runlog.format import exit_codes_text
 
@@ -385,6 +391,20 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
     _outside_option(cp)
     cp.set_defaults(func=cmd_check)
+
+    ca = sub.add_parser("calibrate", help="day one on a bench (device presets): offsets and noise at rest and 0 A, "
+                                          "the driver+coil lag from current steps; writes CAL.yaml for "
+                                          "'calibration: CAL.yaml' (docs/hardware.md)")
+    ca.add_argument("config", help="experiment YAML with a device backend (backend.device, backend.channels)")
+    ca.add_argument("--out", required=True, help="calibration YAML to write")
+    ca.add_argument("--force", action="store_true", help="replace --out if it exists")
+    ca.add_argument("--rest-s", type=float, default=2.0, help="seconds read at rest, 0 A (default 2)")
+    ca.add_argument("--step-A", type=float, default=None, help="current step (A; default half of safety.I_max)")
+    ca.add_argument("--steps", type=int, default=8, help="steps up and down (0 = no lag fit; default 8)")
+    ca.add_argument("--step-s", type=float, default=0.08, help="seconds per step (default 0.08)")
+    ca.add_argument("--rate-hz", type=float, default=200.0, help="exchanges per second (default 200)")
+    _outside_option(ca)
+    ca.set_defaults(func=cmd_calibrate)
 
     ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")
     ex.add_argument("dir", nargs="?", default="mrctl-examples",

@@ -59,7 +59,7 @@ def steady_state_gain(dt: float, q: float, x_noise_m: float, v_noise_mps: float 
 class KinematicObserver:
     """v̂ from x (and optionally the measured v), once per tick."""
 
-    __slots__ = ("dt", "q", "x_noise_m", "v_noise_mps", "kx", "kxv", "x", "v", "a", "_started")
+    __slots__ = ("dt", "q", "x_noise_m", "v_noise_mps", "kx", "kxv", "x", "v", "a", "_started", "_gap_gains")
 
     def __init__(self, dt: float, x_noise_m: float, jerk_psd: float, v_noise_mps: float | None = None) -> None:
         for name, val in (("dt", dt), ("x_noise_m", x_noise_m), ("jerk_psd", jerk_psd)):
@@ -73,6 +73,11 @@ class KinematicObserver:
         #: gains for (x, v) when the velocity channel is fused
         self.kxv = None if v_noise_mps is None else tuple(
             tuple(float(g) for g in row) for row in steady_state_gain(dt, jerk_psd, x_noise_m, v_noise_mps))
+        #: ticks → (kx, kxv) for updates that many ticks apart: the one-tick gains over a gap of
+        #: 4 ticks or more make the update unstable (a loop that keeps skipping deadlines diverged)
+        self._gap_gains: dict[int, tuple] = {1: (self.kx, self.kxv)}
+        for n in range(2, 9):  # the usual gaps, off the hot path (~1.3 ms each to solve)
+            self._gains(n)
         self.reset()
 
     def reset(self) -> None:
@@ -89,6 +94,10 @@ class KinematicObserver:
             self.x, self.v, self.a = x, (v if v == v and self.kxv is not None else 0.0), 0.0
             return self.v
         h = self.dt * ticks
+        gains = self._gap_gains.get(ticks)
+        if gains is None:
+            gains = self._gains(ticks)
+        kx, kxv = gains
         a = self.a
         xp = self.x + (self.v + 0.5 * a * h) * h
         vp = self.v + a * h
@@ -96,7 +105,6 @@ class KinematicObserver:
             self.x, self.v = xp, vp
             return vp
         ex = x - xp
-        kxv = self.kxv
         if kxv is not None and -math.inf < v < math.inf:
             ev = v - vp
             (k00, k01), (k10, k11), (k20, k21) = kxv
@@ -104,8 +112,18 @@ class KinematicObserver:
             self.v = vp = vp + k10 * ex + k11 * ev
             self.a = a + k20 * ex + k21 * ev
             return vp
-        k0, k1, k2 = self.kx
+        k0, k1, k2 = kx
         self.x = xp + k0 * ex
         self.v = vp = vp + k1 * ex
         self.a = a + k2 * ex
         return vp
+
+    def _gains(self, ticks: int) -> tuple:
+        """The steady-state gains for updates ``ticks`` apart (kept for up to 64 gap lengths)."""
+        h = self.dt * ticks
+        kx = tuple(float(g) for g in steady_state_gain(h, self.q, self.x_noise_m)[:, 0])
+        kxv = None if self.v_noise_mps is None else tuple(
+            tuple(float(g) for g in row) for row in steady_state_gain(h, self.q, self.x_noise_m, self.v_noise_mps))
+        if len(self._gap_gains) < 64:
+            self._gap_gains[ticks] = (kx, kxv)
+        return kx, kxv

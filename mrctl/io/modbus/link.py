@@ -112,7 +112,7 @@ class ModbusLink(Link):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if cls.transport:
+        if cls.__dict__.get("transport"):  # a wire's own class, not a subclass of one (device presets)
             ModbusLink._by_transport[cls.transport] = cls
 
     def __new__(cls, transport: str | None = None, /, **options: Any) -> "ModbusLink":
@@ -211,7 +211,12 @@ class ModbusLink(Link):
 
     @classmethod
     def from_config(cls, cfg: Any, context: Any = None) -> "ModbusLink":
-        """From the validated ``backend`` section (type modbus-tcp or modbus-rtu)."""
+        """From the validated ``backend`` section (type modbus-tcp or modbus-rtu);
+        with ``device`` set (a preset, docs/hardware.md), the preset's link."""
+        if getattr(cfg, "get", None) is not None and cfg.get("device") is not None:
+            from mrctl.io.devices.link import PresetTcpLink
+
+            return PresetTcpLink.from_config(cfg, context)
         sub = ModbusLink._by_transport[cfg.type.removeprefix("modbus-")]
         return sub(unit_id=cfg.unit_id, register_map=cfg.register_map, timeout_s=cfg.timeout_s,
                    use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms, open_timeout_s=cfg.open_timeout_s,
@@ -344,7 +349,11 @@ class ModbusLink(Link):
         # A well-formed reply with non-finite values is a healthy link carrying
         # bad data: return it and let the safety supervisor judge it (bad
         # sample: hold, then 0 A), as the serial backend does. Counted for the log.
-        if not (x - x == 0.0 and v - v == 0.0):
+        if v is None:  # no velocity register: NaN, the observer's job (sensing.velocity)
+            v = _NAN
+            if not x - x == 0.0:
+                self.invalid_values += 1
+        elif not (x - x == 0.0 and v - v == 0.0):
             self.invalid_values += 1
         if F is None:
             F = _NAN

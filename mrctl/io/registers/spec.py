@@ -66,7 +66,8 @@ WRITE_QUANTITIES: dict[str, str] = {
     "watchdog_ms": "ms",
 }
 QUANTITIES = {**READ_QUANTITIES, **WRITE_QUANTITIES}
-REQUIRED = ("x_m", "v_mps", "current_setpoint_A")
+#: v_mps may be absent: the link then reports NaN and sensing.velocity must be observer
+REQUIRED = ("x_m", "current_setpoint_A")
 
 #: Modbus limits: FC3/FC4/FC23 read ≤ 125 registers, FC23 write ≤ 121 (FC16 ≤ 123).
 MAX_READ_REGISTERS = 125

@@ -1,0 +1,281 @@
+"""Device presets: DAQs a lab can buy, driven over their vendor's own register map.
+
+A preset is data, one YAML file per device beside this module (``labjack_t7.yaml``:
+addresses, types and ranges from the vendor's published map, with the source
+named in the file). The user's ``backend.channels`` says which analog input
+carries which sensor and the volts per unit of each; :func:`resolve_device`
+checks both together (every error with its key path) and turns them into
+
+* a :class:`~mrctl.io.registers.RegisterMap` whose linear scaling is the
+  channel calibration (``physical = volts * scale + offset``), so the tick
+  runs through the ordinary :class:`~mrctl.io.modbus.ModbusLink` machinery;
+* the device set-up the link does at open (input range and resolution per
+  used input, the device watchdog, the enable output), each read back.
+
+The link that does the set-up is :class:`mrctl.io.devices.link.PresetTcpLink`
+(generic: what differs between devices is in the YAML). docs/hardware.md.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from mrctl.io.registers import RegisterMap, validate_register_map
+
+__all__ = ["CHANNEL_ROLES", "ChannelSpec", "DeviceSetup", "Preset", "load_preset", "preset_names", "resolve_device"]
+
+PRESETS_DIR = Path(__file__).resolve().parent
+
+#: channel role → (register-map quantity, kind "ain"|"dac", the per-volt key, its unit)
+CHANNEL_ROLES: dict[str, tuple[str, str, str, str]] = {
+    "x": ("x_m", "ain", "m_per_V", "m"),
+    "v": ("v_mps", "ain", "mps_per_V", "m/s"),
+    "F": ("F_N", "ain", "N_per_V", "N"),
+    "current_monitor": ("current_applied_A", "ain", "A_per_V", "A"),
+    "current": ("current_setpoint_A", "dac", "V_per_A", "V/A"),
+}
+REQUIRED_ROLES = ("x", "current")
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One device's register facts (the YAML file, checked on load)."""
+
+    name: str
+    description: str
+    source: str
+    data: Mapping[str, Any]
+
+    @property
+    def port(self) -> int:
+        return int(self.data["modbus"]["port"])
+
+    @property
+    def unit_id(self) -> int:
+        return int(self.data["modbus"]["unit_id"])
+
+    @property
+    def fc23(self) -> bool:
+        return bool(self.data["modbus"]["fc23"])
+
+    def io(self, kind: str) -> Mapping[str, Any]:
+        """The ``ain`` / ``dac`` / ``dio`` block."""
+        return self.data[kind]
+
+    def address(self, kind: str, n: int) -> int:
+        """Register address of channel ``n`` of ``kind`` (ain, dac, dio)."""
+        b = self.data[kind]
+        return int(b["address"]) + int(b["stride"]) * n
+
+    @property
+    def watchdog(self) -> Mapping[str, Any] | None:
+        return self.data.get("watchdog")
+
+
+def preset_names() -> tuple[str, ...]:
+    """Every preset shipped (the YAML files beside this module)."""
+    return tuple(sorted(p.stem for p in PRESETS_DIR.glob("*.yaml")))
+
+
+@functools.cache
+def load_preset(name: str) -> Preset:
+    """The preset ``name``; KeyError naming the known ones."""
+    if name not in preset_names():
+        raise KeyError(f"unknown device {name!r} (known: {', '.join(preset_names())})")
+    data = yaml.safe_load((PRESETS_DIR / f"{name}.yaml").read_text(encoding="utf-8"))
+    return Preset(str(data["name"]), str(data["description"]), str(data["source"]), data)
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """One wired channel: ``n`` on the device's ``kind`` (ain/dac); physical
+    = (volts - offset_V) * per_V for inputs, volts = physical * per_V +
+    offset_V for the DAC (``per_V`` is V/A there)."""
+
+    role: str
+    kind: str
+    n: int
+    per_V: float
+    offset_V: float
+
+
+@dataclass(frozen=True)
+class DeviceSetup:
+    """A preset with a lab's wiring: everything the link needs."""
+
+    preset: Preset
+    channels: Mapping[str, ChannelSpec]
+    register_map: RegisterMap
+    ain_range_V: float
+    ain_resolution_index: int
+    watchdog_s: int
+    enable_dio: int | None
+    enable_toggle_s: float
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def ains(self) -> tuple[int, ...]:
+        """The analog inputs in use (each gets its range and resolution set at open)."""
+        return tuple(sorted(c.n for c in self.channels.values() if c.kind == "ain"))
+
+    @property
+    def dac(self) -> ChannelSpec:
+        return self.channels["current"]
+
+    def dac_volts(self, current_A: float) -> float:
+        """Volts on the DAC for ``current_A`` (A)."""
+        c = self.dac
+        return current_A * c.per_V + c.offset_V
+
+    def to_dict(self) -> dict[str, Any]:
+        """What the run log's sidecar records: the device, its wiring and set-up."""
+        return {"device": self.preset.name, "source": self.preset.source,
+                "channels": {r: {c.kind: c.n, CHANNEL_ROLES[r][2]: c.per_V, "offset_V": c.offset_V}
+                             for r, c in self.channels.items()},
+                "ain_range_V": self.ain_range_V, "ain_resolution_index": self.ain_resolution_index,
+                "device_watchdog_s": self.watchdog_s, "enable_dio": self.enable_dio,
+                "enable_toggle_s": self.enable_toggle_s}
+
+    def describe(self) -> str:
+        wired = ", ".join(f"{r}={c.kind.upper()}{c.n}" for r, c in self.channels.items())
+        en = f", enable DIO{self.enable_dio} toggled every {self.enable_toggle_s * 1e3:g} ms" \
+            if self.enable_dio is not None else ""
+        return (f"{self.preset.name} ({wired}; AIN range +/-{self.ain_range_V:g} V, resolution index "
+                f"{self.ain_resolution_index}; device watchdog {self.watchdog_s} s{en})")
+
+
+def _number(v: Any) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(float(v))
+
+
+def _channel(preset: Preset, role: str, data: Any, path: str, errors: list[str]) -> ChannelSpec | None:
+    quantity, kind, per_key, unit = CHANNEL_ROLES[role]
+    if not isinstance(data, Mapping):
+        errors.append(f"{path}: must be a mapping ({kind}, {per_key}, offset_V), got {type(data).__name__}")
+        return None
+    ok = True
+    for key in data:
+        if key not in (kind, per_key, "offset_V"):
+            errors.append(f"{path}.{key}: unknown key (allowed here: {kind}, {per_key}, offset_V)")
+            ok = False
+    io = preset.io(kind)
+    count = int(io["count"])
+    n = data.get(kind)
+    if n is None:
+        errors.append(f"{path}.{kind}: missing required key (the {io['name']} number, 0-{count - 1})")
+        ok = False
+    elif isinstance(n, bool) or not isinstance(n, int) or not 0 <= n < count:
+        errors.append(f"{path}.{kind}: {n!r} not allowed: a {preset.name} has {io['name']}0-{io['name']}{count - 1}")
+        ok = False
+    per = data.get(per_key)
+    if per is None:
+        errors.append(f"{path}.{per_key}: missing required key ({unit} per volt)" if kind == "ain"
+                      else f"{path}.{per_key}: missing required key (driver input volts per ampere)")
+        ok = False
+    elif not _number(per) or per == 0:
+        errors.append(f"{path}.{per_key}: {per!r} not allowed (must be a finite non-zero number)")
+        ok = False
+    off = data.get("offset_V", 0.0)
+    if not _number(off):
+        errors.append(f"{path}.offset_V: {off!r} not allowed (must be a finite number of volts)")
+        ok = False
+    elif kind == "dac" and not float(io["min_V"]) <= off <= float(io["max_V"]):
+        errors.append(f"{path}.offset_V: {off!r} V (the DAC at 0 A) is outside {io['name']}'s "
+                      f"{io['min_V']:g}-{io['max_V']:g} V")
+        ok = False
+    if not ok:
+        return None
+    return ChannelSpec(role, kind, int(n), float(per), float(off))
+
+
+def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: str = "backend",
+                   I_max_A: float | None = None) -> tuple[DeviceSetup | None, list[str]]:
+    """Check ``backend.channels`` and the device options against the preset
+    ``name``; return (set-up or None, every error with its key path).
+
+    ``options``: ``ain_range_V``, ``ain_resolution_index``, ``device_watchdog_s``,
+    ``enable_dio``, ``enable_toggle_s`` (None = the preset's default).
+    ``I_max_A`` (safety.I_max): the DAC must reach it within its range."""
+    try:
+        preset = load_preset(str(name))
+    except KeyError as e:
+        return None, [f"{path}.device: {e.args[0]}"]
+    errors: list[str] = []
+    cpath = f"{path}.channels"
+    if channels is None:
+        return None, [f"{cpath}: required with device {preset.name} (at least x and current; docs/hardware.md)"]
+    if not isinstance(channels, Mapping):
+        return None, [f"{cpath}: must be a mapping of role -> channel, got {type(channels).__name__}"]
+    specs: dict[str, ChannelSpec] = {}
+    for role, data in channels.items():
+        if role not in CHANNEL_ROLES:
+            errors.append(f"{cpath}.{role}: unknown channel (allowed here: {', '.join(CHANNEL_ROLES)})")
+            continue
+        spec = _channel(preset, role, data, f"{cpath}.{role}", errors)
+        if spec is not None:
+            specs[role] = spec
+    errors += [f"{cpath}.{r}: required" for r in REQUIRED_ROLES if r not in channels]
+    used: dict[tuple[str, int], str] = {}
+    for role, s in specs.items():
+        other = used.setdefault((s.kind, s.n), role)
+        if other != role:
+            errors.append(f"{cpath}.{role}.{s.kind}: {s.kind.upper()}{s.n} is already {cpath}.{other}")
+    dac = specs.get("current")
+    io = preset.io("dac")
+    if dac is not None and I_max_A is not None:
+        v = I_max_A * dac.per_V + dac.offset_V
+        if not float(io["min_V"]) <= v <= float(io["max_V"]):
+            errors.append(f"{cpath}.current.V_per_A: safety.I_max {I_max_A:g} A needs {v:g} V on "
+                          f"{io['name']}{dac.n}; a {preset.name}'s DAC gives {io['min_V']:g}-{io['max_V']:g} V")
+    ain = preset.io("ain")
+    rng = options.get("ain_range_V")
+    rng = float(ain["ranges_V"][0]) if rng is None else rng
+    if not _number(rng) or float(rng) not in [float(r) for r in ain["ranges_V"]]:
+        errors.append(f"{path}.ain_range_V: {rng!r} not allowed (a {preset.name} has +/- "
+                      f"{', '.join(f'{r:g}' for r in ain['ranges_V'])} V)")
+    lo, hi = ain["resolution_indices"]
+    res = options.get("ain_resolution_index")
+    res = lo if res is None else res
+    if isinstance(res, bool) or not isinstance(res, int) or not lo <= res <= hi:
+        errors.append(f"{path}.ain_resolution_index: {res!r} not allowed (a {preset.name} takes {lo}-{hi})")
+    wd = preset.watchdog
+    wd_s = options.get("device_watchdog_s")
+    wd_s = 1 if wd_s is None else wd_s
+    if wd is not None:
+        wlo, whi = wd["timeout_s_range"]
+        if not _number(wd_s) or not float(wd_s).is_integer() or not wlo <= wd_s <= whi:
+            errors.append(f"{path}.device_watchdog_s: {wd_s!r} not allowed (a {preset.name}'s watchdog counts "
+                          f"whole seconds, {wlo} or more; faster protection: enable_dio, docs/hardware.md)")
+    dio = options.get("enable_dio")
+    dcount = int(preset.io("dio")["count"])
+    if dio is not None and (isinstance(dio, bool) or not isinstance(dio, int) or not 0 <= dio < dcount):
+        errors.append(f"{path}.enable_dio: {dio!r} not allowed: a {preset.name} has DIO0-DIO{dcount - 1}")
+    tog = options.get("enable_toggle_s")
+    tog = 0.002 if tog is None else tog
+    if not _number(tog) or not 0 < tog <= 1.0:
+        errors.append(f"{path}.enable_toggle_s: {tog!r} not allowed (seconds, > 0 and <= 1)")
+    if errors:
+        return None, errors
+    regs: dict[str, Any] = {}
+    for role, s in specs.items():
+        quantity = CHANNEL_ROLES[role][0]
+        if s.kind == "ain":
+            scale, offset = s.per_V, -s.offset_V * s.per_V
+        else:  # volts = I * V_per_A + offset_V  <=>  I = volts / V_per_A - offset_V / V_per_A
+            scale, offset = 1.0 / s.per_V, -s.offset_V / s.per_V
+        regs[quantity] = {"table": "holding", "address": preset.address(s.kind, s.n),
+                          "type": preset.io(s.kind)["type"], "scale": scale, "offset": offset}
+    rmap, errs = validate_register_map(
+        {"unit_id": preset.unit_id, "word_order": preset.data["modbus"]["word_order"], "registers": regs},
+        f"{cpath} (as a register map)")
+    if errs:
+        return None, errs
+    assert rmap is not None
+    return DeviceSetup(preset, specs, rmap, float(rng), int(res), int(wd_s),
+                       None if dio is None else int(dio), float(tog)), []

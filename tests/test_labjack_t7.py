@@ -1,0 +1,454 @@
+"""The LabJack T7 preset (mrctl/io/devices), hil_sim's T7 emulation, mrctl calibrate (issue 25).
+
+Runs the daemon against ``python -m hil_sim --device labjack_t7`` on loopback
+at the rate its start-up probe chooses (250 Hz with the emulator's 1 ms
+command-response time), a rate this machine holds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from hil_sim.state import DeviceState
+from hil_sim.testing.harness import ROOT, HilSim, Run, env
+from mrctl.cli import main as mrctl_main
+
+BENCH = ROOT / "config" / "hil_labjack_t7_bench.yaml"
+EXPERIMENT = ROOT / "config" / "experiments" / "labjack_t7.yaml"
+
+
+# -- the preset: LabJack's published addresses ------------------------------------------
+def test_preset_addresses_are_ljm_constants() -> None:
+    """The addresses in the preset are ljm_constants.json's (a typo here drives the wrong pin)."""
+    from mrctl.io.devices import load_preset
+
+    p = load_preset("labjack_t7")
+    assert [p.address("ain", n) for n in (0, 1, 13)] == [0, 2, 26]
+    assert [p.address("dac", n) for n in (0, 1)] == [1000, 1002]
+    assert [p.address("dio", n) for n in (0, 8, 16, 20)] == [2000, 2008, 2016, 2020]  # FIO0, EIO0, CIO0, MIO0
+    assert p.io("ain")["range_register"]["address"] == 40000
+    assert p.io("ain")["resolution_register"]["address"] == 41500
+    wd = {k: v["address"] for k, v in p.watchdog["registers"].items()}
+    assert wd == {"enable": 61600, "timeout_s": 61604, "dio_enable": 61630, "dio_state": 61632,
+                  "dio_direction": 61634, "dio_inhibit": 61636, "dac0_enable": 61640, "dac0_value": 61642,
+                  "dac1_enable": 61650, "dac1_value": 61652}
+    assert p.fc23 is False and p.port == 502
+
+
+# -- mrctl check: every new input is a clear error with its key path ----------------------
+def _experiment(tmp_path: Path, **backend_changes) -> Path:
+    data = yaml.safe_load(EXPERIMENT.read_text())
+    for k, v in backend_changes.items():
+        if v is None:
+            data["backend"].pop(k, None)
+        else:
+            data["backend"][k] = v
+    p = tmp_path / "exp.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"channels": {"x": {"ain": 14, "m_per_V": 0.0025}, "current": {"dac": 0, "V_per_A": 2.5}}},
+     "backend.channels.x.ain: 14 not allowed: a labjack_t7 has AIN0-AIN13"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0.0025}, "current": {"dac": 2, "V_per_A": 2.5}}},
+     "backend.channels.current.dac: 2 not allowed: a labjack_t7 has DAC0-DAC1"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0}, "current": {"dac": 0, "V_per_A": 2.5}}},
+     "backend.channels.x.m_per_V: 0 not allowed (must be a finite non-zero number)"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0.0025}, "current": {"dac": 0, "V_per_A": 10.0}}},
+     "backend.channels.current.V_per_A: safety.I_max 0.6 A needs 6 V on DAC0; a labjack_t7's DAC gives 0-5 V"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0.0025}, "current": {"dac": 0, "V_per_A": 2.5, "offset_V": -1}}},
+     "backend.channels.current.offset_V: -1 V (the DAC at 0 A) is outside DAC's 0-5 V"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0.0025}, "F": {"ain": 0, "N_per_V": 400},
+                   "current": {"dac": 0, "V_per_A": 2.5}}},
+     "backend.channels.F.ain: AIN0 is already backend.channels.x"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0.0025}}}, "backend.channels.current: required"),
+    ({"channels": {"x": {"ain": 0, "m_per_V": 0.0025}, "current": {"dac": 0, "V_per_A": 2.5},
+                   "temperature": {"ain": 3}}},
+     "backend.channels.temperature: unknown channel (allowed here: x, v, F, current_monitor, current)"),
+    ({"device_watchdog_s": 0.5}, "backend.device_watchdog_s: 0.5 not allowed"),
+    ({"ain_range_V": 5.0}, "backend.ain_range_V: 5.0 not allowed (a labjack_t7 has +/- 10, 1, 0.1, 0.01 V)"),
+    ({"ain_resolution_index": 9}, "backend.ain_resolution_index: 9 not allowed (a labjack_t7 takes 1-8)"),
+    ({"enable_dio": 23}, "backend.enable_dio: 23 not allowed: a labjack_t7 has DIO0-DIO22"),
+    ({"register_map": {}}, "backend.register_map: a device preset builds the register map"),
+    ({"device": "labjack_t4"}, "backend.device: 'labjack_t4' not allowed (allowed: labjack_t7)"),
+])
+def test_check_refuses_bad_device_input(tmp_path, capsys, change, message) -> None:
+    assert mrctl_main(["check", str(_experiment(tmp_path, **change))]) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert "Traceback" not in err
+
+
+def test_check_refuses_device_keys_without_a_device(tmp_path, capsys) -> None:
+    p = _experiment(tmp_path, device=None)
+    assert mrctl_main(["check", str(p)]) == 2
+    assert "backend.channels: only with backend.device" in capsys.readouterr().err
+
+
+def test_velocity_defaults_to_the_observer_without_a_velocity_channel(tmp_path) -> None:
+    from mrctl.config import load_experiment
+
+    data = yaml.safe_load(EXPERIMENT.read_text())
+    data.pop("sensing")
+    p = tmp_path / "exp.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert load_experiment(p).sensing.velocity == "observer"
+    data["sensing"] = {"velocity": "measured"}
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(Exception, match="sensing.velocity: 'measured', but the register map has no velocity"):
+        load_experiment(p)
+
+
+def test_channels_become_the_register_maps_scaling() -> None:
+    """x = (V - offset_V) * m_per_V on the read side; V = I * V_per_A + offset_V on the DAC."""
+    from mrctl.io.devices import resolve_device
+
+    setup, errors = resolve_device("labjack_t7", {"x": {"ain": 0, "m_per_V": 0.0025, "offset_V": 2.5},
+                                                  "current": {"dac": 0, "V_per_A": 2.5, "offset_V": 0.1}}, {})
+    assert errors == []
+    rmap = setup.register_map
+    x = rmap.decode_read(struct.pack(">f", 2.9))[2]
+    assert x == pytest.approx((2.9 - 2.5) * 0.0025)
+    buf = rmap.encode_write(0.4)
+    assert struct.unpack(">f", buf)[0] == pytest.approx(0.4 * 2.5 + 0.1)
+    assert rmap.write_block.address == 1000 and rmap.read_blocks[0].address == 0
+
+
+# -- the emulator, in process, on a virtual clock ----------------------------------------------
+class _Clock:
+    def __init__(self) -> None:
+        self.ns = 1_000_000_000
+
+    def __call__(self) -> int:
+        return self.ns
+
+
+def _wiring(enable: bool):
+    from hil_sim.labjack_t7 import t7_fields
+    from mrctl.util.schema import validate_fields
+
+    data = {"latency_s": 0.0, "x": {"ain": 0, "m_per_V": 0.0025, "offset_V": 2.47},
+            "F": {"ain": 1, "N_per_V": 400.0, "offset_V": 0.012}, "driver": {"dac": 0, "A_per_V": 0.4},
+            "enable": {"dio": 0, "hold_s": 0.02} if enable else None}
+    node, errors = validate_fields(t7_fields(), data, "labjack_t7")
+    assert errors == []
+    return node
+
+
+def _pdu(dev, pdu: bytes) -> bytes:
+    return dev.handle_pdu(pdu)
+
+
+def _write_f32(address: int, v: float) -> bytes:
+    return struct.pack(">BHHBf", 16, address, 2, 4, v)
+
+
+def _write_u32(address: int, v: int) -> bytes:
+    return struct.pack(">BHHBI", 16, address, 2, 4, v)
+
+
+def test_emulator_serves_volts_and_refuses_what_a_t7_refuses() -> None:
+    from hil_sim.labjack_t7 import T7Device
+    from mrctl.io.base import Sample
+
+    state = DeviceState()
+    state.publish(Sample(0, 0.0, 0.001, math.nan, 20.0, 0, 0.0))
+    dev = T7Device(state, _wiring(False), clock_ns=_Clock())
+    r = _pdu(dev, struct.pack(">BHH", 3, 0, 4))  # AIN0, AIN1
+    assert r[:2] == bytes((3, 8))
+    ain0, ain1 = struct.unpack(">ff", r[2:])
+    assert ain0 == pytest.approx(0.001 / 0.0025 + 2.47, abs=1e-6)
+    assert ain1 == pytest.approx(20.0 / 400.0 + 0.012, abs=1e-6)
+    assert _pdu(dev, struct.pack(">BHH", 4, 0, 2))[:2] == bytes((4, 4))  # FC4 reads the same space
+    # DAC0 drives the bench's driver: 1.25 V * 0.4 A/V
+    assert _pdu(dev, _write_f32(1000, 1.25))[0] == 16
+    assert state.setpoint()[0] == pytest.approx(0.5) and state.setpoint()[1] is True
+    refused = {
+        "FC23": (struct.pack(">BHHHHBf", 23, 0, 2, 1000, 2, 4, 1.0), 0x01),
+        "write AIN0": (_write_f32(0, 1.0), 0x02),
+        "half a float": (struct.pack(">BHH", 3, 1, 1), 0x02),
+        "no register": (struct.pack(">BHH", 3, 500, 2), 0x02),
+        "range 5 V": (_write_f32(40000, 5.0), 0x03),
+        "resolution 9": (struct.pack(">BHHBH", 16, 41500, 1, 2, 9), 0x03),
+        "DIO level 2": (struct.pack(">BHHBH", 16, 2000, 1, 2, 2), 0x03),
+        "DAC NaN": (_write_f32(1000, math.nan), 0x03),
+    }
+    for what, (pdu, code) in refused.items():
+        assert _pdu(dev, pdu) == bytes((pdu[0] | 0x80, code)), what
+    assert state.setpoint()[0] == pytest.approx(0.5)  # the NaN did not reach the driver
+    # watchdog registers: only while the watchdog is disabled
+    assert _pdu(dev, _write_u32(61604, 1))[0] == 16
+    assert _pdu(dev, _write_u32(61600, 1))[0] == 16
+    assert _pdu(dev, _write_u32(61604, 2)) == bytes((0x90, 0x03))
+
+
+def test_emulator_watchdog_and_enable_monostable_on_a_virtual_clock() -> None:
+    from hil_sim.labjack_t7 import T7Device
+
+    clock = _Clock()
+    state = DeviceState()
+    dev = T7Device(state, _wiring(True), clock_ns=clock)
+    for a, v in ((61604, 1), (61640, 1), (61600, 1)):  # timeout 1 s, DAC0 -> its value (0 V), enable
+        assert _pdu(dev, _write_u32(a, v))[0] == 16
+    _pdu(dev, _write_f32(1000, 2.0))
+    assert state.setpoint()[:2] == (pytest.approx(0.8), False)  # enable wired, no edge yet: driver off
+    for level in (1, 0, 1):
+        clock.ns += 5_000_000
+        _pdu(dev, struct.pack(">BHHBH", 16, 2000, 1, 2, level))
+        dev.check()
+        assert state.setpoint()[1] is True
+    t_rise = clock.ns
+    clock.ns += 5_000_000
+    _pdu(dev, struct.pack(">BHHBH", 16, 2000, 1, 2, 0))  # a falling edge does not retrigger
+    clock.ns = t_rise + 19_000_000
+    dev.check()
+    assert state.setpoint()[1] is True and dev.enable_drops == []
+    clock.ns = t_rise + 21_000_000  # 21 ms after the last rising edge: the monostable has run out
+    dev.check()
+    assert state.setpoint()[1] is False and dev.enable_drops == [clock.ns]
+    last_comm = t_rise + 5_000_000
+    clock.ns = last_comm + 999_000_000
+    dev.check()
+    assert dev.dac_V[0] == 2.0 and dev.watchdog_trips == []
+    clock.ns = last_comm + 1_001_000_000
+    dev.check()
+    assert dev.dac_V[0] == 0.0 and dev.watchdog_trips == [clock.ns]
+    assert state.setpoint()[0] == 0.0
+
+
+# -- against the emulator: calibrate, run, SIGKILL ------------------------------------------------
+def _bench(tmp_path: Path, *, rest: bool = False, enable: bool = False) -> Path:
+    data = yaml.safe_load(BENCH.read_text())
+    if rest:
+        data["excitation"]["amplitude_m"] = 0.0
+    if enable:
+        data["labjack_t7"]["enable"] = {"dio": 0, "hold_s": 0.04}
+    p = tmp_path / "bench.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+def _start(tmp_path: Path, bench: Path, *extra: str) -> tuple[HilSim, int]:
+    hil = HilSim("--config", str(bench), "--device", "labjack_t7", "--transport", "modbus-tcp",
+                 "--bind", "127.0.0.1:0", *extra, workdir=tmp_path)
+    return hil, int(hil.field("bind").rpartition(":")[2])
+
+
+def _exp_for(tmp_path: Path, port: int, **changes) -> Path:
+    data = yaml.safe_load(EXPERIMENT.read_text())
+    data["backend"]["port"] = port
+    for k, v in changes.items():
+        if k in ("enable_dio", "device_watchdog_s"):
+            data["backend"][k] = v
+        else:
+            data[k] = v
+    p = tmp_path / "exp.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+def _mrctl(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mrctl", *args], cwd=ROOT, env=env(), capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_calibrate_recovers_the_benchs_offsets_and_lag(tmp_path) -> None:
+    """Offsets within 2 %, tau within 10 % of what the bench is configured with."""
+    bench = yaml.safe_load(BENCH.read_text())
+    hil, port = _start(tmp_path, _bench(tmp_path, rest=True))
+    try:
+        res = _mrctl("calibrate", str(_exp_for(tmp_path, port)), "--out", str(tmp_path / "cal.yaml"))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    cal = yaml.safe_load((tmp_path / "cal.yaml").read_text())
+    w = bench["labjack_t7"]
+    assert cal["channels"]["x"]["offset_V"] == pytest.approx(w["x"]["offset_V"], rel=0.02)
+    assert cal["channels"]["F"]["offset_V"] == pytest.approx(w["F"]["offset_V"], rel=0.02)
+    assert cal["driver"]["tau_s"] == pytest.approx(bench["plant"]["driver_tau_s"], rel=0.10)
+    assert cal["noise"]["x_m"] == pytest.approx(bench["plant"]["sensors"]["x_noise_m"], rel=0.25)
+    # an experiment takes it: offsets, the observer's noise, the law's lag
+    from mrctl.config import load_experiment
+
+    exp = _exp_for(tmp_path, port, calibration="cal.yaml")
+    cfg = load_experiment(exp)
+    assert cfg.backend.device.channels["x"].offset_V == cal["channels"]["x"]["offset_V"]
+    assert cfg.sensing.x_noise_m == cal["noise"]["x_m"]
+    assert cfg.parameters.tau_input == cal["driver"]["tau_s"]
+
+
+def _nrmse_load_cell(path: Path) -> float:
+    from mrctl.runlog.metrics import tracking_summary
+    from mrctl.runlog.read import read_run
+
+    c = read_run(path)
+    return tracking_summary(c["t"], c["F_des"], c["F"], c["I"], 0.6, 1.0)["force_nrmse"]
+
+
+def test_hil_run_over_the_emulated_t7_at_the_probes_rate(tmp_path) -> None:
+    """Day one, then a run: calibrate on the bench at rest, run the experiment
+    with the calibration at the rate the start-up probe picks (exit 0), and
+    measure the force tracking (load cell against F_des) beside mrctl
+    simulate of the same experiment and calibration at that rate."""
+    hil, port = _start(tmp_path, _bench(tmp_path, rest=True))
+    try:
+        res = _mrctl("calibrate", str(_exp_for(tmp_path, port)), "--out", str(tmp_path / "cal.yaml"))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    hil, port = _start(tmp_path, BENCH)
+    exp = _exp_for(tmp_path, port, duration_s=4.0, calibration="cal.yaml")
+    out = tmp_path / "run.csv"
+    try:
+        res = _mrctl("run", str(exp), "--out", str(out), "--quiet", "--status-socket", str(tmp_path / "s.sock"))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    m = re.search(r"Running at (\d+) Hz instead", res.stderr)
+    rate = float(m.group(1)) if m else 1000.0
+    sim_exp = _exp_for(tmp_path, port, duration_s=4.0, rate_hz=rate, calibration="cal.yaml")
+    sim = _mrctl("simulate", str(sim_exp), "--out", str(tmp_path / "sim.csv"))
+    assert sim.returncode == 0, sim.stderr
+    hil_nrmse, sim_nrmse = _nrmse_load_cell(out), _nrmse_load_cell(tmp_path / "sim.csv")
+    print(f"rate {rate:g} Hz: HIL force NRMSE {100 * hil_nrmse:.3f} %, simulate {100 * sim_nrmse:.3f} %, "
+          f"ratio {hil_nrmse / sim_nrmse:.2f}")
+    assert math.isfinite(hil_nrmse) and hil_nrmse < 0.12, (hil_nrmse, sim_nrmse)
+
+
+def _read_f32(port: int, address: int) -> float:
+    with socket.create_connection(("127.0.0.1", port), timeout=2.0) as s:
+        s.sendall(struct.pack(">HHHBBHH", 7, 0, 6, 1, 3, address, 2))
+        data = b""
+        while len(data) < 13:
+            chunk = s.recv(64)
+            assert chunk, "the emulator closed the connection"
+            data += chunk
+    assert data[7] == 3, data
+    return struct.unpack(">f", data[9:13])[0]
+
+
+def test_sigkill_dac0_to_0v_within_the_watchdog_and_enable_off_within_50ms(tmp_path) -> None:
+    """SIGKILL the daemon: the enable output stops toggling, the monostable
+    disables the driver within its 40 ms; the T7's watchdog (1 s) puts DAC0
+    at 0 V within its timeout of the last request."""
+    truth = tmp_path / "truth.csv"
+    hil, port = _start(tmp_path, _bench(tmp_path, enable=True), "--truth", str(truth))
+    try:
+        exp = _exp_for(tmp_path, port, duration_s=30.0, enable_dio=0)
+        run = Run(exp, tmp_path / "run.csv", 30.0)
+        st = run.wait_for(lambda s: s.get("ticks", 0) > 200 or s.get("loop", {}).get("ticks", 0) > 200, 30.0)
+        assert st is not None, run.stderr()
+        time.sleep(0.5)
+        dac_before = _read_f32(port, 1000)
+        t_kill = time.monotonic_ns()
+        os.kill(run.pid, signal.SIGKILL)
+        run.wait(10)
+        time.sleep(1.5)
+        dac_after = _read_f32(port, 1000)
+    finally:
+        hil.stop()
+    summary = json.loads(truth.with_suffix(".json").read_text())
+    t7 = summary["modbus"]
+    assert dac_before > 0.05, "the damper was not being driven before the kill"
+    assert dac_after == 0.0
+    # the driver's enable: on while the daemon ran, off from 50 ms after the kill on (a loop
+    # stall before the kill may have dropped it already: that is the same protection)
+    events = sorted([(t, "on") for t in t7["enable_rises_ns"]] + [(t, "off") for t in t7["enable_drops_ns"]])
+    assert any(e == "on" and t < t_kill for t, e in events), events
+    state_50ms = [e for t, e in events if t <= t_kill + 50e6][-1]
+    assert state_50ms == "off" and not [t for t, e in events if e == "on" and t > t_kill], (events, t_kill)
+    off_at = [t for t, e in events if e == "off" and t <= t_kill + 50e6][-1]
+    trips = [t for t in t7["watchdog_trips_ns"] if t >= t_kill]
+    assert trips and (trips[0] - t_kill) <= 1.0e9 + 50e6, (trips, t_kill)
+    print(f"enable off {(off_at - t_kill) / 1e6:.1f} ms, DAC0 0 V {(trips[0] - t_kill) / 1e6:.0f} ms after SIGKILL")
+
+
+@pytest.mark.skipif(shutil.which("mbpoll") is None, reason="mbpoll not installed (apt-get install -y mbpoll)")
+def test_mbpoll_reads_ain0_as_big_endian_float_at_address_0(tmp_path) -> None:
+    """A client nobody here wrote reads the emulated T7 while the bench moves."""
+    hil, port = _start(tmp_path, BENCH)
+    try:
+        vals = []
+        for _ in range(3):
+            r = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-0", "-1", "-o", "2", "-p", str(port),
+                                "-t", "4:float", "-B", "-r", "0", "-c", "1", "127.0.0.1"],
+                               capture_output=True, text=True, timeout=20)
+            assert r.returncode == 0, r.stdout + r.stderr
+            vals.append(float(re.search(r"^\[0\]:\s+(\S+)", r.stdout, re.M).group(1)))
+            time.sleep(0.1)
+    finally:
+        hil.stop()
+    # the LVDT: 2.47 V at the centre, +/-10 mm at 2.5 mm/V = +/-4 V, and the shaker moves
+    assert all(2.47 - 4.1 < v < 2.47 + 4.1 for v in vals), vals
+    assert len(set(vals)) > 1, vals
+
+
+def test_fit_lag_recovers_tau_and_dead_time_despite_a_stall() -> None:
+    """Synthetic steps of a 10 ms lag with a 1 ms dead time, 200 Hz readings
+    with jitter, one step spoiled by a 40 ms stall (readings stamped late)."""
+    from mrctl.daemon.calibrate import _step_response, fit_lag
+
+    rng = np.random.default_rng(3)
+    t_cmd = np.arange(16) * 0.08
+    I_cmd = np.array([0.3, 0.0] * 8)
+    t = np.arange(0, 1.28, 0.005) + rng.uniform(0, 3e-4, 256)
+    y = _step_response(t, t_cmd, I_cmd, 0.010, 0.001) + rng.normal(0, 1e-3, t.size)
+    stall = (t > 0.40) & (t < 0.44)
+    t[stall] += 0.02  # these readings were asked for earlier than their stamps say
+    tau, d, spread = fit_lag(t, y, t_cmd, I_cmd)
+    assert tau == pytest.approx(0.010, rel=0.03) and d == pytest.approx(0.001, abs=5e-4)
+    assert spread < 3e-3
+
+
+def test_a_device_that_is_not_a_t7_is_refused_at_start(tmp_path) -> None:
+    """mrctl's own register map (plain hil_sim) answers no PRODUCT_ID: exit 3, named."""
+    hil = HilSim("--transport", "modbus-tcp", "--bind", "127.0.0.1:0", workdir=tmp_path)
+    port = int(hil.field("bind").rpartition(":")[2])
+    try:
+        res = _mrctl("run", str(_exp_for(tmp_path, port, duration_s=1.0)), "--quiet",
+                     "--status-socket", str(tmp_path / "s.sock"))
+    finally:
+        hil.stop()
+    assert res.returncode == 3, res.stderr
+    assert "cannot open backend" in res.stderr and "reading register 60000 refused" in res.stderr, res.stderr
+    assert "is this a labjack_t7?" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_calibrate_refuses_bad_input_before_touching_a_device(tmp_path, capsys) -> None:
+    sim = ROOT / "config" / "experiments" / "fig5.yaml"
+    assert mrctl_main(["calibrate", str(sim), "--out", str(tmp_path / "cal.yaml")]) == 2
+    assert "backend has no device preset" in capsys.readouterr().err
+    exp = _exp_for(tmp_path, 1)  # nothing listens on port 1: the options are checked first
+    assert mrctl_main(["calibrate", str(exp), "--out", str(tmp_path / "cal.yaml"), "--steps", "-1"]) == 2
+    assert "--steps: must be >= 0" in capsys.readouterr().err
+    assert mrctl_main(["calibrate", str(exp), "--out", str(tmp_path / "cal.yaml"), "--rate-hz", "0"]) == 2
+    assert "--rate-hz: must be > 0" in capsys.readouterr().err
+    (tmp_path / "cal.yaml").write_text("x")
+    assert mrctl_main(["calibrate", str(exp), "--out", str(tmp_path / "cal.yaml")]) == 2
+    assert "exists; refusing to replace it" in capsys.readouterr().err
+
+
+def test_a_bad_calibration_file_is_a_clear_error(tmp_path, capsys) -> None:
+    (tmp_path / "cal.yaml").write_text("version: 1\nchannels: {x: {offset_V: nan}, z: {}}\ndriver: {tau_s: -1}\n")
+    exp = _exp_for(tmp_path, 5021, calibration="cal.yaml")
+    assert mrctl_main(["check", str(exp)]) == 2
+    err = capsys.readouterr().err
+    assert "calibration (" in err and "channels.z: unknown channel" in err and "driver.tau_s" in err, err
+    assert "Traceback" not in err
