@@ -1,9 +1,15 @@
-"""``mrctl`` command line: run, status, tap, exporter, simulate, report, identify, check, examples.
+"""``mrctl`` command line: run, status, ls, tap, exporter, simulate, report, identify, check, examples, docs.
 
 The one place that turns errors into exit codes: every user-facing error is
-a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
-1 internal error, 2 bad input, 3 link failure, 4 run log incomplete), and
-:func:`main` prints it as one line on stderr, never a traceback.
+a :class:`mrctl.errors.MrctlError` carrying its code (:data:`EXIT_CODES`,
+shown at the end of every ``--help``), and :func:`main` prints it as one
+line on stderr, never a traceback.
+
+One vocabulary (docs/cli.md, checked by tests/test_cli_vocabulary.py, which
+walks every subparser): the options a concept shares are added by one helper
+each (:func:`add_daemon_options`, :func:`add_quiet_options`,
+:func:`add_out_options`), and :func:`build_parser` ends every subcommand's
+help with the exit codes, also for subcommands added later.
 """
 
 from __future__ import annotations
@@ -22,6 +28,76 @@ from mrctl.util.jsonutil import jsonable
 EXIT_OK = ExitCode.OK
 EXIT_FAILURE = ExitCode.FAILURE
 EXIT_BAD_INPUT = ExitCode.BAD_INPUT
+
+#: the end of every --help (README's "Exit codes", docs/cli.md)
+EXIT_CODES = """exit codes:
+  0  success (also when stopped by a signal)
+  1  internal error, or a control law that failed
+  2  bad input: config, option, --out, a file it names, a missing optional dependency
+  3  link failure: cannot open, infeasible rate, driver lost, device owned by another mrctl
+  4  run log incomplete: rows lost, disk full (the sidecar records what)
+  5  run completed but degraded"""
+
+#: optional dependencies by import name -> the extra that brings them (pyproject.toml)
+EXTRAS = {"scipy": "identify", "matplotlib": "plot", "tqdm": "identify", "prometheus_client": "metrics"}
+
+
+# -- the shared vocabulary: one helper per concept (docs/cli.md) -------------------------------
+
+def add_daemon_options(p: argparse.ArgumentParser, serving: bool = False) -> None:
+    """``--socket PATH`` and ``--instance NAME``: where a daemon is addressed
+    (``serving``: where ``run`` serves its status); ``--status-socket`` stays
+    a hidden alias of ``--socket``."""
+    where = "serve the status on" if serving else "status socket of the daemon to ask"
+    p.add_argument("--socket", metavar="PATH", help=f"{where} (default: $RUNTIME_DIRECTORY/status.sock, "
+                                                    f"else $TMPDIR/mrctl-UID/status.sock)")
+    p.add_argument("--status-socket", dest="socket", help=argparse.SUPPRESS)
+    p.add_argument("--instance", metavar="NAME",
+                   help="the daemon's name: a mrctl@NAME service, or a run started with --instance NAME "
+                        "(mrctl ls lists them)" + ("; its status socket is then $TMPDIR/mrctl-UID/NAME.sock"
+                                                   if serving else ""))
+
+
+def add_quiet_options(p: argparse.ArgumentParser, progress: bool = True) -> None:
+    """``-q/--quiet`` (only the result, warnings and errors) and, where there
+    is progress, ``--no-progress``."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="print only the result, warnings and errors (no progress, no 'wrote' lines)")
+    if progress:
+        p.add_argument("--no-progress", action="store_true", help="no progress line or bar (the rest prints)")
+
+
+def add_out_options(p: argparse.ArgumentParser, what: str, default: str | None = None) -> None:
+    """``-o/--out`` (strftime patterns expanded, :func:`out_path`) and ``--mkdir``."""
+    where = f"; default {default}" if default else ""
+    p.add_argument("-o", "--out", metavar="PATH",
+                   help=f"{what}{where}; strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
+    p.add_argument("--mkdir", action="store_true",
+                   help="create --out's directory if it is missing (default: refuse, naming it; runs/ is "
+                        "always created)")
+
+
+def out_path(args: argparse.Namespace, default: str | None = None) -> str | None:
+    """``--out`` with its strftime patterns expanded, or ``default``; its
+    directory checked (a missing one is exit 2 naming it, unless --mkdir or
+    runs/: :func:`mrctl.util.files.check_out_parent`)."""
+    import time
+
+    from mrctl.util.files import check_out_parent
+
+    out = args.out if args.out else default
+    if out is None:
+        return None
+    if "%" in out:
+        out = time.strftime(out)
+    check_out_parent(out, getattr(args, "mkdir", False))
+    return out
+
+
+def _say(args: argparse.Namespace, msg: str) -> None:
+    """An informational line (what was written): not with -q."""
+    if not getattr(args, "quiet", False):
+        print(msg, flush=True)
 
 
 def _err(msg: str) -> None:
@@ -45,8 +121,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from mrctl.util.options import check_duration
 
     override = check_duration(args.duration)
+    args.out = out_path(args)
     if args.out:
-        files.check_log_path(args.out, args.force)  # before a long simulation, not after
+        files.check_log_path(args.out, args.force, args.mkdir)  # before a long simulation, not after
     exp = _load(args.config)
     duration = run_duration(exp, override)
     res = simulate(exp, duration)
@@ -63,6 +140,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 "law_fault": str(res.fault) if res.fault is not None else None,
                 "notices": res.notices}
         try:
+            from mrctl.util.files import ensure_out_parent
+
+            ensure_out_parent(args.out, args.mkdir)
             write_csv(res, args.out, force=args.force)
             files.write_json(files.sidecar_path(args.out), side)
         except OSError as exc:
@@ -79,7 +159,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for note in res.notices:
         print(f"mrctl: {note}", file=sys.stderr)
     if args.out:
-        print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+        _say(args, f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
         return EXIT_FAILURE
@@ -89,20 +169,25 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report
 
-    make_report(args.runs, args.out, title=args.title)
-    print(f"wrote {args.out}")
+    from mrctl.util.files import ensure_out_parent
+
+    out = out_path(args, str(Path(args.runs[0]).with_suffix(".png")))  # beside the (first) run
+    ensure_out_parent(out, args.mkdir)
+    make_report(args.runs, out, title=args.title)
+    _say(args, f"wrote {out}")
     return EXIT_OK
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    import time
-
     from mrctl.daemon.service import RunOptions, run
 
-    out = time.strftime(args.out) if args.out and "%" in args.out else args.out
+    from mrctl.daemon.instances import check_instance
+
+    out = out_path(args)
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
-    return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
-                          status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
+    return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force, mkdir=args.mkdir,
+                          status_socket=args.socket, instance=check_instance(args.instance) if args.instance else None,
+                          live=not (args.quiet or args.no_progress), stream_url=args.stream,
                           stream_every=args.stream_every, stream_columns=columns,
                           log_priorities=True if args.log_priorities else None))
 
@@ -117,11 +202,42 @@ def _columns(text: str, option: str) -> tuple[str, ...]:
 
 
 def _status_path(args: argparse.Namespace) -> str:
-    from mrctl.daemon.status import default_status_socket
+    from mrctl.daemon.instances import client_socket
 
-    if args.instance:
-        return f"/run/mrctl/{args.instance}/status.sock"
-    return args.socket or default_status_socket(check=True)
+    return client_socket(args.socket, args.instance)
+
+
+def cmd_ls(args: argparse.Namespace) -> int:
+    """The running daemons of this user (and the system's that it may ask)."""
+    from mrctl.daemon.instances import format_daemons, list_daemons
+
+    found = list_daemons()
+    if args.json:
+        print(json.dumps(found, indent=2))
+    else:
+        print(format_daemons(found))
+    return EXIT_OK
+
+
+def cmd_docs(args: argparse.Namespace) -> int:
+    """One reference doc, the list of them, or where they are installed."""
+    from mrctl import docs
+
+    if args.generate:
+        if not args.topic:
+            raise BadInput(f"docs --generate: give a topic ({', '.join(docs.GENERATED)})")
+        print(docs.generated(args.topic))
+    elif args.path:
+        print(docs.topic_path(args.topic) if args.topic else docs.docs_dir())
+    elif args.topic:
+        sys.stdout.write(docs.read_topic(args.topic))
+    else:
+        listed = docs.topics()
+        width = max((len(t) for t, _ in listed), default=0)
+        for t, title in listed:
+            print(f"{t:<{width}}  {title}")
+        print(f"\n{len(listed)} topics in {docs.docs_dir()} (mrctl docs TOPIC prints one; --path: where it is)")
+    return EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -199,8 +315,9 @@ def cmd_exporter(args: argparse.Namespace) -> int:
 def cmd_examples(args: argparse.Namespace) -> int:
     from mrctl.examples import copy_examples
 
-    for rel in copy_examples(Path(args.dir), force=args.force):
-        print(f"wrote {Path(args.dir) / rel}")
+    written = copy_examples(Path(args.dir), force=args.force)
+    tops = sorted({rel.split("/", 1)[0] + ("/" if "/" in rel else "") for rel in written})
+    _say(args, f"wrote {len(written)} files into {args.dir}: {', '.join(tops)} (--force replaces them)")
     return EXIT_OK
 
 
@@ -209,13 +326,22 @@ def cmd_identify(args: argparse.Namespace) -> int:
     description (a lab's measured records, ``--dataset`` or a .yaml argument).
     Prints progress, the summary table, what was written. Errors are raised
     (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
-    exit 1, ReportError exit 2) for :func:`main`'s handler."""
+    exit 2, ReportError exit 2) for :func:`main`'s handler. ``--out``
+    defaults to ``STEM.params.yaml`` beside the dataset (or the first run)."""
     from mrctl.errors import BadInput
+    from mrctl.util.files import ensure_out_parent
 
     runs = list(args.runs)
     dataset = args.dataset
     if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
         dataset, runs = runs[0], []
+    if dataset is None and not runs:
+        raise BadInput("identify: give run CSVs or a dataset description (--dataset D.yaml)")
+    src = Path(dataset if dataset is not None else runs[0])
+    args.out = out_path(args, str(src.with_name(src.stem + ".params.yaml")))
+    if args.report:
+        args.report = out_path(argparse.Namespace(out=args.report, mkdir=args.mkdir))
+    ensure_out_parent(args.out, args.mkdir)
     if dataset is not None:
         if runs:
             raise BadInput("identify: give run CSVs or --dataset, not both")
@@ -228,19 +354,21 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from mrctl.offline.identify import format_summary, identify_files
 
     def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
-        print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
+        if not (args.quiet or args.no_progress):
+            print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
 
     if args.period is not None and not args.period > 0:
         raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
     result = identify_files(args.runs, args.out, method=args.method, progress=progress, period_s=args.period,
                             offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
     print(format_summary(result))
-    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
+    _say(args, f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
     if args.report:
         from mrctl.offline.report import make_identification_report
 
+        ensure_out_parent(args.report, args.mkdir)
         make_identification_report(result, args.report)
-        print(f"wrote {args.report}")
+        _say(args, f"wrote {args.report}")
     return EXIT_OK
 
 
@@ -248,15 +376,18 @@ def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
     from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
 
     model = {"offset": False, "stiffness": False} if args.no_offset else None
+    from mrctl.util.files import ensure_out_parent
+
     res = identify_dataset_file(dataset, args.out, holdout=args.holdout, model=model,
-                                progress=not args.no_progress and sys.stderr.isatty())
+                                progress=not (args.no_progress or args.quiet) and sys.stderr.isatty())
     print(format_dataset_summary(res))
-    print(f"wrote {args.out} and {json_path(args.out)} ({res.time_s:.1f} s)")
+    _say(args, f"wrote {args.out} and {json_path(args.out)} ({res.time_s:.1f} s)")
     if args.report:
         from mrctl.offline.identify_figure import make_dataset_report
 
+        ensure_out_parent(args.report, args.mkdir)
         make_dataset_report(res, args.report)
-        print(f"wrote {args.report}")
+        _say(args, f"wrote {args.report}")
     return EXIT_OK
 
 
@@ -281,38 +412,40 @@ def cmd_check(args: argparse.Namespace) -> int:
             if level == "error":
                 return EXIT_BAD_INPUT
         else:
-            print(f.message)
-    print("\n".join(laws_report(cfg)))
-    print(f"{args.config}: OK")
+            _say(args, f.message)
+    _say(args, "\n".join(laws_report(cfg)))
+    _say(args, f"{args.config}: OK")
     return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon")
+    ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon",
+                                 epilog=EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--version", action="version", version=f"mrctl {__version__}")
-    sub = ap.add_subparsers(dest="command", required=True)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)")
     sp.add_argument("config", help="experiment YAML")
-    sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
-    sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
+    add_out_options(sp, "run CSV to write (a .json sidecar goes beside it)")
+    sp.add_argument("--duration", type=float, metavar="S", help="simulated seconds (overrides duration_s)")
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
+    add_quiet_options(sp, progress=False)
     sp.set_defaults(func=cmd_simulate)
 
     rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops")
     rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
-    rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
+    add_out_options(rp, "figure to write: .png, .pdf or .svg", default="the first run's name with .png")
     rp.add_argument("--title", help="figure title (default: the run file names)")
+    add_quiet_options(rp, progress=False)
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
     rn.add_argument("config", help="experiment YAML")
-    rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it); "
-                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
-    rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
+    add_out_options(rn, "run CSV to write (a .json sidecar goes beside it)")
+    rn.add_argument("--duration", type=float, metavar="S", help="seconds to run (overrides duration_s)")
     rn.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
-    rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")
-    rn.add_argument("--quiet", action="store_true", help="no live progress line")
+    add_daemon_options(rn, serving=True)
+    add_quiet_options(rn)
     rn.add_argument("--stream", metavar="udp://HOST:PORT",
                     help="send every run-log row as a JSON datagram (PlotJuggler's UDP server; docs/observe.md)")
     rn.add_argument("--stream-every", type=int, metavar="N", help="stream every Nth row (default 1)")
@@ -322,58 +455,87 @@ def build_parser() -> argparse.ArgumentParser:
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="live state of a running mrctl")
-    st.add_argument("--socket", help="status socket path (default as for run)")
-    st.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
+    add_daemon_options(st)
     st.add_argument("--format", choices=("text", "json", "prometheus"), default="text",
                     help="text (default), json, or prometheus (node_exporter textfile collector)")
     st.add_argument("--json", action="store_true", help="print the raw JSON (= --format json)")
     st.set_defaults(func=cmd_status)
 
+    ls = sub.add_parser("ls", help="the running daemons of this user: instance, config, pid, socket, uptime, state")
+    ls.add_argument("--json", action="store_true", help="a JSON list, one object per daemon")
+    ls.set_defaults(func=cmd_ls)
+
     tp = sub.add_parser("tap", help="the next N rows of a running mrctl as CSV on stdout (like halsampler)")
-    tp.add_argument("-n", type=int, help="rows to capture (default: until Ctrl-C)")
-    tp.add_argument("--columns", "-c", metavar="COLS", help="comma-separated run-log columns (default all; in the run log's order)")
+    tp.add_argument("-n", "--rows", dest="n", type=int, metavar="N", help="rows to capture (default: until Ctrl-C)")
+    tp.add_argument("-c", "--columns", metavar="COLS",
+                    help="comma-separated run-log columns (default all; in the run log's order)")
     tp.add_argument("--trigger", metavar="COND",
                     help="start at the next rising edge of fault, COLUMN>VALUE or COLUMN<VALUE (e.g. F>500)")
     tp.add_argument("--pre", type=int, default=0, metavar="N", help="with --trigger: rows before the trigger")
-    tp.add_argument("--socket", help="status socket path (default as for run)")
-    tp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
+    add_daemon_options(tp)
     tp.set_defaults(func=cmd_tap)
 
     xp = sub.add_parser("exporter", help="Prometheus HTTP exporter reading the status socket (mrctl[metrics])")
     xp.add_argument("--listen", default=":9877", metavar="[HOST]:PORT", help="where to serve /metrics (default :9877)")
-    xp.add_argument("--socket", help="status socket path (default as for run)")
-    xp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service (also a damper label)")
+    add_daemon_options(xp)
     xp.set_defaults(func=cmd_exporter)
 
     ip = sub.add_parser("identify", help="fit the LuGre parameter set: from run CSVs of constant-current steps, "
                                          "or from measured data described by a dataset YAML")
-    ip.add_argument("runs", nargs="*", help="run CSVs (simulate or run) with a constant-current schedule; "
-                                            "or one dataset .yaml")
-    ip.add_argument("--dataset", help="dataset description (docs/identification.md): measured records, any columns")
-    ip.add_argument("--out", required=True, help="parameters YAML to write (usable as parameters: FILE); "
-                                                 "a dataset also writes the JSON summary beside it")
-    ip.add_argument("--report", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 and 3, "
-                                     "a dataset its held-out force and F-v loops")
+    ip.add_argument("runs", nargs="*", metavar="RUN.csv", help="run CSVs (simulate or run) with a constant-current "
+                                                               "schedule; or one dataset .yaml")
+    ip.add_argument("--dataset", metavar="D.yaml",
+                    help="dataset description (docs/identification.md): measured records, any columns")
+    add_out_options(ip, "parameters YAML to write (usable as parameters: FILE); a dataset also writes the JSON "
+                        "summary beside it", default="STEM.params.yaml beside the dataset or the first run")
+    ip.add_argument("--report", metavar="FIG", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 "
+                                                    "and 3, a dataset its held-out force and F-v loops")
     ip.add_argument("--holdout", help="dataset: held out of the fit: a fraction (0.3), none, or record names "
                                       "(a,b) held out whole; default the description's")
-    ip.add_argument("--period", type=float, help="run CSVs: the excitation period (s), if it cannot be estimated")
+    ip.add_argument("--period", type=float, metavar="S",
+                    help="run CSVs: the excitation period (s), if it cannot be estimated")
     ip.add_argument("--no-offset", action="store_true", help="fit no force offset and stiffness (for comparison)")
-    ip.add_argument("--no-progress", action="store_true", help="dataset: no progress bar")
+    add_quiet_options(ip)
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
                     help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
 
     cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
-    cp.add_argument("config", nargs="?")
+    cp.add_argument("config", nargs="?", help="experiment YAML to check (every error, with its key path)")
     cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
+    add_quiet_options(cp, progress=False)
     cp.set_defaults(func=cmd_check)
 
-    ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")
+    ex = sub.add_parser("examples", help="copy the example experiments, bench configs, systemd units and docs out")
     ex.add_argument("dir", nargs="?", default="mrctl-examples",
-                    help="directory to write config/, systemd/ and README.md into (default: mrctl-examples)")
+                    help="directory to write config/, systemd/, docs/ and README.md into (default: mrctl-examples)")
     ex.add_argument("--force", action="store_true", help="overwrite files that exist")
+    add_quiet_options(ex, progress=False)
     ex.set_defaults(func=cmd_examples)
+
+    dp = sub.add_parser("docs", help="the reference docs installed with mrctl: list them, print one, or where they are")
+    dp.add_argument("topic", nargs="?", metavar="TOPIC",
+                    help="config, laws, runlog, protocol, registers, install, reliability, ... (a prefix will do); "
+                         "none: list them")
+    dp.add_argument("--path", action="store_true", help="print where the docs (or TOPIC's file) are installed")
+    dp.add_argument("--generate", action="store_true",
+                    help="print TOPIC's reference generated from the installed code (config, runlog, laws, "
+                         "identification), plugins included")
+    dp.set_defaults(func=cmd_docs)
+    finish_parser(ap)
     return ap
+
+
+def finish_parser(ap: argparse.ArgumentParser) -> None:
+    """Every subcommand's --help ends with the exit codes (also a
+    subcommand added without its own epilog)."""
+    for action in ap._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sp in action.choices.values():
+                if not sp.epilog or "exit codes:" not in sp.epilog:
+                    sp.epilog = f"{sp.epilog}\n\n{EXIT_CODES}" if sp.epilog else EXIT_CODES
+                if sp.formatter_class is argparse.HelpFormatter:
+                    sp.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -386,6 +548,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
+    except ModuleNotFoundError as exc:  # an optional dependency not caught where it is imported
+        root = (exc.name or "").split(".")[0]
+        if root not in EXTRAS:
+            _err(f"internal error: {exc}")
+            return EXIT_FAILURE
+        _err(f"{root} is needed for mrctl {args.command}: pip install 'mrctl[{EXTRAS[root]}]'")
+        return EXIT_BAD_INPUT
     except OSError as exc:
         _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))
         return EXIT_FAILURE

@@ -57,7 +57,8 @@ from mrctl.daemon.notify import Notifier
 from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.daemon.safety import SafetyConfig, SafetySupervisor
-from mrctl.daemon.status import StatusServer, default_status_socket
+from mrctl.daemon.instances import server_socket
+from mrctl.daemon.status import StatusServer
 from mrctl.daemon.timing import format_summary as format_timing
 from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlError
 from mrctl.experiment import Experiment, build, check_channels, link_channels
@@ -82,6 +83,8 @@ class RunOptions:
     status_socket: str | None = None
     live: bool = True  # progress / live line on stderr (foreground)
     force: bool = False  # replace an existing run log (--force)
+    mkdir: bool = False  # create a missing directory of the run log (--mkdir)
+    instance: str | None = None  # --instance NAME: its status socket and the name mrctl ls shows
     clock_ns: Callable[[], int] = time.monotonic_ns  # injectable for deterministic tests
     sleep: Callable[[float], object] = time.sleep
     stream: TextIO = field(default_factory=lambda: sys.stdout)
@@ -162,7 +165,7 @@ class Service:
         self.loaded = exp.config
         duration = override if override is not None else exp.config.duration_s
         if o.out:
-            files.check_log_path(o.out, o.force)
+            files.check_log_path(o.out, o.force, o.mkdir)
         self._stream = stream_settings(exp.config, o.stream_url, o.stream_every, o.stream_columns)
         try:
             link = exp.make_link()
@@ -172,7 +175,7 @@ class Service:
                  f"{'%.3f s' % duration if duration else 'until stopped'}; backend {link.describe()}")
         self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
         if o.out:
-            self._log_fh = files.create_log(o.out, o.force)
+            self._log_fh = files.create_log(o.out, o.force, o.mkdir)
             stack.callback(self._drop_unused_log)
         try:
             link.open()
@@ -306,10 +309,12 @@ class Service:
             if host_paced:
                 loop.background = self.rec.format_pending
         obs = self.obs = Observe.for_run(cfg, ctl, loop, self.rec, self._stream, o.clock_ns, exp.name, self.warn)
-        status = StatusServer(o.status_socket or cfg.service.status_socket or default_status_socket(), self.snapshot,
-                              obs.handle_request)
+        where, notice = server_socket(o.status_socket or cfg.service.status_socket, o.instance)
+        status = StatusServer(where, self.snapshot, obs.handle_request)
         try:
             status.start()
+            if notice:
+                self.warn(notice, NOTICE)
             stack.callback(status.close)
         except OSError as exc:
             self.warn(f"status socket unavailable ({exc}); running without it")
@@ -350,6 +355,7 @@ class Service:
         d: dict[str, Any] = {
             "mrctl_version": __version__, "pid": os.getpid(),
             "experiment": self.exp.name if self.exp else None,
+            "instance": self.opts.instance, "config_file": str(Path(self.opts.config_path).resolve()),
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
             "rate_hz": loop.rate_hz if loop else None,
             "ticks": ctl.ticks if ctl else 0,

@@ -3,7 +3,8 @@
 * :func:`check_log_path` says, without touching anything, whether ``--out``
   can be used: not a ``.json`` name (the sidecar would overwrite its own
   CSV), not a directory, and neither the CSV nor its sidecar may exist
-  unless ``force``.
+  unless ``force``; its directory must exist unless ``mkdir`` (or it is
+  ``runs/``: :func:`mrctl.util.files.check_out_parent`).
 * :func:`create_log` creates the CSV with ``O_CREAT | O_EXCL | O_NOFOLLOW``:
   a symlink planted at the path is never followed; with ``force`` an
   existing file (or symlink) is unlinked first, its target untouched.
@@ -24,6 +25,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Mapping
 
 from mrctl.errors import BadInput
+from mrctl.util.files import check_out_parent
 from mrctl.util.jsonutil import jsonable
 
 __all__ = ["SIDECAR_RESERVE_BYTES", "sidecar_path", "check_log_path", "create_log", "write_json", "fsync_dir"]
@@ -39,9 +41,10 @@ def sidecar_path(path: str | os.PathLike[str]) -> Path:
     return Path(path).with_suffix(".json")
 
 
-def check_log_path(path: str | os.PathLike[str], force: bool = False) -> Path:
-    """``BadInput`` if ``path`` cannot be a new run log (see the module doc);
-    touches nothing."""
+def check_log_path(path: str | os.PathLike[str], force: bool = False, mkdir: bool = False) -> Path:
+    """``BadInput`` if ``path`` cannot be a new run log (see the module doc),
+    or its directory is missing and may not be created
+    (:func:`mrctl.util.files.check_out_parent`); touches nothing."""
     p = Path(path)
     if p.suffix.lower() == ".json":
         raise BadInput(f"{p}: the run log is a CSV; a .json name would be its own sidecar's")
@@ -53,19 +56,16 @@ def check_log_path(path: str | os.PathLike[str], force: bool = False) -> Path:
         if os.path.lexists(q) and not force:
             kind = "a symlink" if q.is_symlink() else "a file"
             raise BadInput(f"{q}: {what} would replace {kind} that exists; refusing (pass --force to replace it)")
-    parent = p.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise BadInput(f"{p}: cannot create it: {parent} is not a directory")
+    check_out_parent(p, mkdir)
     return p
 
 
-def create_log(path: str | os.PathLike[str], force: bool = False) -> BinaryIO:
+def create_log(path: str | os.PathLike[str], force: bool = False, mkdir: bool = False) -> BinaryIO:
     """Create the run log's CSV (empty) and return it open for binary
     writing; with ``force`` an existing CSV and sidecar are unlinked first.
-    ``BadInput`` naming the path if it cannot be created."""
-    p = check_log_path(path, force)
+    ``BadInput`` naming the path if it cannot be created, or if its
+    directory is missing (unless ``mkdir``, or ``runs/``)."""
+    p = check_log_path(path, force, mkdir)
     if force:
         for q in (p, sidecar_path(p)):
             try:
