@@ -113,6 +113,25 @@ def _load(config_path: str):
     return build(load_experiment(config_path))
 
 
+def _load_simulated(args: argparse.Namespace):
+    """The experiment ``simulate`` runs: CONFIG, or a run log replayed
+    (``--replay``: its sidecar's config, or CONFIG's, with the log's motion),
+    with ``--law`` replacing the inverse law."""
+    from mrctl.experiment import build
+
+    if args.replay:
+        from mrctl.offline.replay import replay_config
+
+        return build(replay_config(args.replay, args.config, args.law))
+    if not args.config:
+        raise BadInput("simulate: give an experiment YAML, or --replay RUN.csv")
+    if args.law:
+        from mrctl.offline.replay import load_with_law
+
+        return build(load_with_law(args.config, args.law))
+    return _load(args.config)
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from mrctl.offline.simulate import run_duration, simulate, write_csv
     from mrctl.runlog import files
@@ -124,14 +143,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     args.out = out_path(args)
     if args.out:
         files.check_log_path(args.out, args.force, args.mkdir)  # before a long simulation, not after
-    exp = _load(args.config)
+    exp = _load_simulated(args)
     duration = run_duration(exp, override)
     res = simulate(exp, duration)
     s = res.summary
     if args.out:
         side = {**sidecar_header("simulate", Path(args.out).name, {
                     "mrctl_version": __version__, "python": platform.python_version(), "host": platform.node(),
-                    "config_file": str(Path(args.config).resolve()), "config": jsonable(exp.config),
+                    "config_file": str(Path(args.config).resolve()) if args.config else None,
+                    "replay_of": str(Path(args.replay).resolve()) if args.replay else None,
+                    "config": jsonable(exp.config),
                     "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
                     "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
                     "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1}),
@@ -424,8 +445,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"mrctl {__version__}")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)")
-    sp.add_argument("config", help="experiment YAML")
+    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing); or replay a run log's motion")
+    sp.add_argument("config", nargs="?", help="experiment YAML (with --replay: used instead of the log's sidecar)")
+    sp.add_argument("--replay", metavar="RUN.csv",
+                    help="re-run a logged experiment's motion (t, x, v of the run log) with its sidecar's config")
+    sp.add_argument("--law", metavar="NAME", help="use this inverse law instead of the config's (inverse.law)")
     add_out_options(sp, "run CSV to write (a .json sidecar goes beside it)")
     sp.add_argument("--duration", type=float, metavar="S", help="simulated seconds (overrides duration_s)")
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")

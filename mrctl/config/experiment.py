@@ -106,7 +106,9 @@ def experiment_schema(base_dir: Path) -> dict[str, Any]:
                       "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="start frequency (Hz)"),
                       "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
-            "file": {"path": Custom(file_check(base_dir), doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
+            "file": {"path": Custom(file_check(base_dir),
+                                    doc="CSV with columns t,x (s, m) and optionally v (m/s); other columns are "
+                                        "ignored, so a run log replays (rows with NaN x or v are skipped)")},
             **road_excitations(),
         }, doc="shaker motion on the simulated bench (plant.bench: quarter_car: the road)"),
         **law_unions(base_dir),

@@ -333,7 +333,7 @@ class Service:
         # threads above exist before RT setup, so they do not inherit SCHED_FIFO/affinity
         self.rt_results = apply_rt(RtSettings.from_config(cfg.rt))
         for r in self.rt_results:
-            self.say(f"rt: {r}")
+            self.say(str(r))  # "rt gc_freeze=True: applied (...)": the prefix is its own
         sys.setswitchinterval(2e-4)  # a writer thread must not hold the GIL for 5 ms
 
     def _provenance(self) -> dict[str, Any]:
@@ -381,7 +381,10 @@ class Service:
 
     def _live_line(self) -> str:
         ctl, loop = self.ctl, self.loop
-        return live_line(ctl.ticks if ctl else 0, self._total_ticks, loop.rate_hz if loop else 0.0,
+        # progress on the loop's clock: a skipped deadline (a late tick) is time gone too, so a
+        # run that ends on time ends at 100 %
+        done = (ctl.ticks if ctl else 0) + (loop.stats.skipped_deadlines if loop else 0)
+        return live_line(done, self._total_ticks, loop.rate_hz if loop else 0.0,
                          ctl.I_last if ctl else 0.0, self.sup.state.name if self.sup else "?",
                          ctl.link_errors if ctl else 0, self.log_watch.warned,
                          loop.stats.live_line() if loop else "")
