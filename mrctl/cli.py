@@ -207,7 +207,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = out_path(args)
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force, mkdir=args.mkdir,
-                          status_socket=args.socket, instance=check_instance(args.instance) if args.instance else None,
+                          status_socket=args.socket, instance=check_instance(args.instance) if args.instance is not None else None,
                           live=not (args.quiet or args.no_progress), stream_url=args.stream,
                           stream_every=args.stream_every, stream_columns=columns,
                           log_priorities=True if args.log_priorities else None))

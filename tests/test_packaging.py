@@ -52,6 +52,38 @@ def test_examples_command_copies_experiments_units_and_readme(tmp_path, capsys):
     assert (dest / "config/experiments/fig5.yaml").read_bytes() == (ROOT / "config/experiments/fig5.yaml").read_bytes()
 
 
+def test_docs_command_lists_prints_locates_and_generates(capsys):
+    assert main(["docs"]) == 0
+    out = capsys.readouterr().out
+    for doc in DOCS:
+        assert doc[:-3] in out, doc
+    assert main(["docs", "reli"]) == 0  # a prefix will do
+    assert capsys.readouterr().out == (ROOT / "docs" / "reliability.md").read_text()
+    assert main(["docs", "--path"]) == 0
+    assert Path(capsys.readouterr().out.strip()).resolve() == (ROOT / "docs").resolve()
+    assert main(["docs", "config", "--path"]) == 0
+    assert Path(capsys.readouterr().out.strip()).resolve() == (ROOT / "docs" / "config.md").resolve()
+    from mrctl.config import schema_markdown
+
+    assert main(["docs", "config", "--generate"]) == 0
+    assert capsys.readouterr().out == schema_markdown() + "\n"
+    assert main(["docs", "nosuch"]) == 2
+    assert "topics: " in capsys.readouterr().err
+    assert main(["docs", "r"]) == 2  # registers, reliability, robust-tracking, runlog
+    assert "ambiguous" in capsys.readouterr().err
+    assert main(["docs", "protocol", "--generate"]) == 2
+
+
+def test_every_doc_ships_in_the_wheel_by_pyproject():
+    """package-data names every doc file (the symlink mrctl/data/docs is what it globs)."""
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["mrctl"]
+    assert (ROOT / "mrctl" / "data" / "docs").resolve() == (ROOT / "docs").resolve()
+    for f in (ROOT / "docs").rglob("*"):
+        if f.is_file():
+            rel = "data/docs/" + str(f.relative_to(ROOT / "docs"))
+            assert any(Path(rel).match(pat) for pat in data), f"{rel} is not shipped"
+
+
 def test_license_file_matches_pyproject():
     meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     assert meta["license"] == {"text": "MIT"}

@@ -56,7 +56,7 @@ def client_socket(socket: str | None, instance: str | None) -> str:
     runs, that one."""
     if socket:
         return socket
-    if instance:
+    if instance is not None:
         check_instance(instance)
         mine = _user_socket(instance)
         return str(mine) if os.path.lexists(mine) else str(SYSTEM_DIR / instance / "status.sock")
@@ -72,7 +72,7 @@ def server_socket(explicit: str | None, instance: str | None) -> tuple[str, str 
     not where ``mrctl status`` looks first (a second unnamed run)."""
     if explicit:
         return explicit, None
-    if instance and not os.environ.get("RUNTIME_DIRECTORY"):
+    if instance is not None and not os.environ.get("RUNTIME_DIRECTORY"):
         return str(_user_socket(check_instance(instance))), None
     default = default_status_socket()
     if os.environ.get("RUNTIME_DIRECTORY") or not _socket_alive(default):
