@@ -370,6 +370,8 @@ def cmd_identify(args: argparse.Namespace) -> int:
             raise BadInput("identify: --period and --method are for run CSVs; a dataset's segments have their own "
                            "period")
         return _identify_dataset(args, dataset)
+    if args.data_dir is not None:
+        raise BadInput("identify: --data-dir is for --dataset (where its records are)")
     if args.holdout is not None:
         raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
     from mrctl.offline.identify import format_summary, identify_files
@@ -397,9 +399,11 @@ def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
     from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
 
     model = {"offset": False, "stiffness": False} if args.no_offset else None
+    from mrctl.config.dataset import load_dataset
     from mrctl.util.files import ensure_out_parent
 
-    res = identify_dataset_file(dataset, args.out, holdout=args.holdout, model=model,
+    ds = load_dataset(dataset, args.data_dir)
+    res = identify_dataset_file(ds, args.out, source=dataset, holdout=args.holdout, model=model,
                                 progress=not (args.no_progress or args.quiet) and sys.stderr.isatty())
     print(format_dataset_summary(res))
     _say(args, f"wrote {args.out} and {json_path(args.out)} ({res.time_s:.1f} s)")
@@ -514,6 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "summary beside it", default="STEM.params.yaml beside the dataset or the first run")
     ip.add_argument("--report", metavar="FIG", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 "
                                                     "and 3, a dataset its held-out force and F-v loops")
+    ip.add_argument("--data-dir", metavar="DIR",
+                    help="dataset: where its records are (over its data_dir: key; default its own directory)")
     ip.add_argument("--holdout", help="dataset: held out of the fit: a fraction (0.3), none, or record names "
                                       "(a,b) held out whole; default the description's")
     ip.add_argument("--period", type=float, metavar="S",

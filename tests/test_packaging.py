@@ -155,10 +155,10 @@ def test_installed_wheel_runs_the_example_outside_the_source_tree(tmp_path):
     r = mrctl("docs", "runlog")
     assert r.returncode == 0 and r.stdout == (ROOT / "docs" / "runlog.md").read_text()
     r = mrctl("docs", "config", "--generate")
-    assert r.returncode == 0 and "| `inverse.law` |" in r.stdout
+    assert r.returncode == 0 and "| `safety.I_max` |" in r.stdout
     r = subprocess.run([sys.executable, "-m", "mrctl.config"], cwd=work, env=env, capture_output=True, text=True,
                        timeout=120)
-    assert r.returncode == 0 and "| `inverse.law` |" in r.stdout and "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 0 and "| `safety.I_max` |" in r.stdout and "Traceback" not in r.stderr, r.stderr
     readme = (work / "README.md").read_text()
     for link in _links(readme):
         assert (work / link).is_file(), link
