@@ -585,6 +585,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_FAILURE
         _err(f"{root} is needed for mrctl {args.command}: pip install 'mrctl[{EXTRAS[root]}]'")
         return EXIT_BAD_INPUT
+    except BrokenPipeError:  # mrctl ... | head: the reader has what it wanted
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     except OSError as exc:
         _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))
         return EXIT_FAILURE

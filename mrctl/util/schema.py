@@ -388,7 +388,9 @@ def schema_markdown(schema: Mapping[str, Any]) -> str:
             lines.append("| key | type | default | meaning |")
             lines.append("|---|---|---|---|")
             for k, spec in rows:
-                lines.append(f"| `{_path(prefix, k)}` | {_kind(spec)} | {_default(spec)} | {getattr(spec, 'doc', '')} |")
+                cells = (_kind(spec), _default(spec), getattr(spec, "doc", "") or "")
+                kind, default, doc = (c.replace("|", "\\|") for c in cells)  # |F_des| must not split a cell
+                lines.append(f"| `{_path(prefix, k)}` | {kind} | {default} | {doc} |")
             lines.append("")
         for k, spec in fields_.items():
             path = _path(prefix, k)
