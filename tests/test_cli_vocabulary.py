@@ -121,3 +121,34 @@ def test_a_missing_optional_dependency_is_exit_2_naming_the_extra(monkeypatch, c
     monkeypatch.setattr(builtins, "__import__", no_prometheus)
     assert main(["exporter", "--socket", "/nonexistent/s.sock", "--listen", "127.0.0.1:0"]) == 2
     assert "mrctl[metrics]" in capsys.readouterr().err
+
+
+def test_default_outputs_go_beside_the_input(tmp_path, capsys, monkeypatch):
+    """report run.csv -> run.png; identify --dataset d.yaml -> d.params.yaml."""
+    pytest.importorskip("matplotlib")
+    run = tmp_path / "data" / "run.csv"
+    run.parent.mkdir()
+    fig5 = str(ROOT / "config" / "experiments" / "fig5.yaml")
+    assert main(["simulate", fig5, "--duration", "0.5", "--out", str(run), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["report", str(run), "-q"]) == 0
+    assert (tmp_path / "data" / "run.png").read_bytes()[:4] == b"\x89PNG"
+    assert capsys.readouterr().out == ""  # -q: no 'wrote' line
+
+    import mrctl.offline.identify as ident
+
+    seen = {}
+
+    def fake(ds, out, **kw):
+        seen["out"] = out
+        raise ident.IdentificationError("stop here")
+
+    monkeypatch.setattr(ident, "identify_dataset_file", fake)
+    (tmp_path / "data" / "a.csv").write_text("t,x,F\n0,0,0\n0.001,0,0\n")
+    d = tmp_path / "data" / "d.yaml"
+    d.write_text("version: 1\nprotocol: constant_input\ncolumns: {time: t, displacement: x, force: F}\n"
+                 "files: [{path: a.csv, level: 0.1}]\n")
+    assert main(["identify", "--dataset", str(d)]) == 2
+    assert seen["out"] == str(tmp_path / "data" / "d.params.yaml")
+    assert main(["identify", str(d), "-o", str(tmp_path / "p-%Y.yaml")]) == 2
+    assert "%" not in seen["out"] and re.fullmatch(r"p-\d{4}\.yaml", Path(seen["out"]).name)

@@ -52,8 +52,8 @@ def client_socket(socket: str | None, instance: str | None) -> str:
     """The socket ``mrctl status``/``tap``/``exporter`` ask: ``--socket``;
     ``--instance NAME`` (this user's ``NAME.sock`` if there is one, else
     systemd's ``/run/mrctl/NAME/status.sock``); or the default, and when
-    nothing serves the default but exactly one other daemon of this user
-    runs, that one."""
+    nothing serves the default but exactly one other daemon runs that this
+    user can ask (its own, or a service's in ``/run/mrctl``), that one."""
     if socket:
         return socket
     if instance is not None:
@@ -63,7 +63,7 @@ def client_socket(socket: str | None, instance: str | None) -> str:
     default = default_status_socket(check=True)
     if os.environ.get("RUNTIME_DIRECTORY") or _socket_alive(default):
         return default
-    running = [d for d in list_daemons(system=False) if d.get("answering")]
+    running = [d for d in list_daemons() if d.get("answering")]  # the system's mrctl.service too
     return running[0]["socket"] if len(running) == 1 else default
 
 
