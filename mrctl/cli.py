@@ -48,7 +48,7 @@ def add_daemon_options(p: argparse.ArgumentParser, serving: bool = False) -> Non
     """``--socket PATH`` and ``--instance NAME``: where a daemon is addressed
     (``serving``: where ``run`` serves its status); ``--status-socket`` stays
     a hidden alias of ``--socket``."""
-    where = "serve the status on" if serving else "status socket of the daemon to ask"
+    where = "where to serve the status" if serving else "the status socket of the daemon to ask"
     p.add_argument("--socket", metavar="PATH", help=f"{where} (default: $RUNTIME_DIRECTORY/status.sock, "
                                                     f"else $TMPDIR/mrctl-UID/status.sock)")
     p.add_argument("--status-socket", dest="socket", help=argparse.SUPPRESS)
