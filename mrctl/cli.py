@@ -189,7 +189,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report
-
     from mrctl.util.files import ensure_out_parent
 
     out = out_path(args, str(Path(args.runs[0]).with_suffix(".png")))  # beside the (first) run
@@ -200,14 +199,14 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from mrctl.daemon.service import RunOptions, run
-
     from mrctl.daemon.instances import check_instance
+    from mrctl.daemon.service import RunOptions, run
 
     out = out_path(args)
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
+    instance = check_instance(args.instance) if args.instance is not None else None
     return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force, mkdir=args.mkdir,
-                          status_socket=args.socket, instance=check_instance(args.instance) if args.instance is not None else None,
+                          status_socket=args.socket, instance=instance,
                           live=not (args.quiet or args.no_progress), stream_url=args.stream,
                           stream_every=args.stream_every, stream_columns=columns,
                           log_priorities=True if args.log_priorities else None))
@@ -396,12 +395,11 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 
 def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
-    from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
-
-    model = {"offset": False, "stiffness": False} if args.no_offset else None
     from mrctl.config.dataset import load_dataset
+    from mrctl.offline.identify import format_dataset_summary, identify_dataset_file, json_path
     from mrctl.util.files import ensure_out_parent
 
+    model = {"offset": False, "stiffness": False} if args.no_offset else None
     ds = load_dataset(dataset, args.data_dir)
     res = identify_dataset_file(ds, args.out, source=dataset, holdout=args.holdout, model=model,
                                 progress=not (args.no_progress or args.quiet) and sys.stderr.isatty())

@@ -168,6 +168,8 @@ def test_installed_wheel_runs_the_example_outside_the_source_tree(tmp_path):
     for name in _subcommands(build_parser()):
         r = mrctl(name, "--help")
         assert r.returncode == 0 and r.stdout.rstrip().endswith("5  run completed but degraded"), name
+    r = mrctl("ls", "--json")  # its daemons (none running here)
+    assert r.returncode == 0 and r.stdout.strip().startswith("["), r.stdout + r.stderr
     # a run log replays on the installed package: its motion, another law
     r = mrctl("simulate", "--replay", "runs/fig5.csv", "--law", "paper", "--out", "runs/replay.csv")
     assert r.returncode == 0, r.stderr

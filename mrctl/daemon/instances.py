@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mrctl.daemon.status import StatusError, _socket_alive, default_status_socket, query_status
+from mrctl.daemon.status import StatusError, socket_alive, default_status_socket, query_status
 from mrctl.errors import BadInput
 from mrctl.util.files import check_private_dir, per_user_dir
 
@@ -61,7 +61,7 @@ def client_socket(socket: str | None, instance: str | None) -> str:
         mine = _user_socket(instance)
         return str(mine) if os.path.lexists(mine) else str(SYSTEM_DIR / instance / "status.sock")
     default = default_status_socket(check=True)
-    if os.environ.get("RUNTIME_DIRECTORY") or _socket_alive(default):
+    if os.environ.get("RUNTIME_DIRECTORY") or socket_alive(default):
         return default
     running = [d for d in list_daemons() if d.get("answering")]  # the system's mrctl.service too
     return running[0]["socket"] if len(running) == 1 else default
@@ -75,7 +75,7 @@ def server_socket(explicit: str | None, instance: str | None) -> tuple[str, str 
     if instance is not None and not os.environ.get("RUNTIME_DIRECTORY"):
         return str(_user_socket(check_instance(instance))), None
     default = default_status_socket()
-    if os.environ.get("RUNTIME_DIRECTORY") or not _socket_alive(default):
+    if os.environ.get("RUNTIME_DIRECTORY") or not socket_alive(default):
         return default, None
     name = f"run-{os.getpid()}"
     path = str(_user_socket(name))
