@@ -34,7 +34,7 @@ def user_dir(tmp_path, monkeypatch):
 
 
 def _start(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "mrctl", "run", FIG5, "--duration", "6", "--no-progress", *args],
+    return subprocess.Popen([sys.executable, "-m", "mrctl", "run", FIG5, "--duration", "120", "--no-progress", *args],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
 
 
