@@ -1,10 +1,15 @@
-"""``mrctl`` command line: run, status, tap, exporter, simulate, report, identify, check, examples.
+"""``mrctl`` command line: run, status, ls, tap, exporter, simulate, report, identify, check, examples, docs.
 
 The one place that turns errors into exit codes: every user-facing error is
-a :class:`mrctl.errors.MrctlError` carrying its code (README: 0 success,
-1 internal error, 2 bad input, 3 link failure, 4 run log incomplete; a run
-or simulation that completed but broke an acceptance bound returns 5), and
-:func:`main` prints it as one line on stderr, never a traceback.
+a :class:`mrctl.errors.MrctlError` carrying its code (:data:`EXIT_CODES`,
+shown at the end of every ``--help``), and :func:`main` prints it as one
+line on stderr, never a traceback.
+
+One vocabulary (docs/cli.md, checked by tests/test_cli_vocabulary.py, which
+walks every subparser): the options a concept shares are added by one helper
+each (:func:`add_daemon_options`, :func:`add_quiet_options`,
+:func:`add_out_options`), and :func:`build_parser` ends every subcommand's
+help with the exit codes, also for subcommands added later.
 """
 
 from __future__ import annotations
@@ -18,10 +23,75 @@ from typing import Any, Sequence
 from mrctl import __version__
 from mrctl.build import build_notice, tick_build
 from mrctl.errors import BadInput, ExitCode, MrctlError
+from mrctl.runlog.format import exit_codes_text
 
 EXIT_OK = ExitCode.OK
 EXIT_FAILURE = ExitCode.FAILURE
 EXIT_BAD_INPUT = ExitCode.BAD_INPUT
+
+#: the end of every --help (README's "Exit codes", docs/cli.md); the table is mrctl.runlog.format's
+EXIT_CODES = exit_codes_text()
+
+#: optional dependencies by import name -> the extra that brings them (pyproject.toml)
+EXTRAS = {"scipy": "identify", "matplotlib": "plot", "tqdm": "identify", "prometheus_client": "metrics"}
+
+
+# -- the shared vocabulary: one helper per concept (docs/cli.md) -------------------------------
+
+def add_daemon_options(p: argparse.ArgumentParser, serving: bool = False) -> None:
+    """``--socket PATH`` and ``--instance NAME``: where a daemon is addressed
+    (``serving``: where ``run`` serves its status); ``--status-socket`` stays
+    a hidden alias of ``--socket``."""
+    where = "where to serve the status" if serving else "the status socket of the daemon to ask"
+    p.add_argument("--socket", metavar="PATH", help=f"{where} (default: $RUNTIME_DIRECTORY/status.sock, "
+                                                    f"else $TMPDIR/mrctl-UID/status.sock)")
+    p.add_argument("--status-socket", dest="socket", help=argparse.SUPPRESS)
+    p.add_argument("--instance", metavar="NAME",
+                   help="the daemon's name: a mrctl@NAME service, or a run started with --instance NAME "
+                        "(mrctl ls lists them)" + ("; its status socket is then $TMPDIR/mrctl-UID/NAME.sock"
+                                                   if serving else ""))
+
+
+def add_quiet_options(p: argparse.ArgumentParser, progress: bool = True) -> None:
+    """``-q/--quiet`` (only the result, warnings and errors) and, where there
+    is progress, ``--no-progress``."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="print only the result, warnings and errors (no progress, no 'wrote' lines)")
+    if progress:
+        p.add_argument("--no-progress", action="store_true", help="no progress line or bar (the rest prints)")
+
+
+def add_out_options(p: argparse.ArgumentParser, what: str, default: str | None = None) -> None:
+    """``-o/--out`` (strftime patterns expanded, :func:`out_path`) and ``--mkdir``."""
+    where = f"; default {default}" if default else ""
+    p.add_argument("-o", "--out", metavar="PATH",
+                   help=f"{what}{where}; strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded")
+    p.add_argument("--mkdir", action="store_true",
+                   help="create --out's directory if it is missing (default: refuse, naming it; runs/ is "
+                        "always created)")
+
+
+def out_path(args: argparse.Namespace, default: str | None = None) -> str | None:
+    """``--out`` with its strftime patterns expanded, or ``default``; its
+    directory checked (a missing one is exit 2 naming it, unless --mkdir or
+    runs/: :func:`mrctl.util.files.check_out_parent`)."""
+    import time
+
+    from mrctl.util.files import check_out_parent
+
+    out = args.out if args.out else default
+    if out is None:
+        return None
+    if "%" in out:
+        out = time.strftime(out)
+    check_out_parent(out, getattr(args, "mkdir", False))
+    return out
+
+
+def _say(args: argparse.Namespace, msg: str) -> None:
+    """An informational line (what was written): not with -q."""
+    if not getattr(args, "quiet", False):
+        print(msg, flush=True)
 
 
 def _err(msg: str) -> None:
@@ -30,11 +100,32 @@ def _err(msg: str) -> None:
     Journal(sys.stderr).log(ERR, msg)  # <3> first when stderr is the journal (a unit's ExecStartPre=)
 
 
-def _load(args: argparse.Namespace) -> Any:
+def _load(args: argparse.Namespace):
+    """The experiment of ``args.config``, built (data files under its folder
+    unless ``--allow-outside-paths``)."""
     from mrctl.config import load_experiment
     from mrctl.experiment import build
 
     return build(load_experiment(args.config, allow_outside=args.allow_outside_paths))
+
+
+def _load_simulated(args: argparse.Namespace):
+    """The experiment ``simulate`` runs: CONFIG, or a run log replayed
+    (``--replay``: its sidecar's config, or CONFIG's, with the log's motion),
+    with ``--law`` replacing the inverse law."""
+    from mrctl.experiment import build
+
+    if args.replay:
+        from mrctl.offline.replay import replay_config
+
+        return build(replay_config(args.replay, args.config, args.law, allow_outside=args.allow_outside_paths))
+    if not args.config:
+        raise BadInput("simulate: give an experiment YAML, or --replay RUN.csv")
+    if args.law:
+        from mrctl.offline.replay import load_with_law
+
+        return build(load_with_law(args.config, args.law, allow_outside=args.allow_outside_paths))
+    return _load(args)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -45,15 +136,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from mrctl.util.options import check_duration
 
     override = check_duration(args.duration)
+    if args.out is not None and not args.out.strip():
+        raise BadInput("--out '': an empty value would silently turn it off; leave --out out for none")
+    args.out = out_path(args)
     if args.out is not None:
-        files.check_log_path(args.out, args.force)  # before a long simulation, not after
-    exp = _load(args)
+        files.check_log_path(args.out, args.force, args.mkdir)  # before a long simulation, not after
+    exp = _load_simulated(args)
     duration = run_duration(exp, override)
     if args.out is None:
         res = simulate(exp, duration)
         verdict, code = simulate_verdict(exp, res)
     else:
-        res, verdict, code = simulate_logged(exp, duration, args.out, args.config, force=args.force)
+        res, verdict, code = simulate_logged(exp, duration, args.out, args.config, force=args.force,
+                                             mkdir=args.mkdir, replay_of=args.replay)
     return _simulated(args, exp, res, verdict, code)
 
 
@@ -73,7 +168,7 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, 
     for note in res.notices:
         print(f"mrctl: {note}", file=sys.stderr)
     if args.out is not None:
-        print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+        _say(args, f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
         return EXIT_FAILURE
@@ -86,13 +181,15 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report, parse_pair
+    from mrctl.util.files import ensure_out_parent
 
     size = parse_pair(args.size, "--size", positive=True) if args.size else None
     window = parse_pair(args.time, "--time") if args.time else None
     panels = [p.strip() for p in args.panels.split(",") if p.strip()] if args.panels is not None else None
-    make_report(args.runs, args.out, title=args.title, size=size, time=window, panels=panels,
-                force=args.force)
-    print(f"wrote {args.out}")
+    out = out_path(args, str(Path(args.runs[0]).with_suffix(".png")))  # beside the (first) run
+    ensure_out_parent(out, args.mkdir)
+    make_report(args.runs, out, title=args.title, size=size, time=window, panels=panels, force=args.force)
+    _say(args, f"wrote {out}")
     return EXIT_OK
 
 
@@ -112,8 +209,7 @@ def default_log_path(config_path: str, allow_outside: bool = False) -> str:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    import time
-
+    from mrctl.daemon.instances import check_instance
     from mrctl.daemon.service import RunOptions, run
 
     for opt, value in (("--out", args.out), ("--stream", args.stream)):
@@ -121,18 +217,17 @@ def cmd_run(args: argparse.Namespace) -> int:
             raise BadInput(f"{opt} '': an empty value would silently turn it off; leave {opt} out for none")
     if args.no_log and args.out:
         raise BadInput("run: --out and --no-log contradict each other")
-    if args.out:
-        out = time.strftime(args.out) if "%" in args.out else args.out
-    elif args.no_log:
+    if args.no_log:
         out = None
         print("no run log (--no-log): nothing of this run is recorded", flush=True)
     else:
-        out = default_log_path(args.config, args.allow_outside_paths)
-    if out:
+        out = out_path(args, default_log_path(args.config, args.allow_outside_paths))
         print(f"run log: {out}", flush=True)  # first, so a forgotten --out loses nothing
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
-    return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force,
-                          status_socket=args.status_socket, live=not args.quiet, stream_url=args.stream,
+    instance = check_instance(args.instance) if args.instance is not None else None
+    return run(RunOptions(args.config, out=out, duration_s=args.duration, force=args.force, mkdir=args.mkdir,
+                          status_socket=args.socket, instance=instance,
+                          live=not (args.quiet or args.no_progress), stream_url=args.stream,
                           stream_every=args.stream_every, stream_columns=columns,
                           log_priorities=True if args.log_priorities else None,
                           allow_outside_paths=args.allow_outside_paths))
@@ -148,11 +243,42 @@ def _columns(text: str, option: str) -> tuple[str, ...]:
 
 
 def _status_path(args: argparse.Namespace) -> str:
-    from mrctl.daemon.status import default_status_socket
+    from mrctl.daemon.instances import client_socket
 
-    if args.instance:
-        return f"/run/mrctl/{args.instance}/status.sock"
-    return args.socket or default_status_socket(check=True)
+    return client_socket(args.socket, args.instance)
+
+
+def cmd_ls(args: argparse.Namespace) -> int:
+    """The running daemons of this user (and the system's that it may ask)."""
+    from mrctl.daemon.instances import format_daemons, list_daemons
+
+    found = list_daemons()
+    if args.json:
+        print(json.dumps(found, indent=2))
+    else:
+        print(format_daemons(found))
+    return EXIT_OK
+
+
+def cmd_docs(args: argparse.Namespace) -> int:
+    """One reference doc, the list of them, or where they are installed."""
+    from mrctl import docs
+
+    if args.generate:
+        if not args.topic:
+            raise BadInput(f"docs --generate: give a topic ({', '.join(docs.GENERATED)})")
+        print(docs.generated(args.topic))
+    elif args.path:
+        print(docs.topic_path(args.topic) if args.topic else docs.docs_dir())
+    elif args.topic:
+        sys.stdout.write(docs.read_topic(args.topic))
+    else:
+        listed = docs.topics()
+        width = max((len(t) for t, _ in listed), default=0)
+        for t, title in listed:
+            print(f"{t:<{width}}  {title}")
+        print(f"\n{len(listed)} topics in {docs.docs_dir()} (mrctl docs TOPIC prints one; --path: where it is)")
+    return EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -231,15 +357,31 @@ def cmd_exporter(args: argparse.Namespace) -> int:
 def cmd_examples(args: argparse.Namespace) -> int:
     from mrctl.examples import copy_examples
 
-    for rel in copy_examples(Path(args.dir), force=args.force):
-        print(f"wrote {Path(args.dir) / rel}")
+    written = copy_examples(Path(args.dir), force=args.force)
+    tops = sorted({rel.split("/", 1)[0] + ("/" if "/" in rel else "") for rel in written})
+    _say(args, f"wrote {len(written)} files into {args.dir}: {', '.join(tops)} (--force replaces them)")
     return EXIT_OK
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    """Run CSVs or a dataset description (:mod:`mrctl.offline.identify_command`)."""
+    """Run CSVs or a dataset description (:mod:`mrctl.offline.identify_command`).
+    ``--out`` defaults to ``STEM.params.yaml`` beside the dataset (or the
+    first run); strftime patterns are expanded and a missing directory is
+    refused unless ``--mkdir`` (:func:`out_path`)."""
     from mrctl.offline.identify_command import identify_command
 
+    runs = list(args.runs)
+    dataset = args.dataset
+    if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
+        dataset = runs[0]
+    if dataset is None and not runs:
+        raise BadInput("identify: give run CSVs or a dataset description (--dataset D.yaml)")
+    if args.out is not None and not args.out.strip():
+        raise BadInput("--out '': an empty name; give the parameters file to write (.yaml)")
+    src = Path(dataset if dataset is not None else runs[0])
+    args.out = out_path(args, str(src.with_name(src.stem + ".params.yaml")))
+    if args.report:
+        args.report = out_path(argparse.Namespace(out=args.report, mkdir=args.mkdir))
     return identify_command(args)
 
 
@@ -264,14 +406,14 @@ def cmd_check(args: argparse.Namespace) -> int:
             if level == "error":
                 return EXIT_BAD_INPUT
         else:
-            print(f.message)
+            _say(args, f.message)
     from mrctl.config.acceptance import bounds
     from mrctl.runlog.acceptance import format_bounds
 
-    print(format_bounds(bounds(cfg)))
-    print("\n".join(laws_report(cfg)))
-    print(f"tick: {tick_build()} build")
-    print(f"{args.config}: OK")
+    _say(args, format_bounds(bounds(cfg)))
+    _say(args, "\n".join(laws_report(cfg)))
+    _say(args, f"tick: {tick_build()} build")
+    _say(args, f"{args.config}: OK")
     return EXIT_OK
 
 
@@ -287,49 +429,46 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mrctl.runlog.format import exit_codes_text
-
-    epilog = exit_codes_text()
-    raw = argparse.RawDescriptionHelpFormatter
     ap = argparse.ArgumentParser(prog="mrctl", description="MR damper (Lord RD-1097-01) control daemon",
-                                 epilog=epilog, formatter_class=raw)
+                                 epilog=EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--version", action="version", version=f"mrctl {__version__} ({tick_build()})")
-    sub = ap.add_subparsers(dest="command", required=True)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing)", epilog=epilog,
-                        formatter_class=raw)
-    sp.add_argument("config", help="experiment YAML")
-    sp.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it)")
-    sp.add_argument("--duration", type=float, help="simulated seconds (overrides duration_s)")
+    sp = sub.add_parser("simulate", help="offline closed loop (no real-time pacing); or replay a run log's motion")
+    sp.add_argument("config", nargs="?", help="experiment YAML (with --replay: used instead of the log's sidecar)")
+    sp.add_argument("--replay", metavar="RUN.csv",
+                    help="re-run a logged experiment's motion (t, x, v of the run log) with its sidecar's config")
+    sp.add_argument("--law", metavar="NAME", help="use this inverse law instead of the config's (inverse.law)")
+    add_out_options(sp, "run CSV to write (a .json sidecar goes beside it)")
+    sp.add_argument("--duration", type=float, metavar="S", help="simulated seconds (overrides duration_s)")
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
+    add_quiet_options(sp, progress=False)
     _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 
     rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "
                                        "faults and skipped deadlines shaded, the verdict in the caption")
     rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
-    rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
+    add_out_options(rp, "figure to write: .png, .pdf or .svg", default="the first run's name with .png")
     rp.add_argument("--title", help="figure title (default: the runs' file names and laws)")
     rp.add_argument("--size", metavar="W,H", help="figure size in inches (default: 12 wide, by the panels)")
     rp.add_argument("--time", metavar="T0,T1", help="draw only T0 <= t <= T1 (s); the figures stay the whole run's")
     rp.add_argument("--panels", metavar="P,P,...",
                     help="panels in this order, from force, error, current, fv, fx, body_acc, stroke, tyre "
                          "(default force,error,current,fv,fx; quarter-car runs body_acc,stroke,tyre,current)")
-    rp.add_argument("--force", action="store_true", help="replace an existing figure")
+    rp.add_argument("--force", action="store_true", help="replace an existing figure (never a run or its sidecar)")
+    add_quiet_options(rp, progress=False)
     rp.set_defaults(func=cmd_report)
 
-    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)", epilog=epilog,
-                        formatter_class=raw)
+    rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
     rn.add_argument("config", help="experiment YAML")
-    rn.add_argument("--out", help="run CSV to write (a .json sidecar goes beside it); "
-                                  "strftime patterns such as %%Y%%m%%d-%%H%%M%%S are expanded; "
-                                  "default runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv under the working directory")
-    rn.add_argument("--no-log", action="store_true",
-                    help="record nothing (default without --out: runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv)")
-    rn.add_argument("--duration", type=float, help="seconds to run (overrides duration_s)")
+    add_out_options(rn, "run CSV to write (a .json sidecar goes beside it)",
+                    default="runs/<name>-%%Y%%m%%d-%%H%%M%%S.csv under the working directory")
+    rn.add_argument("--no-log", action="store_true", help="record nothing (no run log, no sidecar)")
+    rn.add_argument("--duration", type=float, metavar="S", help="seconds to run (overrides duration_s)")
     rn.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
-    rn.add_argument("--status-socket", help="Unix socket for mrctl status (default: $RUNTIME_DIRECTORY/status.sock)")
-    rn.add_argument("--quiet", action="store_true", help="no live progress line")
+    add_daemon_options(rn, serving=True)
+    add_quiet_options(rn)
     rn.add_argument("--stream", metavar="udp://HOST:PORT",
                     help="send every run-log row as a JSON datagram (PlotJuggler's UDP server; docs/observe.md)")
     rn.add_argument("--stream-every", type=int, metavar="N", help="stream every Nth row (default 1)")
@@ -340,55 +479,61 @@ def build_parser() -> argparse.ArgumentParser:
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="live state of a running mrctl")
-    st.add_argument("--socket", help="status socket path (default as for run)")
-    st.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
+    add_daemon_options(st)
     st.add_argument("--format", choices=("text", "json", "prometheus"), default="text",
                     help="text (default), json, or prometheus (node_exporter textfile collector)")
     st.add_argument("--json", action="store_true", help="print the raw JSON (= --format json)")
     st.set_defaults(func=cmd_status)
 
+    ls = sub.add_parser("ls", help="the running daemons of this user: instance, config, pid, socket, uptime, state")
+    ls.add_argument("--json", action="store_true", help="a JSON list, one object per daemon")
+    ls.set_defaults(func=cmd_ls)
+
     tp = sub.add_parser("tap", help="the next N rows of a running mrctl as CSV on stdout (like halsampler)")
-    tp.add_argument("-n", type=int, help="rows to capture (default: until Ctrl-C)")
-    tp.add_argument("--columns", "-c", metavar="COLS", help="comma-separated run-log columns (default all; in the run log's order)")
+    tp.add_argument("-n", "--rows", dest="n", type=int, metavar="N", help="rows to capture (default: until Ctrl-C)")
+    tp.add_argument("-c", "--columns", metavar="COLS",
+                    help="comma-separated run-log columns (default all; in the run log's order)")
     tp.add_argument("--trigger", metavar="COND",
                     help="start at the next rising edge of fault, COLUMN>VALUE or COLUMN<VALUE (e.g. F>500)")
     tp.add_argument("--pre", type=int, default=0, metavar="N", help="with --trigger: rows before the trigger")
-    tp.add_argument("--socket", help="status socket path (default as for run)")
-    tp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service")
+    add_daemon_options(tp)
     tp.set_defaults(func=cmd_tap)
 
     xp = sub.add_parser("exporter", help="Prometheus HTTP exporter reading the status socket (mrctl[metrics])")
     xp.add_argument("--listen", default="127.0.0.1:9877", metavar="[HOST]:PORT",
                     help="where to serve /metrics (default 127.0.0.1:9877, loopback only; :9877 for every address)")
-    xp.add_argument("--socket", help="status socket path (default as for run)")
-    xp.add_argument("--instance", help="the damper NAME of a mrctl@NAME service (also a damper label)")
+    add_daemon_options(xp)
     xp.set_defaults(func=cmd_exporter)
 
     ip = sub.add_parser("identify", help="fit the LuGre parameter set: from run CSVs of constant-current steps, "
                                          "or from measured data described by a dataset YAML")
-    ip.add_argument("runs", nargs="*", help="run CSVs (simulate or run) with a constant-current schedule; "
-                                            "or one dataset .yaml")
-    ip.add_argument("--dataset", help="dataset description (docs/identification.md): measured records, any columns")
-    ip.add_argument("--out", required=True, help="parameters YAML to write (usable as parameters: FILE); "
-                                                 "a dataset also writes the JSON summary beside it")
-    ip.add_argument("--report", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 and 3, "
-                                     "a dataset its held-out force and F-v loops")
+    ip.add_argument("runs", nargs="*", metavar="RUN.csv", help="run CSVs (simulate or run) with a constant-current "
+                                                               "schedule; or one dataset .yaml")
+    ip.add_argument("--dataset", metavar="D.yaml",
+                    help="dataset description (docs/identification.md): measured records, any columns")
+    add_out_options(ip, "parameters YAML to write (usable as parameters: FILE); a dataset also writes the JSON "
+                        "summary beside it", default="STEM.params.yaml beside the dataset or the first run")
+    ip.add_argument("--report", metavar="FIG", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 "
+                                                    "and 3, a dataset its held-out force and F-v loops")
+    ip.add_argument("--data-dir", metavar="DIR",
+                    help="dataset: where its records are (over its data_dir: key; default its own directory); "
+                         "they must lie under it")
     ip.add_argument("--holdout", help="dataset: held out of the fit: a fraction (0.3), none, or record names "
                                       "(a,b) held out whole; default the description's")
-    ip.add_argument("--period", type=float, help="run CSVs: the excitation period (s), if it cannot be estimated")
+    ip.add_argument("--period", type=float, metavar="S",
+                    help="run CSVs: the excitation period (s), if it cannot be estimated")
     ip.add_argument("--no-offset", action="store_true", help="fit no force offset and stiffness (for comparison)")
-    ip.add_argument("--no-progress", action="store_true", help="dataset: no progress bar")
+    add_quiet_options(ip)
     ip.add_argument("--force", action="store_true", help="replace existing output files (never an input)")
-    ip.add_argument("--data-dir", metavar="DIR",
-                    help="dataset: data files must lie under DIR (default: the description's directory)")
     _outside_option(ip)
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
                     help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
 
     cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
-    cp.add_argument("config", nargs="?")
+    cp.add_argument("config", nargs="?", help="experiment YAML to check (every error, with its key path)")
     cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
+    add_quiet_options(cp, progress=False)
     _outside_option(cp)
     cp.set_defaults(func=cmd_check)
 
@@ -396,22 +541,47 @@ def build_parser() -> argparse.ArgumentParser:
                                           "the driver+coil lag from current steps; writes CAL.yaml for "
                                           "'calibration: CAL.yaml' (docs/hardware.md)")
     ca.add_argument("config", help="experiment YAML with a device backend (backend.device, backend.channels)")
-    ca.add_argument("--out", required=True, help="calibration YAML to write")
+    ca.add_argument("--out", required=True, metavar="PATH", help="calibration YAML to write")
     ca.add_argument("--force", action="store_true", help="replace --out if it exists")
-    ca.add_argument("--rest-s", type=float, default=2.0, help="seconds read at rest, 0 A (default 2)")
-    ca.add_argument("--step-A", type=float, default=None, help="current step (A; default half of safety.I_max)")
-    ca.add_argument("--steps", type=int, default=8, help="steps up and down (0 = no lag fit; default 8)")
-    ca.add_argument("--step-s", type=float, default=0.08, help="seconds per step (default 0.08)")
-    ca.add_argument("--rate-hz", type=float, default=200.0, help="exchanges per second (default 200)")
+    ca.add_argument("--rest-s", type=float, default=2.0, metavar="S", help="seconds read at rest, 0 A (default 2)")
+    ca.add_argument("--step-A", type=float, default=None, metavar="A",
+                    help="current step (A; default half of safety.I_max)")
+    ca.add_argument("--steps", type=int, default=8, metavar="N", help="steps up and down (0 = no lag fit; default 8)")
+    ca.add_argument("--step-s", type=float, default=0.08, metavar="S", help="seconds per step (default 0.08)")
+    ca.add_argument("--rate-hz", type=float, default=200.0, metavar="HZ", help="exchanges per second (default 200)")
     _outside_option(ca)
     ca.set_defaults(func=cmd_calibrate)
 
-    ex = sub.add_parser("examples", help="copy the example experiments, bench configs and systemd units out")
+    ex = sub.add_parser("examples", help="copy the example experiments, bench configs, systemd units and docs out")
     ex.add_argument("dir", nargs="?", default="mrctl-examples",
-                    help="directory to write config/, systemd/ and README.md into (default: mrctl-examples)")
+                    help="directory to write config/, systemd/, docs/ and README.md into (default: mrctl-examples)")
     ex.add_argument("--force", action="store_true", help="overwrite files that exist")
+    add_quiet_options(ex, progress=False)
     ex.set_defaults(func=cmd_examples)
+
+    dp = sub.add_parser("docs", help="the reference docs installed with mrctl: list them, print one, or where they are")
+    dp.add_argument("topic", nargs="?", metavar="TOPIC",
+                    help="config, laws, runlog, protocol, registers, install, reliability, ... (a prefix will do); "
+                         "none: list them")
+    dp.add_argument("--path", action="store_true", help="print where the docs (or TOPIC's file) are installed")
+    dp.add_argument("--generate", action="store_true",
+                    help="print TOPIC's reference generated from the installed code (config, runlog, laws, "
+                         "identification), plugins included")
+    dp.set_defaults(func=cmd_docs)
+    finish_parser(ap)
     return ap
+
+
+def finish_parser(ap: argparse.ArgumentParser) -> None:
+    """Every subcommand's --help ends with the exit codes (also a
+    subcommand added without its own epilog)."""
+    for action in ap._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sp in action.choices.values():
+                if not sp.epilog or "exit codes:" not in sp.epilog:
+                    sp.epilog = f"{sp.epilog}\n\n{EXIT_CODES}" if sp.epilog else EXIT_CODES
+                if sp.formatter_class is argparse.HelpFormatter:
+                    sp.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
 def _command(argv: Sequence[str] | None) -> str | None:
@@ -425,9 +595,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         from mrctl.daemon.signals import install_startup
 
         install_startup()
+    command = None
     try:
         args = build_parser().parse_args(argv)
-        if args.command in ("run", "simulate"):
+        command = args.command
+        if command in ("run", "simulate"):
             notice = build_notice()  # the compiled tick was wanted but not built at install
             if notice is not None:
                 print(notice, file=sys.stderr)
@@ -443,10 +615,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_OK
         _err("interrupted")
         return int(ExitCode.INTERRUPTED)
-    except BrokenPipeError:  # mrctl status | head: the reader has what it wanted; exit quietly
+    except ModuleNotFoundError as exc:  # an optional dependency not caught where it is imported
+        root = (exc.name or "").split(".")[0]
+        if root not in EXTRAS:
+            _err(f"internal error: {exc}")
+            return EXIT_FAILURE
+        _err(f"{root} is needed for mrctl {command}: pip install 'mrctl[{EXTRAS[root]}]'")
+        return EXIT_BAD_INPUT
+    except BrokenPipeError:  # mrctl ... | head: the reader has what it wanted
         import os
 
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit: no complaint
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     except OSError as exc:
         _err(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else str(exc.strerror or exc))

@@ -7,7 +7,7 @@ exceptions to codes. The codes are README's:
 
     0 success (also when stopped by a signal)
     1 internal error
-    2 bad input (config, dataset, CSV, command line)
+    2 bad input (config, dataset, CSV, command line, a missing optional dependency)
     3 link failure (cannot open, infeasible rate, driver lost, device owned)
     4 run log incomplete (rows lost, disk error)
     5 run completed but degraded (an ``acceptance`` bound broken: faults,
@@ -57,7 +57,7 @@ class LogIncomplete(MrctlError):
     exit_code = ExitCode.LOG
 
 
-class DependencyMissing(MrctlError):
-    """An optional dependency is not installed; the message says what to install."""
-
-    exit_code = ExitCode.FAILURE
+class DependencyMissing(BadInput):
+    """An optional dependency is not installed; the message names the extra
+    to install (``pip install 'mrctl[identify]'``). Exit 2, like any input
+    the command cannot work with, whichever command meets it."""

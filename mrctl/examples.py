@@ -2,9 +2,10 @@
 
 The example experiments (``config/experiments/*.yaml``), hil_sim's bench
 configs (``config/hil_*.yaml``), the systemd units and the tmpfiles.d entry
-for the device-lock directory (``systemd/``) live in the package
-(``mrctl/data/``, whose ``config`` and ``systemd`` are symlinks to the source
-tree's top-level directories, copied into the wheel when it is built),
+for the device-lock directory (``systemd/``) and the reference docs
+(``docs/``, the targets of README's links) live in the package
+(``mrctl/data/``, whose ``config``, ``systemd`` and ``docs`` are symlinks to
+the source tree's top-level directories, copied into the wheel when it is built),
 so they exist wherever mrctl is installed. This copies them out, with the
 same layout as the source tree, so README's commands (``mrctl run
 config/experiments/fig5.yaml``) work in DIR; and README.md itself, from the
@@ -21,7 +22,12 @@ from mrctl.errors import BadInput
 
 __all__ = ["example_files", "copy_examples"]
 
-_PATTERNS = ("config/**/*.yaml", "systemd/*.service", "systemd/*.conf")
+_PATTERNS = ("config/**/*.yaml", "systemd/*.service", "systemd/*.conf", "docs/*.md", "docs/*.xml", "docs/img/*.png")
+
+#: what the copied README says first: its links to docs/ work in DIR, what is not shipped is named
+_README_NOTE = ("> Copied by `mrctl examples` from the installed mrctl {version}: the links to `docs/` open the\n"
+                "> reference installed with it (also `mrctl docs TOPIC`); `bench/` and `examples/`, named below,\n"
+                "> are in the source repository, not in the package.\n\n")
 
 
 def _data() -> Path:
@@ -56,7 +62,9 @@ def copy_examples(dest: Path, force: bool = False) -> list[str]:
         raise BadInput(f"no example files found in {root}: is mrctl installed completely?")
     readme = _readme()
     if readme:
-        items.append(("README.md", readme.encode("utf-8")))
+        from mrctl import __version__
+
+        items.append(("README.md", (_README_NOTE.format(version=__version__) + readme).encode("utf-8")))
     if not force:
         clash = [rel for rel, _ in items if (dest / rel).exists() or (dest / rel).is_symlink()]
         if clash:

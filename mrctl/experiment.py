@@ -34,7 +34,9 @@ from mrctl.util.csvtable import CsvError, load_series
 
 
 def _excitation_file(c: Node) -> excitation_mod.Sampled:
-    data = load_series(c.path, ("t", "x"))
+    """t, x and v if there (a run log is one: its other columns are ignored,
+    its missing samples skipped)."""
+    data = load_series(c.path, ("t", "x"), optional=("v",), gaps_ok=True)
     return excitation_mod.Sampled(data["t"], data["x"], data.get("v"))
 
 

@@ -18,3 +18,23 @@ def test_every_schema_key_is_documented():
     for line in md.splitlines():
         if line.startswith("| `"):
             assert line.rstrip().split("|")[-2].strip(), f"undocumented key: {line}"
+
+
+def test_a_pipe_in_a_doc_does_not_split_its_table_cell():
+    """A plugin's doc may say |F_des| (mrctl check --laws prints it in a table)."""
+    import re
+
+    from mrctl.util.schema import Num, schema_markdown as table
+
+    md = table({"ff": Num(default=0.01, doc="current per newton of |F_des| (A/N)")})
+    row = [ln for ln in md.splitlines() if ln.startswith("| `ff`")][0]
+    assert len(re.split(r"(?<!\\)\|", row)) == 6, row  # 4 cells
+
+
+def test_docs_cli_lists_the_exit_codes_every_help_ends_with():
+    from mrctl.cli import EXIT_CODES
+
+    cli = (DOCS / "cli.md").read_text()
+    for line in EXIT_CODES.splitlines()[1:]:
+        code = line.split()[0]
+        assert f"| {code} |" in cli, code

@@ -37,6 +37,23 @@ def test_live_line_fits_the_terminal_and_shows_elapsed_and_remaining(tmp_path, m
     assert all(re.search(r"elapsed \d+\.\d s", ln) and re.search(r"\d+\.\d s left", ln) for ln in live)
 
 
+def test_live_line_ends_at_100_percent_and_is_cut_between_fields(tmp_path, monkeypatch):
+    """The last line drawn is the run's end (not the last half-second tick of
+    the refresh), and a narrow terminal cuts it between fields."""
+    from mrctl.daemon.monitor import fit_line
+
+    monkeypatch.setenv("COLUMNS", "60")
+    err = FakeTTY()
+    assert Service(RunOptions(str(FIG5), out=None, duration_s=0.7, live=True, err=err, stream=io.StringIO(),
+                              status_socket=str(tmp_path / "s.sock"))).run() == 0
+    live = [seg for seg in err.getvalue().split("\r") if "elapsed" in seg]
+    assert "100%" in live[-1] and "0.0 s left" in live[-1], live[-1]
+    line = "[##########] 100% elapsed 0.7 s, 0.0 s left | I 0.123 A OK link_err 0 | late p99 12.3 us"
+    assert fit_line(line, 56) == "[##########] 100% elapsed 0.7 s, 0.0 s left"
+    assert fit_line(line, 70) == "[##########] 100% elapsed 0.7 s, 0.0 s left | I 0.123 A OK link_err 0"
+    assert fit_line("abc def", 5) == "abc" and fit_line("short", 80) == "short"
+
+
 def test_live_line_until_stopped_has_no_remaining_time(tmp_path, monkeypatch):
     monkeypatch.setenv("COLUMNS", "120")
     svc = Service(RunOptions(str(FIG5), out=None, duration_s=None, live=False, err=io.StringIO(),

@@ -90,3 +90,30 @@ def test_out_directory_is_refused_before_anything_runs(tmp_path, capsys, cmd):
     err = capsys.readouterr()
     assert "directory" in err.err and "Traceback" not in err.err
     assert "ticks" not in err.out  # nothing ran
+
+
+@pytest.mark.parametrize("cmd", ["run", "simulate", "report", "identify"])
+def test_a_missing_out_directory_is_exit_2_naming_it_and_nothing_is_created(tmp_path, capsys, cmd, monkeypatch):
+    """A typo in --out must not grow a tree (as root it could be anywhere):
+    exit 2 naming the missing directory, before anything runs; --mkdir
+    creates it; runs/ in the current directory is created as README expects."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "no" / "such" / "x.csv"
+    inp = {"run": [FIG5], "simulate": [FIG5], "report": [str(tmp_path / "r.csv")],
+           "identify": [str(tmp_path / "r.csv")]}[cmd]
+    args = [cmd, *inp, "--out", str(out)]
+    if cmd in ("run", "simulate"):
+        args += ["--duration", "0.2"]
+    if cmd == "run":
+        args += ["--quiet", "--socket", str(tmp_path / "s.sock")]
+    assert main(args) == 2
+    err = capsys.readouterr()
+    assert str(tmp_path / "no" / "such") in err.err and "--mkdir" in err.err and "Traceback" not in err.err
+    assert "ticks" not in err.out  # nothing ran
+    assert not (tmp_path / "no").exists()
+    if cmd in ("run", "simulate"):
+        assert main([*args, "--mkdir"]) == 0 and out.is_file()
+        assert main([cmd, FIG5, "--duration", "0.2", "--out", "runs/a.csv", *args[len(inp) + 5:]]) == 0
+        assert (tmp_path / "runs" / "a.csv").is_file()
+        assert main([cmd, FIG5, "--duration", "0.2", "--out", "runs/deeper/a.csv", *args[len(inp) + 5:]]) == 2
+        assert not (tmp_path / "runs" / "deeper").exists()

@@ -42,3 +42,16 @@ def test_i_max_none_uses_the_runs_own_maximum():
     t, F_des, F, I = _run()
     assert tracking_summary(t, F_des, F, I, None, 1.0)["share_at_I_max"] > 0
     assert tracking_summary(t, F_des, F, I * 0.5, 0.6, 1.0)["share_at_I_max"] == 0.0
+
+
+def test_summary_of_a_run_without_a_force_to_track_says_so():
+    """A current schedule (identify.yaml) demands no force: no 'nan %'."""
+    import math
+
+    from mrctl.runlog.metrics import format_summary
+
+    s = {"window_start_s": 0.5, "force_nrmse": math.nan, "force_rmse_N": 4.0, "max_current_step_A": 0.05,
+         "share_at_zero": 0.6, "share_at_I_max": 0.0}
+    text = format_summary(s, 0.6)
+    assert "nan" not in text and "no varying force demanded" in text
+    assert "0.250 %" in format_summary({**s, "force_nrmse": 0.0025}, 0.6)

@@ -6,11 +6,14 @@ own run CSVs: a lab's records with any column names (CSV) or variables
 constant-input tests, which records or how much of each to hold out. The
 schema is validated like an experiment file (every error with its key path,
 all at once) and generates the reference table in docs/identification.md
-(``python -m mrctl.config.dataset``). Relative paths resolve against the
-dataset file's directory. Data paths must stay under the dataset file's
-directory (or the ``--data-dir`` given) unless ``allow_outside``: a
-description from elsewhere cannot make identify read ``/etc/shadow``.
-Reading the data is :mod:`mrctl.offline.identify`'s.
+(``python -m mrctl.config.dataset``). Relative paths resolve against
+``data_dir`` (itself relative to the dataset file), or the dataset file's
+directory; ``mrctl identify --data-dir DIR`` overrides both, so one
+description serves data kept anywhere. Data paths must stay under the
+dataset file's directory (or the ``--data-dir`` given) unless
+``allow_outside``: a description from elsewhere cannot make identify read
+``/etc/shadow``, not even through its own ``data_dir`` key. Reading the data
+is :mod:`mrctl.offline.identify`'s.
 """
 
 from __future__ import annotations
@@ -112,7 +115,7 @@ def _levels(value: Any, path: str) -> tuple[Any, list[str]]:
 
 def _file_entry_fields() -> dict[str, Any]:
     return {
-        "path": Str(doc="data file (.csv or .mat), relative to the dataset file"),
+        "path": Str(doc="data file (.csv or .mat), relative to data_dir (default the dataset file's directory)"),
         "name": Str(default=None, optional=True, doc="record name in tables and the JSON (default: the file name)"),
         "role": Str(default="fit", choices=ROLES,
                     doc="fit: fitted (its held-out part excepted); holdout: never fitted, only predicted"),
@@ -193,7 +196,7 @@ def _manifest_check(base_dir: Path, root: Path | None):
         if value is None:
             return None, []
         node, errors = validate_fields({
-            "path": Str(doc="CSV listing the files, relative to the dataset file"),
+            "path": Str(doc="CSV listing the files, relative to data_dir (default the dataset file's directory)"),
             "file": Str(default="file", doc="its column with the data file names (relative to the manifest)"),
             "level": Str(doc="its column with each file's constant input level"),
         }, value, path)
@@ -221,6 +224,10 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
         "version": Num(integer=True, min=DATASET_VERSION, max=DATASET_VERSION, doc="format version (1)"),
         "name": Str(default=None, optional=True, doc="dataset name (tables, figure titles)"),
         "description": Str(default=None, optional=True, doc="free text, copied into the JSON summary"),
+        "data_dir": Str(default=None, optional=True,
+                        doc="directory the records' relative paths (files, manifest) resolve against, itself "
+                            "relative to this file; null = this file's directory; mrctl identify --data-dir "
+                            "overrides it"),
         "protocol": Str(choices=PROTOCOLS, doc="constant_input: sine (or any periodic) strokes at constant input "
                                                "levels; broadband: any motion, any input (switched, random)"),
         "input": Str(default="current", choices=tuple(INPUT_KINDS),
@@ -333,12 +340,32 @@ def validate_dataset(data: Any, base_dir: Path, source: str | None = None, *, da
     return node
 
 
+def data_base_dir(path: Path, data: Any, data_dir: str | Path | None = None) -> Path:
+    """Where the records of the description at ``path`` are: ``data_dir``
+    (``--data-dir``, relative to the current directory), else its
+    ``data_dir:`` key (relative to the description), else its directory.
+    ConfigError naming the source if that is not a directory."""
+    if data_dir is not None:
+        base, what = Path(data_dir).expanduser(), "--data-dir"
+    elif isinstance(data, dict) and isinstance(data.get("data_dir"), str):
+        base, what = path.parent / Path(data["data_dir"]).expanduser(), "data_dir"
+    else:
+        return path.parent
+    if not base.is_dir():
+        raise ConfigError([f"{what}: {base}: no such directory"], str(path))
+    return base
+
+
 def load_dataset(path: str | Path, *, data_dir: str | Path | None = None, allow_outside: bool = False) -> Node:
-    """Load and validate a dataset description (YAML); data paths as :func:`validate_dataset`."""
+    """Load and validate a dataset description (YAML); its records are
+    looked for in :func:`data_base_dir` and must lie under ``data_dir``
+    (``--data-dir``) or else the description's directory, unless
+    ``allow_outside``."""
     p = Path(path)
-    if data_dir is not None and not Path(data_dir).is_dir():
-        raise ConfigError([f"--data-dir {data_dir}: not a directory"], str(p))
-    return validate_dataset(load_yaml(p), p.parent, str(p), data_dir=data_dir, allow_outside=allow_outside)
+    data = load_yaml(p)
+    base = data_base_dir(p, data, data_dir)
+    root = Path(data_dir).expanduser() if data_dir is not None else p.parent
+    return validate_dataset(data, base, str(p), data_dir=root, allow_outside=allow_outside)
 
 
 def dataset_markdown() -> str:
@@ -354,11 +381,8 @@ def dataset_markdown() -> str:
 
 
 if __name__ == "__main__":  # python -m mrctl.config.dataset: regenerate docs/identification.md's table
-    import sys
-
-    from mrctl.util.gendoc import replace_block
+    from mrctl.util.gendoc import regenerate
 
     _doc = Path(__file__).resolve().parents[2] / "docs" / "identification.md"
-    replace_block(_doc, "<!-- BEGIN GENERATED: mrctl.config.dataset.dataset_markdown -->", "<!-- END GENERATED -->",
-                  dataset_markdown())
-    print(f"updated {_doc}", file=sys.stderr)
+    regenerate(_doc, "<!-- BEGIN GENERATED: mrctl.config.dataset.dataset_markdown -->", "<!-- END GENERATED -->",
+               dataset_markdown())

@@ -9,7 +9,7 @@ live objects. The schema generates ``docs/config.md``'s reference tables
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from mrctl.config.acceptance import acceptance_section
 from mrctl.config.bench import bench_fields, road_excitations
@@ -102,7 +102,7 @@ def device_fields() -> dict[str, Any]:
     }
 
 
-def experiment_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
+def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequence[Path] = ()) -> dict[str, Any]:
     """The experiment schema; relative file paths resolve against ``base_dir``,
     data files (excitation, demand) must lie under ``root`` (None: anywhere)."""
     driver_input = Str(default="current", choices=tuple(INPUT_KINDS),
@@ -138,8 +138,9 @@ def experiment_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any
                       "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="start frequency (Hz)"),
                       "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
-            "file": {"path": Custom(file_check(base_dir, root),
-                                    doc="CSV with columns t,x (s, m) and optionally v (m/s)")},
+            "file": {"path": Custom(file_check(base_dir, root, allowed),
+                                    doc="CSV with columns t,x (s, m) and optionally v (m/s); other columns are "
+                                        "ignored, so a run log replays (rows with NaN x or v are skipped)")},
             **road_excitations(),
         }, doc="shaker motion on the simulated bench (plant.bench: quarter_car: the road)"),
         **law_unions(base_dir, root),
@@ -323,14 +324,16 @@ def _plant_checks(cfg: Node, I_max: Any) -> list[str]:
     return errors
 
 
-def validate_experiment(data: Any, base_dir: Path, source: str | None = None, *, allow_outside: bool = False
-                        ) -> Node:
+def validate_experiment(data: Any, base_dir: Path, source: str | None = None, *, allow_outside: bool = False,
+                        allowed: Sequence[Path] = ()) -> Node:
     """Validate a parsed experiment; raises ConfigError listing every problem.
-    Data files (excitation, demand) must lie under ``base_dir`` unless ``allow_outside``."""
+    Data files (excitation, demand) must lie under ``base_dir`` unless
+    ``allow_outside``; an excitation file in ``allowed`` (named on the
+    command line) may lie anywhere."""
     if not isinstance(data, dict):
         raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
     # the safety section is required: a daemon must never guess a current limit
-    schema = experiment_schema(base_dir, None if allow_outside else base_dir)
+    schema = experiment_schema(base_dir, None if allow_outside else base_dir, allowed)
     schema["safety"] = Section(schema["safety"].fields, optional=False)
     data, errors = apply_calibration(data, base_dir)
     if errors:

@@ -83,13 +83,9 @@ class Monitor:
                 if n.enabled:
                     n.send(f"STATUS={line}")
                 if self.live:
-                    if is_tty:
-                        # one column short of the width: a full line would wrap on some terminals
-                        width = max(20, shutil.get_terminal_size((80, 24)).columns - 1)
-                        print("\r" + line[:width].ljust(width), end="", file=self.err, flush=True)
-                    else:
-                        print(line, file=self.err, flush=True)
+                    self._show(line, is_tty)
         if self.live and is_tty:
+            self._show(self.live_line(), is_tty)  # the final state, not the last one drawn (83 % at the end)
             print(file=self.err, flush=True)
 
     def reloading(self) -> bool:
@@ -101,6 +97,26 @@ class Monitor:
             self.reload()
         except BaseException:  # noqa: BLE001 - the service reports its own failures; this thread just ends
             pass
+
+    def _show(self, line: str, is_tty: bool) -> None:
+        if is_tty:
+            # one column short of the width: a full line would wrap on some terminals
+            width = max(20, shutil.get_terminal_size((80, 24)).columns - 1)
+            print("\r" + fit_line(line, width).ljust(width), end="", file=self.err, flush=True)
+        else:
+            print(line, file=self.err, flush=True)
+
+
+def fit_line(line: str, width: int) -> str:
+    """``line`` cut to ``width`` between fields (at a `` | `` or, failing
+    that, a space), never inside a number."""
+    if len(line) <= width:
+        return line
+    for sep in (" | ", " "):
+        i = line.rfind(sep, 0, width + len(sep))  # a separator that starts within the width
+        if 0 < i <= width:
+            return line[:i].rstrip()
+    return line[:width]
 
 
 def live_line(ticks: int, total: int | None, rate_hz: float, I_A: float, state: str, link_errors: int,

@@ -62,7 +62,8 @@ from mrctl.daemon.reload import validate_in_child
 from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.core.safety import SafetyConfig, SafetySupervisor
-from mrctl.daemon.status import StatusServer, default_status_socket
+from mrctl.daemon.instances import server_socket
+from mrctl.daemon.status import StatusServer
 from mrctl.daemon.timing import format_summary as format_timing
 from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlError
 from mrctl.experiment import Experiment, build, check_channels, link_channels
@@ -88,6 +89,8 @@ class RunOptions:
     status_socket: str | None = None
     live: bool = True  # progress / live line on stderr (foreground)
     force: bool = False  # replace an existing run log (--force)
+    mkdir: bool = False  # create a missing directory of the run log (--mkdir)
+    instance: str | None = None  # --instance NAME: its status socket and the name mrctl ls shows
     clock_ns: Callable[[], int] = time.monotonic_ns  # injectable for deterministic tests
     sleep: Callable[[float], object] = time.sleep
     stream: TextIO = field(default_factory=lambda: sys.stdout)
@@ -200,7 +203,7 @@ class Service:
         self.loaded = exp.config
         duration = override if override is not None else exp.config.duration_s
         if o.out:
-            files.check_log_path(o.out, o.force)
+            files.check_log_path(o.out, o.force, o.mkdir)
         self._stream = stream_settings(exp.config, o.stream_url, o.stream_every, o.stream_columns)
         try:
             link = exp.make_link()
@@ -212,7 +215,7 @@ class Service:
             self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
         if o.out:
             with signals.deferred():  # the file and its removal, as one step
-                self._log_fh = files.create_log(o.out, o.force)
+                self._log_fh = files.create_log(o.out, o.force, o.mkdir)
                 stack.callback(self._drop_unused_log)
         with signals.deferred():  # an open link always has its 0 A registered
             try:
@@ -349,10 +352,12 @@ class Service:
             if host_paced:
                 loop.background = self.rec.format_pending
         obs = self.obs = Observe.for_run(cfg, ctl, loop, self.rec, self._stream, o.clock_ns, exp.name, self.warn)
-        status = StatusServer(o.status_socket or cfg.service.status_socket or default_status_socket(), self.snapshot,
-                              obs.handle_request)
+        where, notice = server_socket(o.status_socket or cfg.service.status_socket, o.instance)
+        status = StatusServer(where, self.snapshot, obs.handle_request)
         try:
             status.start()
+            if notice:
+                self.warn(notice, NOTICE)
             stack.callback(status.close)
         except OSError as exc:
             self.warn(f"status socket unavailable ({exc}); running without it")
@@ -374,7 +379,7 @@ class Service:
         # threads above exist before RT setup, so they do not inherit SCHED_FIFO/affinity
         self.rt_results = apply_rt(RtSettings.from_config(cfg.rt))
         for r in self.rt_results:
-            self.say(f"rt: {r}")
+            self.say(str(r))  # "rt gc_freeze=True: applied (...)": the prefix is its own
         sys.setswitchinterval(2e-4)  # a writer thread must not hold the GIL for 5 ms
 
     def _provenance(self) -> dict[str, Any]:
@@ -439,6 +444,7 @@ class Service:
         d: dict[str, Any] = {
             "mrctl_version": __version__, "pid": os.getpid(),
             "experiment": self.exp.name if self.exp else None,
+            "instance": self.opts.instance, "config_file": str(Path(self.opts.config_path).resolve()),
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
             "rate_hz": loop.rate_hz if loop else None,
             "ticks": ctl.ticks if ctl else 0,
@@ -471,7 +477,10 @@ class Service:
 
     def _live_line(self) -> str:
         ctl, loop = self.ctl, self.loop
-        return live_line(ctl.ticks if ctl else 0, self._total_ticks, loop.rate_hz if loop else 0.0,
+        # progress on the loop's clock: a skipped deadline (a late tick) is time gone too, so a
+        # run that ends on time ends at 100 %
+        done = (ctl.ticks if ctl else 0) + (loop.stats.skipped_deadlines if loop else 0)
+        return live_line(done, self._total_ticks, loop.rate_hz if loop else 0.0,
                          ctl.I_last if ctl else 0.0, self.sup.state.name if self.sup else "?",
                          ctl.link_errors if ctl else 0, self.log_watch.warned,
                          loop.stats.live_line() if loop else "")

@@ -118,7 +118,7 @@ class StatusServer:
         if p.is_socket() or p.exists():
             if not p.is_socket():
                 raise OSError(f"status socket path exists and is not a socket: {p}")
-            if _socket_alive(str(p)):
+            if socket_alive(str(p)):
                 raise OSError(f"another mrctl is serving status at {p}")
             p.unlink()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -194,7 +194,9 @@ def _read_request(conn: socket.socket) -> dict[str, Any] | None:
     return req if isinstance(req, dict) else None
 
 
-def _socket_alive(path: str) -> bool:
+def socket_alive(path: str) -> bool:
+    """True if a process accepts connections on the Unix socket ``path``
+    (a daemon serves it; a socket file left by one that died refuses)."""
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(0.5)
     try:

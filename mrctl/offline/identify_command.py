@@ -53,7 +53,8 @@ def identify_command(args: argparse.Namespace) -> int:
     from mrctl.runlog.files import sidecar_path
 
     def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
-        print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
+        if not (args.quiet or args.no_progress):
+            print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
 
     if args.period is not None and not args.period > 0:
         raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
@@ -67,9 +68,9 @@ def identify_command(args: argparse.Namespace) -> int:
         items.append((args.report, make_identification_report(result, args.report, write=False)))
     print(format_summary(result))
     write_all(items, args.force)
-    print(f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
+    _say(args, f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
     if args.report:
-        print(f"wrote {args.report}")
+        _say(args, f"wrote {args.report}")
     return 0
 
 
@@ -83,7 +84,7 @@ def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
     check_outputs(args.out, args.report, inputs, force=args.force, summary=True)
     model = {"offset": False, "stiffness": False} if args.no_offset else None
     res = identify_dataset(ds, holdout=args.holdout, model=model, source=str(dataset),
-                           progress=not args.no_progress and sys.stderr.isatty())
+                           progress=not (args.no_progress or args.quiet) and sys.stderr.isatty())
     items = dataset_output_bytes(res, args.out)
     if args.report:
         from mrctl.offline.identify_figure import make_dataset_report
@@ -91,13 +92,19 @@ def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
         items.append((Path(args.report), make_dataset_report(res, args.report, write=False)))
     print(format_dataset_summary(res))
     write_all(items, args.force)
-    print(f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
+    _say(args, f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
     if args.report:
-        print(f"wrote {args.report}")
+        _say(args, f"wrote {args.report}")
     return 0
 
 
 PathLike = str | os.PathLike[str]
+
+
+def _say(args: argparse.Namespace, msg: str) -> None:
+    """What was written: not with ``-q``."""
+    if not getattr(args, "quiet", False):
+        print(msg, flush=True)
 
 
 def check_outputs(out: str, report: str | None, inputs: Sequence[PathLike], *, force: bool = False,

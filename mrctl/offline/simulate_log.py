@@ -40,7 +40,8 @@ def simulate_verdict(exp: Experiment, res: SimResult) -> tuple[dict[str, Any], i
     return verdict, int(code)
 
 
-def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_path: str, *, force: bool = False
+def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_path: str | None, *,
+                    force: bool = False, mkdir: bool = False, replay_of: str | None = None
                     ) -> tuple[SimResult, dict[str, Any], int]:
     """Simulate ``exp`` for ``duration_s`` and write its run log to ``out``
     and the sidecar beside it (see the module doc). ``BadInput`` if the
@@ -50,11 +51,12 @@ def simulate_logged(exp: Experiment, duration_s: float | None, out: str, config_
     side_path = files.sidecar_path(out)
     head = sidecar_header("simulate", Path(out).name, {
         "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(), "host": platform.node(),
-        "config_file": str(Path(config_path).resolve()), "config": jsonable(exp.config),
+        "config_file": str(Path(config_path).resolve()) if config_path else None,
+        "replay_of": str(Path(replay_of).resolve()) if replay_of else None, "config": jsonable(exp.config),
         "parameters": exp.params.as_dict(), "backend": "simulate: offline closed loop",
         "law": exp.config.inverse.law, "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz,
         "settle_s": exp.excitation.settle_s, "load_cell_delay_ticks": 1})
-    fh = files.create_log(out, force)  # both names are ours from here
+    fh = files.create_log(out, force, mkdir)  # both names are ours from here
     try:
         files.write_json(side_path, {**head, "complete": False}, reserve=files.SIDECAR_RESERVE_BYTES)
         res = simulate(exp, duration_s)

@@ -1,12 +1,10 @@
-"""``python -m mrctl.runlog``: regenerate docs/runlog.md's generated block."""
+"""``python -m mrctl.runlog``: regenerate docs/runlog.md's generated block (installed: print it)."""
 
-import sys
 from pathlib import Path
 
 from mrctl.runlog.format import columns_markdown
-from mrctl.util.gendoc import replace_block
+from mrctl.util.gendoc import regenerate
 
 _doc = Path(__file__).resolve().parents[2] / "docs" / "runlog.md"
 _b, _e = "<!-- BEGIN GENERATED: mrctl.runlog.format.columns_markdown -->", "<!-- END GENERATED -->"
-replace_block(_doc, _b, _e, columns_markdown())
-print(f"updated {_doc}", file=sys.stderr)
+regenerate(_doc, _b, _e, columns_markdown())

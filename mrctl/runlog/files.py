@@ -3,7 +3,8 @@
 * :func:`check_log_path` says, without touching anything, whether ``--out``
   can be used: not a ``.json`` name (the sidecar would overwrite its own
   CSV), not a directory, and neither the CSV nor its sidecar may exist
-  unless ``force``.
+  unless ``force``; its directory must exist unless ``mkdir`` (or it is
+  ``runs/``: :func:`mrctl.util.files.check_out_parent`).
 * :func:`create_log` creates the CSV with ``O_CREAT | O_EXCL | O_NOFOLLOW``:
   a symlink planted at the path is never followed; with ``force`` an
   existing file (or symlink) is unlinked first, its target untouched. The
@@ -32,6 +33,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Mapping, Sequence
 
 from mrctl.errors import BadInput
+from mrctl.util.files import check_out_parent
 from mrctl.util.jsonutil import jsonable
 
 __all__ = ["SIDECAR_RESERVE_BYTES", "sidecar_path", "check_log_path", "create_log", "write_json", "fsync_dir",
@@ -48,9 +50,10 @@ def sidecar_path(path: str | os.PathLike[str]) -> Path:
     return Path(path).with_suffix(".json")
 
 
-def check_log_path(path: str | os.PathLike[str], force: bool = False) -> Path:
-    """``BadInput`` if ``path`` cannot be a new run log (see the module doc);
-    touches nothing."""
+def check_log_path(path: str | os.PathLike[str], force: bool = False, mkdir: bool = False) -> Path:
+    """``BadInput`` if ``path`` cannot be a new run log (see the module doc),
+    or its directory is missing and may not be created
+    (:func:`mrctl.util.files.check_out_parent`); touches nothing."""
     p = Path(path)
     if not str(path):
         raise BadInput("--out '': an empty name; give the run log's file name (or leave --out out for no log)")
@@ -58,6 +61,7 @@ def check_log_path(path: str | os.PathLike[str], force: bool = False) -> Path:
         raise BadInput(f"{p}: the run log is a CSV; a .json name would be its own sidecar's")
     check_output_path(p, force, what="the run log")
     check_output_path(sidecar_path(p), force, what=f"the sidecar of {p.name}")
+    check_out_parent(p, mkdir)
     return p
 
 
@@ -146,11 +150,12 @@ def write_outputs(items: Sequence[tuple[str | os.PathLike[str], bytes]], force: 
         raise
 
 
-def create_log(path: str | os.PathLike[str], force: bool = False) -> BinaryIO:
+def create_log(path: str | os.PathLike[str], force: bool = False, mkdir: bool = False) -> BinaryIO:
     """Create the run log's CSV (empty) and return it open for binary
     writing; with ``force`` an existing CSV and sidecar are unlinked first.
-    ``BadInput`` naming the path if it cannot be created."""
-    p = check_log_path(path, force)
+    ``BadInput`` naming the path if it cannot be created, or if its
+    directory is missing (unless ``mkdir``, or ``runs/``)."""
+    p = check_log_path(path, force, mkdir)
     if force:
         for q in (p, sidecar_path(p)):
             try:

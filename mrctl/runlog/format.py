@@ -75,8 +75,8 @@ FAULT_BITS: tuple[tuple[str, int, str], ...] = (
 #: ``mrctl`` exit codes (README, mrctl/errors.py).
 EXIT_CODES: dict[str, str] = {
     "0": "success (also when stopped by SIGINT/SIGTERM)",
-    "1": "internal error",
-    "2": "bad input (config, option, file)",
+    "1": "internal error, or a control law that failed",
+    "2": "bad input (config, option, --out, a file it names, a missing optional dependency)",
     "3": "link failure (cannot open, infeasible rate, driver lost, device owned by another mrctl)",
     "4": "run log incomplete (rows lost, disk full or failing)",
     "5": "run completed but degraded: an acceptance bound was broken (share of ticks in fault or of skipped "

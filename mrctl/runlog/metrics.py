@@ -70,9 +70,16 @@ def tracking_summary(
 
 
 def format_summary(s: Mapping[str, float], I_max: float) -> str:
+    """The summary's lines; a run with no force to track (F_des constant, a
+    current schedule) says so instead of ``nan %``."""
+    nrmse = s["force_nrmse"]
+    if math.isfinite(nrmse):
+        force = (f"force NRMSE (t >= {s['window_start_s']:.3f} s): {100 * nrmse:.3f} %"
+                 f"  (RMSE {s['force_rmse_N']:.4f} N)")
+    else:
+        force = "force NRMSE: none (no varying force demanded: the law sets the current)"
     return (
-        f"force NRMSE (t >= {s['window_start_s']:.3f} s): {100 * s['force_nrmse']:.3f} %"
-        f"  (RMSE {s['force_rmse_N']:.4f} N)\n"
+        f"{force}\n"
         f"largest current step between ticks: {s['max_current_step_A']:.4f} A\n"
         f"ticks at 0 A: {100 * s['share_at_zero']:.1f} %   at I_max ({I_max:g} A): {100 * s['share_at_I_max']:.1f} %"
     )

@@ -154,20 +154,34 @@ def _raise_first_bad_value(p: Path, rows: list[str], linenos: list[int], wanted:
                 raise CsvError(f"{p}: line {n}: column {c} is not a number: {fields[k].strip()!r}") from None
 
 
-def load_series(path: str | Path, columns: tuple[str, ...]) -> dict[str, list[float]]:
-    """Read a CSV time series with a header naming at least ``columns``.
+def load_series(path: str | Path, columns: tuple[str, ...], optional: tuple[str, ...] = (),
+                gaps_ok: bool = False) -> dict[str, list[float]]:
+    """Read a CSV time series with a header naming at least ``columns``
+    (and ``optional`` ones if it has them); every other column is ignored,
+    whatever it holds (a run log is a valid series: its ``late_us`` may be NaN).
 
-    Time must start anywhere but strictly increase. Errors are
-    :class:`CsvError` naming the file, line and column, for the config layer
-    to report with its key path."""
+    Time must start anywhere but strictly increase. ``gaps_ok``: a row whose
+    value (not time) is NaN, a run log's missing sample, is left out (the
+    series is interpolated across it); infinities are still errors. Errors
+    are :class:`CsvError` naming the file, line and column, for the config
+    layer to report with its key path."""
     p = Path(path)
-    table = read_table(p, require=columns, max_bytes=MAX_SERIES_BYTES)
+    table = read_table(p, (*columns, *optional), require=columns, max_bytes=MAX_SERIES_BYTES)
+    lines = table.lines
+    cols = dict(table.columns)
+    if gaps_ok:
+        values = [c for c in cols if c != columns[0]]
+        keep = ~np.any([np.isnan(cols[c]) for c in values], axis=0) if values else np.ones(len(lines), bool)
+        if not keep.all():
+            cols = {c: v[keep] for c, v in cols.items()}
+            lines = lines[keep]
+            table = table._replace(columns=cols, lines=lines)
     for c in table.columns:
         table.check_finite(c)
     out = {c: col.tolist() for c, col in table.columns.items()}
     t = out[columns[0]]
     if len(t) < 2:
-        raise CsvError(f"{p}: needs at least 2 data rows")
+        raise CsvError(f"{p}: needs at least 2 data rows" + (" with values (not NaN)" if gaps_ok else ""))
     for i in range(1, len(t)):
         if not t[i] > t[i - 1]:
             raise CsvError(f"{p}: line {table.lines[i]}: {columns[0]} must strictly increase")

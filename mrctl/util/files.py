@@ -3,6 +3,11 @@
 * :func:`read_regular_file`: a config, parameter set or series is read only
   if it is a regular file (``/dev/zero``, a FIFO or a terminal would be read
   without end or block forever) and at most ``max_bytes`` long.
+* :func:`check_out_parent` / :func:`ensure_out_parent`: an output (``--out``)
+  goes into a directory that exists; a missing one is an error naming it
+  (a typo must not grow a tree, least of all as root), created only when
+  asked (``--mkdir``) or when it is the conventional ``runs/`` of the
+  current directory (README's commands write there).
 * :func:`private_dir`: the per-user directory used without systemd
   (status socket, device locks when the shared lock directory cannot be
   used), created 0700 and trusted only if it is ours and nobody else can
@@ -19,7 +24,8 @@ from pathlib import Path
 
 from mrctl.errors import BadInput
 
-__all__ = ["FileProblem", "read_regular_file", "not_regular", "per_user_dir", "private_dir", "MiB"]
+__all__ = ["FileProblem", "read_regular_file", "not_regular", "per_user_dir", "private_dir", "MiB", "DEFAULT_OUT_DIR",
+           "check_out_parent", "ensure_out_parent"]
 
 MiB = 1 << 20
 
@@ -125,3 +131,44 @@ def private_dir(path: Path | None = None) -> Path:
         pass
     check_private_dir(p)
     return p
+
+
+#: the one output directory created without ``--mkdir``: ``runs/`` in the current directory
+DEFAULT_OUT_DIR = Path("runs")
+
+
+def check_out_parent(path: str | os.PathLike[str], mkdir: bool = False) -> Path | None:
+    """The directory ``path`` needs created (None if its parent exists);
+    ``BadInput`` naming the missing directory unless ``mkdir`` or it is
+    :data:`DEFAULT_OUT_DIR`, or if what is there is not a directory.
+    Touches nothing."""
+    p = Path(path)
+    parent = p.parent
+    if parent.is_dir():
+        return None
+    if os.path.lexists(parent):
+        raise BadInput(f"{p}: cannot create it: {parent} is not a directory")
+    if not (mkdir or parent == DEFAULT_OUT_DIR):
+        missing = parent
+        while not missing.parent.is_dir() and missing.parent != missing:
+            missing = missing.parent
+        raise BadInput(f"{p}: directory {parent} does not exist (no {missing}); "
+                       f"check the path, or pass --mkdir to create it")
+    up = parent
+    while not os.path.lexists(up) and up != up.parent:
+        up = up.parent
+    if not up.is_dir():
+        raise BadInput(f"{p}: cannot create it: {up} is not a directory")
+    return parent
+
+
+def ensure_out_parent(path: str | os.PathLike[str], mkdir: bool = False) -> None:
+    """:func:`check_out_parent`, then create the directory it allows
+    (``BadInput`` naming it if that fails)."""
+    d = check_out_parent(path, mkdir)
+    if d is None:
+        return
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BadInput(f"{path}: cannot create its directory {d}: {exc.strerror or exc}") from None

@@ -24,3 +24,20 @@ def replace_block(doc: Path, begin: str, end: str, text: str) -> None:
     if i < 0 or j < 0:
         raise SystemExit(f"{doc}: no block between {begin!r} and {end!r}")
     doc.write_text(src[: i + len(begin)] + "\n" + text + "\n" + src[j:])
+
+
+def regenerate(doc: Path, begin: str, end: str, text: str) -> None:
+    """``python -m`` generators: in a source tree, rewrite the block of ``doc``
+    (see :func:`replace_block`); installed, where the package's docs are a
+    copy (``mrctl docs --path``), print ``text`` on stdout instead of a
+    traceback, so the reference of the installed code is still one command away."""
+    import sys
+
+    root = doc.resolve().parents[1]
+    if doc.is_file() and (root / "pyproject.toml").is_file():
+        replace_block(doc, begin, end, text)
+        print(f"updated {doc}", file=sys.stderr)
+        return
+    print(text)
+    print(f"{doc.name}: not in a source tree; printed the generated reference (also: mrctl docs "
+          f"{doc.stem} --generate)", file=sys.stderr)

@@ -19,7 +19,7 @@ import re
 import reprlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import yaml
 
@@ -407,17 +407,21 @@ REQUIRED = _REQUIRED
 
 # --------------------------------------------------------------------------
 # Custom checks many schemas share
-def file_check(base_dir: Path, root: Path | None = None) -> Callable[[Any, str], tuple[Any, list[str]]]:
+def file_check(base_dir: Path, root: Path | None = None, allowed: Sequence[Path] = ()
+               ) -> Callable[[Any, str], tuple[Any, list[str]]]:
     """A data file's path (a demand or excitation series): relative to
     ``base_dir``, a regular file, and under ``root`` unless it is None (the
-    CLI's ``--allow-outside-paths``): a config from elsewhere cannot make
-    mrctl read ``/etc/shadow``."""
+    CLI's ``--allow-outside-paths``) or one of ``allowed`` (a file the user
+    named on the command line, e.g. ``simulate --replay RUN.csv``): a config
+    from elsewhere cannot make mrctl read ``/etc/shadow``."""
+    allowed_resolved = {Path(a).resolve() for a in allowed}
+
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if not isinstance(value, str) or not value:
             return None, [f"{path}: must be a file path, got {short_repr(value)}"]
         p = Path(value)
         full = p if p.is_absolute() else base_dir / p
-        if root is not None:
+        if root is not None and full.resolve() not in allowed_resolved:
             try:
                 full.resolve().relative_to(root.resolve())
             except ValueError:
@@ -486,7 +490,9 @@ def schema_markdown(schema: Mapping[str, Any]) -> str:
             lines.append("| key | type | default | meaning |")
             lines.append("|---|---|---|---|")
             for k, spec in rows:
-                lines.append(f"| `{_path(prefix, k)}` | {_kind(spec)} | {_default(spec)} | {getattr(spec, 'doc', '')} |")
+                cells = (_kind(spec), _default(spec), getattr(spec, "doc", "") or "")
+                kind, default, doc = (c.replace("|", "\\|") for c in cells)  # |F_des| must not split a cell
+                lines.append(f"| `{_path(prefix, k)}` | {kind} | {default} | {doc} |")
             lines.append("")
         for k, spec in fields_.items():
             path = _path(prefix, k)

@@ -34,7 +34,7 @@ the held-out scores.
 :mod:`.pipeline` strings the run-CSV steps together (:func:`identify` on run records,
 :func:`identify_files` on CSV paths, what ``mrctl identify`` calls). Errors
 are :mod:`.errors`': ``IdentificationError`` (bad input, exit 2) and
-``DependencyMissing`` (exit 1). The figure of the result is
+``DependencyMissing`` (exit 2). The figure of the result is
 :func:`mrctl.offline.report.make_identification_report` (report imports
 identification, never the reverse). See ``docs/identification.md``.
 

@@ -3,7 +3,7 @@
 ``IdentificationError`` is bad or insufficient input (exit 2): the message
 says, for the user, which file, column, sample or current is wrong and what
 the method needs instead. ``DependencyMissing`` is an installation problem
-(exit 1): scipy is absent.
+(exit 2): scipy is absent.
 """
 
 from __future__ import annotations

@@ -180,7 +180,7 @@ def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLi
     Raises:
         IdentificationError: no path given, a file that cannot be read or
             identified from, or ``out`` cannot be written (exit code 2).
-        DependencyMissing: scipy is not installed (exit code 1); checked
+        DependencyMissing: scipy is not installed (exit code 2); checked
             before any file is read.
     """
     if not paths:
