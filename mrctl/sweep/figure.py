@@ -44,9 +44,11 @@ def summarise(cols: list[str], rows: list[dict[str, str]], metric: str, bound: f
                        f"{', '.join(c for c in cols[cols.index('seed') + 1:] if c not in TAIL)})")
     axes = cols[cols.index("config_hash") + 1: cols.index("seed")]
     mc = any(r.get("seed", "") != "" for r in rows)
-    # random axes vary with the draw within a cell; grid axes take few values
-    rand = [a for a in axes if mc and len({r[a] for r in rows}) > len(rows) // 2]
-    grid = [a for a in axes if a not in rand and len({r[a] for r in rows}) > 1]
+    # a draw's values are the same in every grid cell (common random numbers): the axes that vary
+    # among the rows of one draw are the grid's, the others are drawn
+    one = [r for r in rows if r.get("seed", "") == rows[0].get("seed", "")]
+    grid = [a for a in axes if len({r[a] for r in one}) > 1]
+    rand = [a for a in axes if mc and a not in grid and len({r[a] for r in rows}) > 1]
     cells: dict[tuple[str, ...], list[float]] = {}
     for r in rows:
         v = _num(r[metric]) if r["status"] in ("ok", "fault") else math.nan

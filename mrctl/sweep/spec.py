@@ -390,6 +390,7 @@ def expand(sweep: Sweep) -> Iterator[Point | tuple[int, dict[str, Any], str]]:
             except ConfigError as exc:
                 yield index, values, "; ".join(exc.errors)
             else:
+                values.update({k: _get(config, k) for k in draws})  # a factor's column: the value it gave
                 p = Point(index, values, i if sweep.random else None, config, base_dir)
                 p.hash = config_hash(config, base_dir, sweep.metrics)
                 yield p
