@@ -23,6 +23,24 @@ SUMMARY = ("force_nrmse", "force_rmse_N", "max_current_step_A", "share_at_zero",
 DERIVED = ("peak_current_A", "rms_current_A", "ticks_at_I_max", "ticks_at_zero", "reach_floor", "noise_floor")
 METRICS = SUMMARY + DERIVED
 DEFAULT_METRICS = ("force_nrmse", "max_current_step_A", "peak_current_A", "rms_current_A", "ticks_at_I_max")
+#: what each figure is (docs/sweeps.md)
+METRIC_DOCS = {
+    "force_nrmse": "RMS(F − F_des) / peak-to-peak of F_des over the window (mrctl simulate's force NRMSE)",
+    "force_rmse_N": "RMS(F − F_des) over the window (N)",
+    "max_current_step_A": "largest |I_k − I_k−1| over the window (A)",
+    "share_at_zero": "share of the window's ticks at 0 A",
+    "share_at_I_max": "share of the window's ticks at I_max (the clamp)",
+    "rms_a_sprung_mps2": "quarter car: RMS body acceleration (m/s²); NaN on the shaker",
+    "rms_tyre_defl_m": "quarter car: RMS tyre deflection (m)",
+    "rms_stroke_m": "quarter car: RMS damper stroke (m)",
+    "peak_current_A": "largest commanded current over the window (A)",
+    "rms_current_A": "RMS commanded current over the window (A)",
+    "ticks_at_I_max": "ticks of the window at I_max (the clamp)",
+    "ticks_at_zero": "ticks of the window at 0 A",
+    "reach_floor": "RMS of F_des outside what the damper reaches at 13 constant currents, / peak-to-peak "
+                   "(13 more simulations per point; bench/robust_scenarios.py)",
+    "noise_floor": "white noise F_des carries (RMS second difference / √6), / peak-to-peak",
+}
 #: constant currents over [0, I_max] that span what the damper reaches
 FLOOR_CURRENTS = 13
 

@@ -395,3 +395,15 @@ def expand(sweep: Sweep) -> Iterator[Point | tuple[int, dict[str, Any], str]]:
                 p.hash = config_hash(config, base_dir, sweep.metrics)
                 yield p
             index += 1
+
+
+def sweep_markdown() -> str:
+    """The sweep file's keys, its distributions and its metrics as markdown (docs/sweeps.md)."""
+    from mrctl.sweep.metrics import METRIC_DOCS
+    from mrctl.util.schema import schema_markdown
+
+    dists = ", ".join(f"`{d}`" for d in DISTRIBUTIONS + tuple(f"factor_{d}" for d in DISTRIBUTIONS))
+    return (schema_markdown(sweep_schema(Path("."))) + "\n\nDistributions of `random:`: " + dists
+            + " (`uniform`/`log_uniform`: [lo, hi]; `normal`: [mean, std]; `factor_…`: the point's value times "
+              "the draw).\n\n| metric | meaning |\n|---|---|\n"
+            + "\n".join(f"| `{m}` | {d} |" for m, d in METRIC_DOCS.items()))
