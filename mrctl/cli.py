@@ -86,35 +86,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_sweep(args: argparse.Namespace) -> int:
-    from mrctl.sweep.runner import run_sweep
-    from mrctl.sweep.spec import load_sweep
-    from mrctl.sweep.table import parquet_wanted
-
-    if args.workers is not None and args.workers < 1:
-        raise BadInput(f"--workers: must be >= 1, got {args.workers}")
-    parquet_wanted(Path(args.out))  # before any point runs
-    sweep = load_sweep(args.config)
-    where = f"Dask at {args.scheduler}" if args.scheduler else f"{args.workers or 'all'} local cores"
-    print(f"{sweep.name}: {sweep.size()} points on {where} → {args.out}")
-    counts = run_sweep(sweep, args.out, scheduler=args.scheduler, workers=args.workers,
-                       progress=not args.no_progress)
-    print(f"{args.out}: " + ", ".join(f"{k} {v}" for k, v in counts.items() if v or k == "ok"))
-    return EXIT_OK
-
-
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report
     from mrctl.sweep.table import is_results_table
 
     if len(args.runs) == 1 and is_results_table(args.runs[0]):
-        from mrctl.sweep.figure import make_sweep_report
+        from mrctl.sweep.command import report_sweep
 
-        for line in make_sweep_report(args.runs[0], args.out, metric=args.metric, bound=args.bound,
-                                      title=args.title):
-            print(line)
-        print(f"wrote {args.out}")
-        return EXIT_OK
+        return report_sweep(args)
     make_report(args.runs, args.out, title=args.title)
     print(f"wrote {args.out}")
     return EXIT_OK
@@ -332,15 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
     sp.set_defaults(func=cmd_simulate)
 
-    sw = sub.add_parser("sweep", help="run an experiment over a grid and Monte Carlo draws (docs/sweeps.md)")
-    sw.add_argument("config", help="sweep YAML (config/sweeps/)")
-    sw.add_argument("--out", required=True, help="results table: .csv, or .parquet (pyarrow); an existing one "
-                                                 "of the same sweep is resumed")
-    sw.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on a Dask distributed cluster "
-                                                                   "(pip install 'mrctl[sweep]')")
-    sw.add_argument("--workers", type=int, help="local processes (default: all cores)")
-    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
-    sw.set_defaults(func=cmd_sweep)
+    from mrctl.sweep.command import add_sweep_parser
+
+    add_sweep_parser(sub)
 
     rp = sub.add_parser("report", help="figure of runs: force and current over time, F-v and F-x loops; "
                                        "or of a sweep's results table")
@@ -349,8 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", required=True, help="figure to write: .png, .pdf or .svg")
     rp.add_argument("--title", help="figure title (default: the run file names)")
     rp.add_argument("--metric", default="force_nrmse", help="sweep: the metric drawn (default force_nrmse)")
-    rp.add_argument("--bound", type=float, default=0.01,
-                    help="sweep: the fraction of points with the metric at most this (default 0.01)")
+    rp.add_argument("--bound", type=float, default=0.01, help="sweep: the share at most this (default 0.01)")
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
