@@ -13,7 +13,11 @@ Carlo over its damper's F0 so no two points are alike):
    ``--scheduler``; its table compared with the local one row for row (all
    but the wall time), points/s against (2).
 
-Medians over the rounds. Needs ``pip install 'mrctl[sweep]'``.
+Medians over the rounds. On a machine other jobs load, the wall-clock
+ratios say as much about them as about the sweep; the CPU seconds per point
+(this process and its pool's workers; the cluster's processes by
+``Client.run``) are the sweep's own overhead: CPU efficiency = one
+simulate's CPU per point / the sweep's. Needs ``pip install 'mrctl[sweep]'``.
 
     python bench/sweep_throughput.py [--points 60] [--rounds 3]
 """
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import socket
 import statistics
@@ -93,6 +98,19 @@ class LoopbackCluster:
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _cluster_cpu(address: str) -> float:
+    """CPU seconds used so far by the cluster's scheduler and workers."""
+    from distributed import Client
+
+    with Client(address) as c:
+        return sum(c.run(time.process_time).values()) + c.run_on_scheduler(time.process_time)
+
+
 def _rows(path: Path) -> list[dict[str, str]]:
     return [{k: v for k, v in r.items() if k != "wall_s"} for r in read_results(path)[1]]
 
@@ -104,6 +122,7 @@ def main() -> int:
     a = ap.parse_args()
     cores = os.cpu_count() or 1
     serial, local, dask = [], [], []
+    cpu: dict[str, list[float]] = {"serial": [], "local": [], "dask": []}  # CPU seconds per point
     same = True
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
@@ -112,24 +131,32 @@ def main() -> int:
         with LoopbackCluster(2) as cluster:
             for r in range(a.rounds):
                 n1 = max(cores, a.points // cores)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 for t in tasks[:n1]:
                     run_point(t)
                 serial.append(n1 / (time.perf_counter() - t0))
+                cpu["serial"].append((time.process_time() - c0) / n1)
                 for name, kw, acc in (("local", {}, local), ("dask", {"scheduler": cluster.address}, dask)):
                     out = d / f"{name}{r}.csv"
+                    c0 = time.process_time() + (_children_cpu() if name == "local" else _cluster_cpu(cluster.address))
                     t0 = time.perf_counter()
                     run_sweep(sweep, out, progress=False, **kw)
                     acc.append(a.points / (time.perf_counter() - t0))
+                    c1 = time.process_time() + (_children_cpu() if name == "local" else _cluster_cpu(cluster.address))
+                    cpu[name].append((c1 - c0) / a.points)
                 same = same and _rows(d / f"local{r}.csv") == _rows(d / f"dask{r}.csv")
                 print(f"round {r + 1}: one simulate {serial[-1]:.2f} pt/s, local {local[-1]:.2f} pt/s, "
                       f"dask {dask[-1]:.2f} pt/s", flush=True)
     s, lo, dk = statistics.median(serial), statistics.median(local), statistics.median(dask)
-    print(f"\n{a.points} points of fig5_robust (4 s, closed), {cores} cores, medians of {a.rounds} rounds:")
-    print("| run | points/s | ratio |\n|---|---|---|")
-    print(f"| one simulate after another, 1 process | {s:.2f} | 1 |")
-    print(f"| local sweep, {cores} processes | {lo:.2f} | {lo / (cores * s):.2f} × cores × one (target ≥ 0.8) |")
-    print(f"| Dask loopback, scheduler + 2 workers | {dk:.2f} | {dk / lo:.2f} × local (target ≥ 0.7) |")
+    cs, cl, cd = (1e3 * statistics.median(cpu[k]) for k in ("serial", "local", "dask"))
+    print(f"\n{a.points} points of fig5_robust (4 s, closed), {cores} cores, medians of {a.rounds} rounds; "
+          f"load average before: {os.getloadavg()[0]:.1f}")
+    print("| run | points/s (wall) | ratio | CPU ms per point | CPU efficiency |\n|---|---|---|---|---|")
+    print(f"| one simulate after another, 1 process | {s:.2f} | 1 | {cs:.0f} | 1 |")
+    print(f"| local sweep, {cores} processes | {lo:.2f} | {lo / (cores * s):.2f} × cores × one (target ≥ 0.8) "
+          f"| {cl:.0f} | {cs / cl:.2f} |")
+    print(f"| Dask loopback, scheduler + 2 workers | {dk:.2f} | {dk / lo:.2f} × local (target ≥ 0.7) "
+          f"| {cd:.0f} | {cs / cd:.2f} |")
     print(f"Dask's table {'is' if same else 'is NOT'} the local one row for row (all columns but wall_s)")
     return 0 if same else 1
 

@@ -32,6 +32,20 @@ def build_kind() -> str:
     return "pure" if inspect.isfunction(loop) else "compiled"
 
 
+def prewarm(task: dict[str, Any]) -> None:
+    """Import what a point needs and fill the law registry's caches (entry points) in this process,
+    so forked workers start with them instead of each paying for them on its first point."""
+    from mrctl.config import validate_experiment
+    from mrctl.experiment import build
+    from mrctl.offline import simulate  # noqa: F401
+    from mrctl.sweep import metrics  # noqa: F401
+
+    try:
+        build(validate_experiment(task["config"], Path(task["base_dir"])))
+    except Exception:  # noqa: BLE001 - the point itself will report it
+        pass
+
+
 def run_point(task: dict[str, Any]) -> dict[str, Any]:
     """Simulate one point and return its row (metrics, status, error, wall time)."""
     from mrctl.config import ConfigError, validate_experiment

@@ -12,6 +12,7 @@ worker are in flight, so a Ctrl-C stops within one point's time and a
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import sys
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
 from mrctl.errors import BadInput, DependencyMissing, ExitCode, MrctlError
-from mrctl.sweep.point import run_point
+from mrctl.sweep.point import prewarm, run_point
 from mrctl.sweep.spec import Point, Sweep, expand
 from mrctl.sweep.table import ResultsTable, columns
 
@@ -62,6 +63,12 @@ def run_local(tasks: Iterable[dict[str, Any]], workers: int) -> Iterator[dict[st
         for t in tasks:
             yield run_point(t)
         return
+    it = iter(tasks)
+    first = next(it, None)
+    if first is None:
+        return
+    prewarm(first)  # before the fork: workers inherit the imports and the law registry
+    tasks = itertools.chain([first], it)
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
     try:
         def done_of(pending: list[Future]) -> tuple[list[Future], list[Future]]:
