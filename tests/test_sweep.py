@@ -220,3 +220,48 @@ def test_bad_options_are_refused_before_any_point(tmp_path):
     assert main(["sweep", str(p), "--out", str(tmp_path / "r.csv"), "--scheduler", "localhost:1"]) == 2
     (tmp_path / "r.csv").write_text("point,config_hash,other\n")
     assert main(["sweep", str(p), "--out", str(tmp_path / "r.csv"), "--no-progress"]) == 2  # another sweep's table
+
+
+def test_a_parquet_table_resumes_and_reads_back(tmp_path, monkeypatch):
+    pytest.importorskip("pyarrow")
+    _base(tmp_path)
+    path = _sweep(tmp_path, {"grid": {"demand.c_des": [200, 300, 400]}})
+    out = tmp_path / "r.parquet"
+    real = runner.run_point
+    calls = []
+
+    def flaky(task):
+        calls.append(task["index"])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(task)
+
+    monkeypatch.setattr(runner, "run_point", flaky)
+    with pytest.raises(SweepInterrupted):
+        run_sweep(load_sweep(path), out, workers=1, progress=False)
+    from mrctl.sweep.table import read_results
+
+    assert [r["point"] for r in read_results(out)[1]] == ["0"]  # a valid partial Parquet file
+    monkeypatch.setattr(runner, "run_point", real)
+    counts = run_sweep(load_sweep(path), out, workers=1, progress=False)
+    assert counts["skipped"] == 1 and counts["ok"] == 2
+    cols, rows = read_results(out)
+    assert [r["point"] for r in rows] == ["0", "1", "2"] and all(r["status"] == "ok" for r in rows)
+    assert not (tmp_path / "r.parquet.partial.csv").exists()
+    assert main(["report", str(out), "--out", str(tmp_path / "p.png")]) == 0
+
+
+def test_more_draws_run_only_the_new_ones(tmp_path):
+    _base(tmp_path)
+    body = {"grid": {"inverse.law": ["smooth"]}, "random": {"n": 2, "plant.parameters.F0": {"factor_uniform": [0.8, 1.2]}}}
+    path = _sweep(tmp_path, body)
+    for suffix in ("csv", "parquet"):
+        if suffix == "parquet":
+            pytest.importorskip("pyarrow")
+        out = tmp_path / f"r.{suffix}"
+        path.write_text(yaml.safe_dump({"base": "base.yaml", **body}))
+        assert run_sweep(load_sweep(path), out, workers=1, progress=False)["ok"] == 2
+        body2 = {**body, "random": {**body["random"], "n": 3}}
+        path.write_text(yaml.safe_dump({"base": "base.yaml", **body2}))
+        counts = run_sweep(load_sweep(path), out, workers=1, progress=False)
+        assert counts["skipped"] == 2 and counts["ok"] == 1, suffix

@@ -140,12 +140,8 @@ class ResultsTable:
         os.replace(tmp, self.path)
 
     def _parquet_to_journal(self) -> None:
-        import pyarrow.csv as pacsv
-        import pyarrow.parquet as pq
-
-        buf = io.BytesIO()
-        pacsv.write_csv(pq.read_table(self.path), buf)
-        self.journal.write_bytes(buf.getvalue().replace(b'"', b""))
+        cols, rows = read_results(self.path)
+        self.journal.write_text(_csv_text(cols, rows), encoding="utf-8")
 
 
 def _csv_text(cols: list[str], rows: list[dict[str, str]]) -> str:
