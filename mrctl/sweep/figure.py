@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +47,8 @@ def summarise(cols: list[str], rows: list[dict[str, str]], metric: str, bound: f
     mc = any(r.get("seed", "") != "" for r in rows)
     # a draw's values are the same in every grid cell (common random numbers): the axes that vary
     # among the rows of one draw are the grid's, the others are drawn
-    one = [r for r in rows if r.get("seed", "") == rows[0].get("seed", "")]
+    seeds = Counter(r.get("seed", "") for r in rows)
+    one = [r for r in rows if r.get("seed", "") == seeds.most_common(1)[0][0]]  # a partial table: the fullest draw
     grid = [a for a in axes if len({r[a] for r in one}) > 1]
     rand = [a for a in axes if mc and a not in grid and len({r[a] for r in rows}) > 1]
     cells: dict[tuple[str, ...], list[float]] = {}
