@@ -265,3 +265,26 @@ def test_more_draws_run_only_the_new_ones(tmp_path):
         path.write_text(yaml.safe_dump({"base": "base.yaml", **body2}))
         counts = run_sweep(load_sweep(path), out, workers=1, progress=False)
         assert counts["skipped"] == 2 and counts["ok"] == 1, suffix
+
+
+def test_a_bouc_wen_base_ships_its_constants_not_its_file(tmp_path):
+    from mrctl.config import validate_experiment
+
+    p = tmp_path / "s.yaml"
+    p.write_text(yaml.safe_dump({"base": str(EXP / "robust" / "bouc_wen_c500.yaml"),
+                                 "grid": {"plant.model.parameters.n": [1.0, 2.0]}}))
+    pts = list(expand(load_sweep(p)))
+    for q, n in zip(pts, (1.0, 2.0)):
+        bw = q.config["plant"]["model"]["parameters"]
+        assert isinstance(bw, dict) and bw["n"] == n
+        assert isinstance(q.config["parameters"], dict)
+        cfg = validate_experiment(q.config, tmp_path)  # no file needed where it runs
+        assert cfg.plant.model.parameters.n == n
+
+
+def test_check_lists_the_points_that_will_fail(tmp_path, capsys):
+    _base(tmp_path)
+    p = _sweep(tmp_path, {"grid": {"safety.I_max": [0.6, 5.0, 7.0]}})
+    assert main(["check", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "will fail" in out and "safety.I_max" in out and "OK (2 points invalid" in out
