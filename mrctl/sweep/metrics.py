@@ -18,7 +18,8 @@ import numpy as np
 
 #: mrctl simulate's summary figures (the ride ones only on a quarter car: NaN elsewhere)
 SUMMARY = ("force_nrmse", "force_rmse_N", "max_current_step_A", "share_at_zero", "share_at_I_max",
-           "rms_a_sprung_mps2", "rms_tyre_defl_m", "rms_stroke_m")
+           "rms_a_sprung_mps2", "rms_tyre_defl_m", "rms_stroke_m", "ticks", "simulated_s", "window_start_s",
+           "window_ticks", "realtime_factor")
 #: computed here
 DERIVED = ("peak_current_A", "rms_current_A", "ticks_at_I_max", "ticks_at_zero", "reach_floor", "noise_floor")
 METRICS = SUMMARY + DERIVED
@@ -33,6 +34,11 @@ METRIC_DOCS = {
     "rms_a_sprung_mps2": "quarter car: RMS body acceleration (m/s²); NaN on the shaker",
     "rms_tyre_defl_m": "quarter car: RMS tyre deflection (m)",
     "rms_stroke_m": "quarter car: RMS damper stroke (m)",
+    "ticks": "ticks simulated (fewer than asked after a law fault)",
+    "simulated_s": "simulated time (s)",
+    "window_start_s": "start of the window the figures are over (s): the excitation's settle time",
+    "window_ticks": "ticks in that window",
+    "realtime_factor": "simulated time / wall time of the loop (a timing: differs run to run)",
     "peak_current_A": "largest commanded current over the window (A)",
     "rms_current_A": "RMS commanded current over the window (A)",
     "ticks_at_I_max": "ticks of the window at I_max (the clamp)",
