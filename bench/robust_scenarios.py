@@ -29,11 +29,13 @@ A scenario is **feasible** when both floors are ≤ 0.5 %: the 1 % target
 then leaves at least half of itself to the law.
 
     python bench/robust_scenarios.py [--write-configs] [--write-docs] [--results DIR] [--workers N]
+                                     [--only NAME] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -171,19 +173,39 @@ def _num(text: str) -> float:
     return float(text) if text not in ("", "nan") else math.nan
 
 
-def run_sweep_table(name: str, results: Path, workers: int | None) -> list[dict[str, str]]:
-    """Rows of ``config/sweeps/NAME.yaml``'s table (run, or resumed, into ``results/NAME.csv``)."""
+def run_sweep_table(name: str, results: Path, workers: int | None, only: str | None = None,
+                    closed: dict[str, Any] | None = None) -> list[dict[str, str]]:
+    """Rows of ``config/sweeps/NAME.yaml``'s table (run, or resumed, into ``results/NAME.csv``).
+
+    ``only``: that scenario alone; ``closed``: settings of the closed law (an ablation: the closed points
+    get them, the other laws' points are the sweep's). Either goes to a table of its own."""
     from mrctl.sweep.runner import run_sweep
     from mrctl.sweep.spec import load_sweep
     from mrctl.sweep.table import read_results
 
+    sweep = load_sweep(SWEEPS / f"{name}.yaml")
+    tag = name
+    if only:
+        sweep.bases, sweep.raw_bases = {only: sweep.bases[only]}, {only: sweep.raw_bases[only]}
+        tag += f"-{only}"
     results.mkdir(parents=True, exist_ok=True)
-    out = results / f"{name}.csv"
-    counts = run_sweep(load_sweep(SWEEPS / f"{name}.yaml"), out, workers=workers)
+    out = results / f"{tag}.csv"
+    counts = run_sweep(sweep, out, workers=workers)
+    rows = read_results(out)[1]
+    if closed:
+        sweep.grid = {**sweep.grid, "inverse.law": ["closed"]}
+        sweep.grid["closed"] = {"set": {f"inverse.{k}": v for k, v in closed.items()}}
+        key = ",".join(f"{k}={v}" for k, v in sorted(closed.items()))
+        out = results / f"{tag}-set-{hashlib.sha256(key.encode()).hexdigest()[:10]}.csv"
+        more = run_sweep(sweep, out, workers=workers)
+        counts = {k: counts[k] + more[k] for k in counts}
+        rows = [r for r in rows if r["inverse.law"] != "closed"] + read_results(out)[1]
     bad = {k: v for k, v in counts.items() if k not in ("ok", "skipped") and v}
     if bad:
         raise SystemExit(f"{out}: points failed: {bad}")
-    return read_results(out)[1]
+    for r in rows:
+        r.setdefault("base", only or "")  # one base: the sweep has no base column
+    return rows
 
 
 def scenario_rows(sweep_rows: list[dict[str, str]]) -> list[dict[str, Any]]:
@@ -300,15 +322,24 @@ def main() -> int:
     ap.add_argument("--results", type=Path, default=ROOT / "runs" / "robust",
                     help="where the sweeps' tables go (resumed if there; default runs/robust)")
     ap.add_argument("--workers", type=int, help="local processes (default: all cores)")
+    ap.add_argument("--only", choices=tuple(SCENARIOS), help="one scenario (no docs)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a setting of the closed law (ablation; no docs)")
     a = ap.parse_args()
+    try:
+        closed = parse_sets(a.set)
+    except ValueError as exc:
+        ap.error(str(exc))
     if a.write_configs:
         print(f"wrote {len(write_configs())} files in {DIR.relative_to(ROOT)}")
     t0 = time.perf_counter()
-    rows = scenario_rows(run_sweep_table("robust", a.results, a.workers))
-    text = table(rows) + "\n" + ablation(run_sweep_table("robust_ablation", a.results, a.workers))
+    rows = scenario_rows(run_sweep_table("robust", a.results, a.workers, a.only, closed))
+    text = table(rows)
+    if not (a.only or closed):
+        text += "\n" + ablation(run_sweep_table("robust_ablation", a.results, a.workers))
     print(text)
     print(f"({time.perf_counter() - t0:.0f} s)")
-    if a.write_docs:
+    if a.write_docs and not (a.only or closed):
         doc = ROOT / "docs" / "inverse-laws.md"
         replace_block(doc, BEGIN, END, text.rstrip("\n"))  # the table ends in a newline
         print(f"updated {doc}")
