@@ -1,15 +1,19 @@
 #!/usr/bin/env python3
-"""Force tracking on benches that are not the law's model: the robust scenario set.
+"""Force tracking on benches that are not the law's model: the robust scenario set's table.
 
 Every scenario is a file in ``config/experiments/robust/`` (``--write-configs``
 writes them from :data:`SCENARIOS`): the paper's Fig 5 motion (10 mm, 1 Hz,
 4 s, I_max 0.6 A, viscous demand at c_des 250, 500 and 750 N·s/m) on a
 simulated bench that differs from the model the law inverts: its parameters,
-its coil lag, its sensors, its structure (Spencer's Bouc–Wen damper). Each
-runs with ``paper``, ``smooth`` and the file's own law (``closed``), through
-``mrctl.offline.simulate`` (the NRMSE ``mrctl simulate`` prints).
+its coil lag, its sensors, its structure (Spencer's Bouc–Wen damper). The
+runs are a sweep, ``config/sweeps/robust.yaml`` (each scenario with
+``paper``, ``smooth`` and ``closed``, the NRMSE ``mrctl simulate`` prints,
+and the feasibility floors of mrctl/sweep/metrics.py), and the closed law's
+ablation is ``config/sweeps/robust_ablation.yaml``; this script runs both
+with ``mrctl sweep``'s runner (resuming tables already in ``--results``)
+and reads their tables into docs/inverse-laws.md's.
 
-Feasibility, per scenario (law-independent, measured here):
+Feasibility, per scenario (law-independent; the floors of the closed law's point):
 
 - *reach floor*: the bench runs open loop at 13 constant currents over
   [0, I_max] on the same motion; the band between the lowest and the highest
@@ -24,12 +28,14 @@ Feasibility, per scenario (law-independent, measured here):
 A scenario is **feasible** when both floors are ≤ 0.5 %: the 1 % target
 then leaves at least half of itself to the law.
 
-    python bench/robust_scenarios.py [--write-configs] [--write-docs] [--only NAME]
+    python bench/robust_scenarios.py [--write-configs] [--write-docs] [--results DIR] [--workers N]
+                                     [--only NAME] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -37,21 +43,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_yaml, validate_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.offline.simulate import simulate  # noqa: E402
 from mrctl.util.gendoc import replace_block  # noqa: E402
 
 DIR = ROOT / "config" / "experiments" / "robust"
+SWEEPS = ROOT / "config" / "sweeps"
 C_VALUES = (250.0, 500.0, 750.0)
 LAWS = ("paper", "smooth", "closed")
 FEASIBLE_FLOOR = 0.005
-DATE = "2026-11-23"
+DATE = "2026-11-25"
 MISMATCHED = "../../plants/table1_mismatched.yaml"
 BOUC_WEN = {"type": "bouc-wen", "parameters": "../../plants/rd1097_bouc_wen.yaml"}
 NOISE = {"x_noise_m": 2.0e-6, "x_lsb_m": 1.0e-6, "v_noise_mps": 0.002, "F_noise_N": 0.5}
@@ -165,45 +169,61 @@ def _experiment(path: Path, law: str | None = None, inverse: dict[str, Any] | No
     return build(validate_experiment(data, path.parent))
 
 
-def floors(path: Path, F_des: np.ndarray, t: np.ndarray, currents: int = 13) -> tuple[float, float]:
-    """(reach floor, noise floor) of a scenario, as fractions (module docstring)."""
-    bands = []
-    for i in range(currents):
-        data = load_yaml(path)
-        data["inverse"] = {"law": "constant", "current_A": 0.6 * i / (currents - 1)}
-        data["plant"].pop("sensors", None)
-        data.pop("sensing", None)
-        bands.append(simulate(build(validate_experiment(data, path.parent)), 4.0).columns["F"])
-    lo, hi = np.min(bands, axis=0), np.max(bands, axis=0)
-    w = t >= t[0] + 1.0
-    p2p = float(np.ptp(F_des[w]))
-    dist = np.maximum(0.0, np.maximum(lo - F_des, F_des - hi))[w]
-    noise = float(np.std(np.diff(F_des[w], 2)) / math.sqrt(6.0))
-    return float(np.sqrt(np.mean(dist * dist))) / p2p, noise / p2p
+def _num(text: str) -> float:
+    return float(text) if text not in ("", "nan") else math.nan
 
 
-def run_all(only: str | None = None, closed: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """Every scenario with every law; ``closed``: settings that override the
-    files' ``inverse`` section for the closed law (ablations)."""
-    rows = []
-    for name in SCENARIOS:
-        if only and name != only:
-            continue
-        for c in C_VALUES:
-            path = DIR / f"{name}_c{c:g}.yaml"
-            row: dict[str, Any] = {"scenario": name, "c_des": c, "file": path.name}
-            for law in LAWS:
-                inv = {"law": "closed", **closed} if closed and law == "closed" else None
-                res = simulate(_experiment(path, law, inv), 4.0)
-                row[law] = res.summary["force_nrmse"]
-                row[f"{law}_step"] = res.summary["max_current_step_A"]
-                if law == "closed":
-                    row["reach"], row["noise"] = floors(path, res.columns["F_des"], res.columns["t"])
-            row["feasible"] = row["reach"] <= FEASIBLE_FLOOR and row["noise"] <= FEASIBLE_FLOOR
-            rows.append(row)
-            print(f"{name:28s} c {c:4g}: " + "  ".join(f"{law} {100 * row[law]:.3f} %" for law in LAWS)
-                  + f"  floors {100 * row['reach']:.2f} / {100 * row['noise']:.2f} %", flush=True)
+def run_sweep_table(name: str, results: Path, workers: int | None, only: str | None = None,
+                    closed: dict[str, Any] | None = None) -> list[dict[str, str]]:
+    """Rows of ``config/sweeps/NAME.yaml``'s table (run, or resumed, into ``results/NAME.csv``).
+
+    ``only``: that scenario alone; ``closed``: settings of the closed law (an ablation: the closed points
+    get them, the other laws' points are the sweep's). Either goes to a table of its own."""
+    from mrctl.sweep.runner import run_sweep
+    from mrctl.sweep.spec import load_sweep
+    from mrctl.sweep.table import read_results
+
+    sweep = load_sweep(SWEEPS / f"{name}.yaml")
+    tag = name
+    if only:
+        sweep.bases, sweep.raw_bases = {only: sweep.bases[only]}, {only: sweep.raw_bases[only]}
+        tag += f"-{only}"
+    results.mkdir(parents=True, exist_ok=True)
+    out = results / f"{tag}.csv"
+    counts = run_sweep(sweep, out, workers=workers)
+    rows = read_results(out)[1]
+    if closed:
+        sweep.grid = {**sweep.grid, "inverse.law": ["closed"]}
+        sweep.grid["closed"] = {"set": {f"inverse.{k}": v for k, v in closed.items()}}
+        key = ",".join(f"{k}={v}" for k, v in sorted(closed.items()))
+        out = results / f"{tag}-set-{hashlib.sha256(key.encode()).hexdigest()[:10]}.csv"
+        more = run_sweep(sweep, out, workers=workers)
+        counts = {k: counts[k] + more[k] for k in counts}
+        rows = [r for r in rows if r["inverse.law"] != "closed"] + read_results(out)[1]
+    bad = {k: v for k, v in counts.items() if k not in ("ok", "skipped") and v}
+    if bad:
+        raise SystemExit(f"{out}: points failed: {bad}")
+    for r in rows:
+        r.setdefault("base", only or "")  # one base: the sweep has no base column
     return rows
+
+
+def scenario_rows(sweep_rows: list[dict[str, str]]) -> list[dict[str, Any]]:
+    """One row per (scenario, c_des) with every law's NRMSE and step, and the closed point's floors."""
+    rows: dict[tuple[str, float], dict[str, Any]] = {}
+    for r in sweep_rows:
+        name, c, law = r["base"], float(r["demand.c_des"]), r["inverse.law"]
+        row = rows.setdefault((name, c), {"scenario": name, "c_des": c, "file": f"{name}_c{c:g}.yaml"})
+        row[law] = _num(r["force_nrmse"])
+        row[f"{law}_step"] = _num(r["max_current_step_A"])
+        if law == "closed":
+            row["reach"], row["noise"] = _num(r["reach_floor"]), _num(r["noise_floor"])
+    out = [rows[k] for k in sorted(rows, key=lambda k: (list(SCENARIOS).index(k[0]), k[1]))]
+    for row in out:
+        row["feasible"] = row["reach"] <= FEASIBLE_FLOOR and row["noise"] <= FEASIBLE_FLOOR
+        print(f"{row['scenario']:28s} c {row['c_des']:4g}: " + "  ".join(f"{law} {100 * row[law]:.3f} %" for law in LAWS)
+              + f"  floors {100 * row['reach']:.2f} / {100 * row['noise']:.2f} %", flush=True)
+    return out
 
 
 def verdicts(rows: list[dict[str, Any]]) -> list[str]:
@@ -234,8 +254,8 @@ def verdicts(rows: list[dict[str, Any]]) -> list[str]:
 
 def table(rows: list[dict[str, Any]]) -> str:
     lines = [
-        f"Measured {DATE} with `python bench/robust_scenarios.py --write-docs` (deterministic: seeded "
-        "noise, no timing). Force NRMSE as `mrctl simulate` prints it (t ≥ 1 s); floors and feasibility "
+        f"Measured {DATE} with `python bench/robust_scenarios.py --write-docs` (the sweeps "
+        "`config/sweeps/robust.yaml` and `robust_ablation.yaml`; deterministic: seeded noise, no timing). Force NRMSE as `mrctl simulate` prints it (t ≥ 1 s); floors and feasibility "
         "as defined above; \"step\": the largest current step of `closed` between ticks.",
         "",
         "| scenario | c_des | reach / noise floor | feasible | `paper` | `smooth` | `closed` | smooth / closed | step |",
@@ -280,17 +300,15 @@ ABLATION_CASES = (("own", 250.0), ("own", 500.0), ("mismatch", 250.0), ("mismatc
                   ("bouc_wen_displacement_only", 500.0))
 
 
-def ablation() -> str:
-    head = "| variant | " + " | ".join(f"{n} {c:g}" for n, c in ABLATION_CASES) + " |"
+def ablation(sweep_rows: list[dict[str, str]]) -> str:
+    """The ablation table from ``robust_ablation``'s rows (cases × variants, in the sweep file's order)."""
+    cases = [f"{n} {c:g}" for n, c in ABLATION_CASES]
+    cell = {(r["base"], r["variant"]): _num(r["force_nrmse"]) for r in sweep_rows}
+    head = "| variant | " + " | ".join(cases) + " |"
     lines = ["Force NRMSE of `closed` with one setting changed (same files, same seeds).", "", head,
-             "|---|" + "---|" * len(ABLATION_CASES)]
-    for label, kw in ABLATIONS:
-        cells = []
-        for name, c in ABLATION_CASES:
-            path = DIR / f"{name}_c{c:g}.yaml"
-            r = simulate(_experiment(path, inverse={"law": "closed", **kw}), 4.0).summary["force_nrmse"]
-            cells.append(f"{100 * r:.3f} %")
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+             "|---|" + "---|" * len(cases)]
+    for label, _kw in ABLATIONS:
+        lines.append(f"| {label} | " + " | ".join(f"{100 * cell[(case, label)]:.3f} %" for case in cases) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -301,6 +319,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write-configs", action="store_true", help="(re)write config/experiments/robust/")
     ap.add_argument("--write-docs", action="store_true", help="update docs/inverse-laws.md")
+    ap.add_argument("--results", type=Path, default=ROOT / "runs" / "robust",
+                    help="where the sweeps' tables go (resumed if there; default runs/robust)")
+    ap.add_argument("--workers", type=int, help="local processes (default: all cores)")
     ap.add_argument("--only", choices=tuple(SCENARIOS), help="one scenario (no docs)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a setting of the closed law (ablation; no docs)")
@@ -312,10 +333,10 @@ def main() -> int:
     if a.write_configs:
         print(f"wrote {len(write_configs())} files in {DIR.relative_to(ROOT)}")
     t0 = time.perf_counter()
-    rows = run_all(a.only, closed)
+    rows = scenario_rows(run_sweep_table("robust", a.results, a.workers, a.only, closed))
     text = table(rows)
     if not (a.only or closed):
-        text += "\n" + ablation()
+        text += "\n" + ablation(run_sweep_table("robust_ablation", a.results, a.workers))
     print(text)
     print(f"({time.perf_counter() - t0:.0f} s)")
     if a.write_docs and not (a.only or closed):

@@ -1,4 +1,5 @@
-"""``mrctl`` command line: run, status, ls, tap, exporter, simulate, report, identify, check, examples, docs.
+"""``mrctl`` command line: run, status, ls, tap, exporter, simulate, sweep, report, identify, check, calibrate,
+examples, docs.
 
 The one place that turns errors into exit codes: every user-facing error is
 a :class:`mrctl.errors.MrctlError` carrying its code (:data:`EXIT_CODES`,
@@ -181,13 +182,19 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from mrctl.offline.report import make_report, parse_pair
+    from mrctl.sweep.table import is_results_table
     from mrctl.util.files import ensure_out_parent
 
+    out = out_path(args, str(Path(args.runs[0]).with_suffix(".png")))  # beside the (first) run
+    ensure_out_parent(out, args.mkdir)
+    if len(args.runs) == 1 and is_results_table(args.runs[0]):
+        from mrctl.sweep.command import report_sweep
+
+        args.out = out
+        return report_sweep(args)
     size = parse_pair(args.size, "--size", positive=True) if args.size else None
     window = parse_pair(args.time, "--time") if args.time else None
     panels = [p.strip() for p in args.panels.split(",") if p.strip()] if args.panels is not None else None
-    out = out_path(args, str(Path(args.runs[0]).with_suffix(".png")))  # beside the (first) run
-    ensure_out_parent(out, args.mkdir)
     make_report(args.runs, out, title=args.title, size=size, time=window, panels=panels, force=args.force)
     _say(args, f"wrote {out}")
     return EXIT_OK
@@ -395,6 +402,13 @@ def cmd_check(args: argparse.Namespace) -> int:
         if not args.laws:
             _err("check: give an experiment YAML (or --laws)")
         return EXIT_OK if args.laws else EXIT_BAD_INPUT
+    from mrctl.config import load_yaml
+    from mrctl.sweep.spec import is_sweep_file
+
+    if is_sweep_file(load_yaml(args.config)):
+        from mrctl.sweep.check import check_sweep
+
+        return check_sweep(args.config)
     exp = _load(args)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
@@ -446,9 +460,15 @@ def build_parser() -> argparse.ArgumentParser:
     _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 
+    from mrctl.sweep.command import add_sweep_parser
+
+    add_sweep_parser(sub)
+
     rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "
-                                       "faults and skipped deadlines shaded, the verdict in the caption")
-    rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid)")
+                                       "faults and skipped deadlines shaded, the verdict in the caption; or of a "
+                                       "sweep's results table")
+    rp.add_argument("runs", nargs="+", metavar="RUN.csv", help="run CSVs from simulate or run (several: overlaid), "
+                                                               "or one results table of mrctl sweep")
     add_out_options(rp, "figure to write: .png, .pdf or .svg", default="the first run's name with .png")
     rp.add_argument("--title", help="figure title (default: the runs' file names and laws)")
     rp.add_argument("--size", metavar="W,H", help="figure size in inches (default: 12 wide, by the panels)")
@@ -458,6 +478,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "(default force,error,current,fv,fx; quarter-car runs body_acc,stroke,tyre,current)")
     rp.add_argument("--force", action="store_true", help="replace an existing figure (never a run or its sidecar)")
     add_quiet_options(rp, progress=False)
+    rp.add_argument("--metric", default="force_nrmse", help="sweep: the metric drawn (default force_nrmse)")
+    rp.add_argument("--bound", type=float, default=0.01, help="sweep: the share at most this (default 0.01)")
     rp.set_defaults(func=cmd_report)
 
     rn = sub.add_parser("run", help="the real-time loop (simulated bench or real links)")
@@ -530,8 +552,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run CSVs: optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
 
-    cp = sub.add_parser("check", help="validate an experiment config (every error at once); list the laws")
-    cp.add_argument("config", nargs="?", help="experiment YAML to check (every error, with its key path)")
+    cp = sub.add_parser("check", help="validate an experiment or sweep file (every error at once); list the laws")
+    cp.add_argument("config", nargs="?", help="experiment or sweep YAML to check (every error, with its key path)")
     cp.add_argument("--laws", action="store_true", help="print every installed law's keys (built-ins and plugins)")
     add_quiet_options(cp, progress=False)
     _outside_option(cp)

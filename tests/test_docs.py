@@ -38,3 +38,11 @@ def test_docs_cli_lists_the_exit_codes_every_help_ends_with():
     for line in EXIT_CODES.splitlines()[1:]:
         code = line.split()[0]
         assert f"| {code} |" in cli, code
+
+
+def test_sweep_reference_is_current():
+    from mrctl.sweep.spec import sweep_markdown
+
+    text = (DOCS / "sweeps.md").read_text()
+    block = text.split("<!-- BEGIN GENERATED: mrctl.sweep.sweep_markdown -->\n", 1)[1].split("\n<!-- END GENERATED -->")[0]
+    assert block == sweep_markdown(), "docs/sweeps.md is stale: run python -m mrctl.sweep"

@@ -137,3 +137,24 @@ def test_hil_sim_bench_schema_rejects_what_the_experiment_rejects(tmp_path):
     b = cfg.make_bench()
     b.begin_tick(0)
     assert math.isnan(b.sample()[1])  # a displacement-only DAQ
+
+
+def test_the_robust_sweeps_are_the_scenario_set_and_the_ablation():
+    import sys
+
+    from mrctl.sweep.spec import load_sweep
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import robust_scenarios as rs
+    finally:
+        sys.path.pop(0)
+    s = load_sweep(ROOT / "config" / "sweeps" / "robust.yaml")
+    assert list(s.bases) == list(rs.SCENARIOS)
+    assert s.grid == {"demand.c_des": [250, 500, 750], "inverse.law": list(rs.LAWS)}
+    assert {"force_nrmse", "max_current_step_A", "reach_floor", "noise_floor"} <= set(s.metrics)
+    a = load_sweep(ROOT / "config" / "sweeps" / "robust_ablation.yaml")
+    assert list(a.bases) == [f"{n} {c:g}" for n, c in rs.ABLATION_CASES]
+    assert list(a.grid["variant"]) == [label for label, _ in rs.ABLATIONS]
+    for label, kw in rs.ABLATIONS:
+        assert {k.removeprefix("inverse."): v for k, v in (a.grid["variant"][label] or {}).items()} == kw, label

@@ -39,8 +39,14 @@ def load_bouc_wen_file(path: str | Path) -> BoucWenParams:
 
 def _bw_file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
+        if isinstance(value, dict):  # inline constants (a sweep ships its points as plain data)
+            try:
+                return bw_params_from_mapping(value), []
+            except ValueError as exc:
+                return None, [f"{path}.{exc}" if ":" in str(exc) else f"{path}: {exc}"]
         if not isinstance(value, str) or not value:
-            return None, [f"{path}: must be a Bouc–Wen parameters file path, got {short_repr(value)}"]
+            return None, [f"{path}: must be a Bouc–Wen parameters file path or a mapping of its constants, "
+                          f"got {short_repr(value)}"]
         full = Path(value) if Path(value).is_absolute() else base_dir / value
         if not full.is_file():
             return None, [f"{path}: no such file: {full}"]
@@ -58,7 +64,7 @@ def plant_model_schema(base_dir: Path) -> Union:
         "lugre": {},
         "bouc-wen": {
             "parameters": Custom(_bw_file_check(base_dir),
-                                 doc="Bouc–Wen parameters YAML (e.g. config/plants/rd1097_bouc_wen.yaml)"),
+                                 doc="Bouc–Wen parameters YAML (e.g. config/plants/rd1097_bouc_wen.yaml), or its constants inline"),
             "substeps": Num(default=8, integer=True, min=1, max=64,
                             doc="integration substeps per tick (the Bouc–Wen state is stiff)"),
         },

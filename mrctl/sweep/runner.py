@@ -1,0 +1,204 @@
+"""Running a sweep's points: in this process, on this machine's cores, or on Dask.
+
+Local by default: a process pool with one worker per core (no server to
+start); ``scheduler`` (``tcp://HOST:PORT`` or a ``distributed.Client``) runs
+the same tasks on a Dask distributed cluster. Both ship the point's plain
+data (:meth:`Point.task`), so a worker needs mrctl installed and nothing
+else, and both call the one function :func:`mrctl.sweep.point.run_point`:
+the table does not depend on where a point ran. At most a few tasks per
+worker are in flight, so a Ctrl-C stops within one point's time and a
+10⁴-point sweep never sits in memory as futures.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+from mrctl.errors import BadInput, DependencyMissing, ExitCode, MrctlError
+from mrctl.sweep.point import prewarm, run_point
+from mrctl.sweep.spec import Point, Sweep, expand
+from mrctl.sweep.table import ResultsTable, columns
+
+IN_FLIGHT_PER_WORKER = 4
+
+
+class SweepInterrupted(MrctlError):
+    """Ctrl-C: the table holds the points done; re-running resumes."""
+
+    exit_code = ExitCode.INTERRUPTED
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; workers finish their point
+
+
+def _bounded(submit: Callable[[dict[str, Any]], Any], tasks: Iterable[dict[str, Any]], limit: int,
+             done_of: Callable[[list[Any]], tuple[list[Any], list[Any]]]) -> Iterator[dict[str, Any]]:
+    pending: list[Any] = []
+    it = iter(tasks)
+    exhausted = False
+    while True:
+        while not exhausted and len(pending) < limit:
+            try:
+                pending.append(submit(next(it)))
+            except StopIteration:
+                exhausted = True
+        if not pending:
+            return
+        done, pending = done_of(pending)
+        for f in done:
+            yield f.result()
+
+
+def run_local(tasks: Iterable[dict[str, Any]], workers: int) -> Iterator[dict[str, Any]]:
+    """Rows of ``tasks`` on ``workers`` processes (1: in this process)."""
+    if workers <= 1:
+        for t in tasks:
+            yield run_point(t)
+        return
+    it = iter(tasks)
+    first = next(it, None)
+    if first is None:
+        return
+    prewarm(first)  # before the fork: workers inherit the imports and the law registry
+    tasks = itertools.chain([first], it)
+    pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
+    try:
+        def done_of(pending: list[Future]) -> tuple[list[Future], list[Future]]:
+            d, p = wait(pending, return_when=FIRST_COMPLETED)
+            return list(d), list(p)
+
+        yield from _bounded(lambda t: pool.submit(run_point, t), tasks, IN_FLIGHT_PER_WORKER * workers, done_of)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def dask_client(scheduler: Any) -> tuple[Any, bool]:
+    """(client, owned): a ``distributed.Client`` given, or one connected to ``tcp://HOST:PORT``."""
+    if not isinstance(scheduler, str):
+        return scheduler, False
+    try:
+        from distributed import Client
+    except ImportError:
+        raise DependencyMissing("--scheduler needs dask.distributed: pip install 'mrctl[sweep]'") from None
+    if not scheduler.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
+        raise BadInput(f"--scheduler: {scheduler!r}: expected an address such as tcp://HOST:8786")
+    try:
+        return Client(scheduler, timeout="10s"), True
+    except (OSError, TimeoutError) as exc:
+        from mrctl.errors import LinkFailure
+
+        raise LinkFailure(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+
+
+def run_dask(tasks: Iterable[dict[str, Any]], client: Any) -> Iterator[dict[str, Any]]:
+    """Rows of ``tasks`` on a Dask cluster (the same :func:`run_point`)."""
+    from distributed import wait as dwait
+
+    n = max(1, sum(client.nthreads().values()))
+
+    def done_of(pending: list[Any]) -> tuple[list[Any], list[Any]]:
+        r = dwait(pending, return_when="FIRST_COMPLETED")
+        return list(r.done), list(r.not_done)
+
+    futures: list[Any] = []
+
+    def submit(t: dict[str, Any]) -> Any:
+        f = client.submit(run_point, t, key=f"mrctl-point-{t['hash']}-{t['index']}", pure=False)
+        futures.append(f)
+        return f
+
+    try:
+        yield from _bounded(submit, tasks, IN_FLIGHT_PER_WORKER * n, done_of)
+    finally:
+        client.cancel([f for f in futures if not f.done()])
+
+
+class _Progress:
+    """tqdm when installed (rate, time left), else a line every 5 s on stderr."""
+
+    def __init__(self, total: int, initial: int, enabled: bool) -> None:
+        self.bar = None
+        self.total, self.n, self.t0, self.last = total, initial, time.monotonic(), 0.0
+        self.enabled = enabled
+        if not enabled:
+            return
+        try:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=initial, unit="pt", dynamic_ncols=True, file=sys.stderr)
+        except ImportError:
+            pass
+
+    def update(self) -> None:
+        self.n += 1
+        if self.bar is not None:
+            self.bar.update(1)
+        elif self.enabled and time.monotonic() - self.last > 5.0:
+            self.last = time.monotonic()
+            print(f"sweep: {self.n}/{self.total} points", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def run_sweep(sweep: Sweep, out: str | os.PathLike[str], scheduler: Any = None, workers: int | None = None,
+              progress: bool = True) -> dict[str, int]:
+    """Run every point not yet in ``out``; counts by status (this run's points), plus ``skipped``.
+
+    Raises :class:`SweepInterrupted` on Ctrl-C, after the table is closed valid."""
+    table = ResultsTable(Path(out), columns(sweep.axes, sweep.metrics))
+    client, owned = dask_client(scheduler) if scheduler is not None else (None, False)
+    done = table.open()
+    counts = {"ok": 0, "fault": 0, "invalid": 0, "error": 0, "skipped": 0}
+    values: dict[int, dict[str, Any]] = {}
+    todo: list[Point] = []
+    total = 0
+    for p in expand(sweep):
+        total += 1
+        if isinstance(p, tuple):  # values that cannot be applied: a failed row at once (if not yet there)
+            index, vals, error = p
+            h = f"unresolved-{index}"
+            if h in done:
+                counts["skipped"] += 1
+                continue
+            table.add({"point": index, "config_hash": h, **vals, "status": "invalid", "error": error,
+                       "mrctl_version": "", "build": ""})
+            counts["invalid"] += 1
+            continue
+        if p.hash in done:
+            counts["skipped"] += 1
+            continue
+        done.add(p.hash)  # a point twice in a sweep (same config) runs once
+        values[p.index] = {**p.values, "seed": p.seed}
+        todo.append(p)
+    bar = _Progress(total, total - len(todo), progress)
+    n_workers = workers if workers is not None else (os.cpu_count() or 1)
+    tasks = (p.task(sweep.metrics) for p in todo)
+    rows = run_dask(tasks, client) if client is not None else run_local(tasks, n_workers)
+    complete = False
+    try:
+        for row in rows:
+            table.add({**row, **values[row["point"]]})
+            counts[row["status"]] += 1
+            bar.update()
+        complete = True
+    except KeyboardInterrupt:
+        raise SweepInterrupted(f"interrupted: {len(table.rows)} of {total} points in {out}; "
+                               f"run the same command again to resume") from None
+    finally:
+        if hasattr(rows, "close"):
+            rows.close()
+        bar.close()
+        table.close(complete)
+        if owned:
+            client.close()
+    return counts
