@@ -19,6 +19,7 @@ Two measurements:
     python bench/builds.py --simulate --rounds 9
     python bench/builds.py --loop --rounds 6 --seconds 8
     python bench/builds.py --loop --ticks make_tick --rounds 6
+    python bench/builds.py --loop --rounds 6 --tree ../mrctl-before   # + another checkout, e.g. before the core
 
 Instruction counts (callgrind) are ``bench/law_instructions.py --tick
 make_tick_robust_replay``, once per build.
@@ -45,13 +46,14 @@ def _env(extra: dict[str, str]) -> dict[str, str]:
     return env
 
 
-def loop_round(tick: str, seconds: float, extra: dict[str, str]) -> dict[str, float]:
-    """One paced run of ``tick``: compute p50/p99 (µs), skipped deadlines, cyclictest p99."""
+def loop_round(tick: str, seconds: float, extra: dict[str, str], root: Path = ROOT) -> dict[str, float]:
+    """One paced run of ``tick`` (the bench scripts and mrctl of the tree at
+    ``root``): compute p50/p99 (µs), skipped deadlines, cyclictest p99."""
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "rows.json"
-        res = subprocess.run([sys.executable, str(ROOT / "bench" / "loop_timing.py"), "--tick",
+        res = subprocess.run([sys.executable, str(root / "bench" / "loop_timing.py"), "--tick",
                               f"controller_tick:{tick}", "--strategies", "hybrid", "--seconds", str(seconds),
-                              "--json", str(out)], cwd=ROOT / "bench", env=_env(extra), capture_output=True,
+                              "--json", str(out)], cwd=root / "bench", env=_env(extra), capture_output=True,
                              text=True, timeout=seconds * 10 + 120)
         if res.returncode != 0:
             raise SystemExit(f"loop_timing failed: {res.stderr[-1000:]}")
@@ -78,6 +80,8 @@ def main() -> int:
     ap.add_argument("--ticks", default="make_tick_robust,make_tick", help="bench/controller_tick.py factories")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=8.0, help="paced seconds per run")
+    ap.add_argument("--tree", type=Path, help="--loop: also run the tick of this source tree (its own bench/ "
+                                              "scripts, its mrctl on PYTHONPATH) in each round")
     a = ap.parse_args()
     if not (a.loop or a.simulate):
         ap.error("give --loop and/or --simulate")
@@ -97,18 +101,23 @@ def main() -> int:
               f"CSVs byte-identical: {'yes' if same else 'NO'}")
     if a.loop:
         for tick in a.ticks.split(","):
-            rows: dict[str, list[dict[str, float]]] = {b: [] for b, _ in BUILDS}
+            runs: list[tuple[str, dict[str, str], Path]] = [(n, e, ROOT) for n, e in BUILDS]
+            if a.tree is not None:
+                tree = a.tree.resolve()
+                runs.append((f"tree {tree.name}", {"PYTHONPATH": str(tree), "MRCTL_PURE_PYTHON": "1"}, tree))
+            rows: dict[str, list[dict[str, float]]] = {n: [] for n, _, _ in runs}
             for _ in range(a.rounds):
-                for name, extra in BUILDS:
-                    rows[name].append(loop_round(tick, a.seconds, extra))
+                for name, extra, root in runs:
+                    rows[name].append(loop_round(tick, a.seconds, extra, root))
             print(f"{tick}: {a.rounds} alternating rounds of {a.seconds:g} s, hybrid wait")
             for name, rs in rows.items():
                 med = {k: statistics.median(r[k] for r in rs) for k in ("p50", "p99", "skipped", "ct_p99")}
                 p99s = ", ".join(f"{r['p99']:.0f}" for r in rs)
                 print(f"  {name:12s} compute p50 {med['p50']:6.1f} us  p99 {med['p99']:6.1f} us (runs: {p99s})  "
                       f"skipped {med['skipped']:.0f}  cyclictest p99 {med['ct_p99']:.0f} us")
-            ratio = statistics.median(c["p99"] / p["p99"] for c, p in zip(rows["compiled"], rows["pure Python"]))
-            print(f"  compute p99 compiled / interpreted (median of per-round ratios): {ratio:.2f}")
+            for other in list(rows)[1:]:
+                ratio = statistics.median(c["p99"] / p["p99"] for c, p in zip(rows["compiled"], rows[other]))
+                print(f"  compute p99 compiled / {other} (median of per-round ratios): {ratio:.2f}")
     return 0
 
 

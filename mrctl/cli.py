@@ -181,10 +181,14 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, 
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from mrctl.offline.report import make_report, parse_pair
+    from mrctl.offline.report import check_panels, make_report, parse_pair
     from mrctl.sweep.table import is_results_table
     from mrctl.util.files import ensure_out_parent
 
+    size = parse_pair(args.size, "--size", positive=True) if args.size else None  # options first, then files
+    window = parse_pair(args.time, "--time") if args.time else None
+    panels = check_panels([p.strip() for p in args.panels.split(",") if p.strip()]) if args.panels is not None \
+        else None
     out = out_path(args, str(Path(args.runs[0]).with_suffix(".png")))  # beside the (first) run
     ensure_out_parent(out, args.mkdir)
     if len(args.runs) == 1 and is_results_table(args.runs[0]):
@@ -192,24 +196,23 @@ def cmd_report(args: argparse.Namespace) -> int:
 
         args.out = out
         return report_sweep(args)
-    size = parse_pair(args.size, "--size", positive=True) if args.size else None
-    window = parse_pair(args.time, "--time") if args.time else None
-    panels = [p.strip() for p in args.panels.split(",") if p.strip()] if args.panels is not None else None
     make_report(args.runs, out, title=args.title, size=size, time=window, panels=panels, force=args.force)
     _say(args, f"wrote {out}")
     return EXIT_OK
 
 
-def default_log_path(config_path: str, allow_outside: bool = False) -> str:
+def default_log_path(config_path: str) -> str:
     """``runs/<name>-<date>-<time>.csv`` for an experiment file (its ``name``,
     else the file's stem; a bad config is reported by the run itself)."""
     from mrctl.runlog.files import default_log_path as path_for
 
     name = Path(config_path).stem
-    try:
-        from mrctl.config import load_experiment
+    try:  # the name only: validating here would import the laws' plugins twice
+        from mrctl.config import load_yaml
 
-        name = load_experiment(config_path, allow_outside=allow_outside).get("name") or name
+        data = load_yaml(config_path)
+        if isinstance(data, dict) and isinstance(data.get("name"), str) and data["name"].strip():
+            name = data["name"]
     except Exception:  # noqa: BLE001 - the run reports a bad config with its key paths
         pass
     return path_for(str(name))
@@ -228,7 +231,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         out = None
         print("no run log (--no-log): nothing of this run is recorded", flush=True)
     else:
-        out = out_path(args, default_log_path(args.config, args.allow_outside_paths))
+        out = out_path(args, default_log_path(args.config))
         print(f"run log: {out}", flush=True)  # first, so a forgotten --out loses nothing
     columns = _columns(args.stream_columns, "--stream-columns") if args.stream_columns else None
     instance = check_instance(args.instance) if args.instance is not None else None
@@ -436,10 +439,22 @@ def _outside_option(p: argparse.ArgumentParser) -> None:
                    "series, a dataset's records) outside the config's or description's directory")
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Run (or resume) a sweep (:mod:`mrctl.sweep.command`); ``--out``
+    defaults to ``STEM.results.csv`` beside the sweep file."""
+    from mrctl.sweep.command import run_sweep_command
+
+    src = Path(args.config)
+    args.out = out_path(args, str(src.with_name(src.stem + ".results.csv")))
+    return run_sweep_command(args)
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from mrctl.daemon.calibrate import run_from_args
 
-    return run_from_args(args, _load)
+    src = Path(args.config)
+    args.out = out_path(args, str(src.with_name(src.stem + ".cal.yaml")))
+    return run_from_args(args, lambda _path: _load(args))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -460,9 +475,15 @@ def build_parser() -> argparse.ArgumentParser:
     _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 
-    from mrctl.sweep.command import add_sweep_parser
-
-    add_sweep_parser(sub)
+    sw = sub.add_parser("sweep", help="run an experiment over a grid and Monte Carlo draws (docs/sweeps.md)")
+    sw.add_argument("config", help="sweep YAML (config/sweeps/)")
+    add_out_options(sw, "results table: .csv, or .parquet (pyarrow); an existing one of the same sweep is resumed",
+                    default="the sweep's name with .results.csv, beside it")
+    sw.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on a Dask distributed cluster "
+                                                                   "(pip install 'mrctl[sweep]')")
+    sw.add_argument("--workers", type=int, metavar="N", help="local processes (default: all cores)")
+    add_quiet_options(sw)
+    sw.set_defaults(func=cmd_sweep)
 
     rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "
                                        "faults and skipped deadlines shaded, the verdict in the caption; or of a "
@@ -563,10 +584,10 @@ def build_parser() -> argparse.ArgumentParser:
                                           "the driver+coil lag from current steps; writes CAL.yaml for "
                                           "'calibration: CAL.yaml' (docs/hardware.md)")
     ca.add_argument("config", help="experiment YAML with a device backend (backend.device, backend.channels)")
-    ca.add_argument("--out", required=True, metavar="PATH", help="calibration YAML to write")
+    add_out_options(ca, "calibration YAML to write", default="CONFIG's name with .cal.yaml, beside it")
     ca.add_argument("--force", action="store_true", help="replace --out if it exists")
     ca.add_argument("--rest-s", type=float, default=2.0, metavar="S", help="seconds read at rest, 0 A (default 2)")
-    ca.add_argument("--step-A", type=float, default=None, metavar="A",
+    ca.add_argument("--step-amps", dest="step_A", type=float, default=None, metavar="A",
                     help="current step (A; default half of safety.I_max)")
     ca.add_argument("--steps", type=int, default=8, metavar="N", help="steps up and down (0 = no lag fit; default 8)")
     ca.add_argument("--step-s", type=float, default=0.08, metavar="S", help="seconds per step (default 0.08)")

@@ -136,14 +136,15 @@ def test_default_outputs_go_beside_the_input(tmp_path, capsys, monkeypatch):
     assert capsys.readouterr().out == ""  # -q: no 'wrote' line
 
     import mrctl.offline.identify as ident
+    import mrctl.offline.identify_command as command
 
     seen = {}
 
-    def fake(ds, out, **kw):
+    def fake(out, report, inputs, **kw):  # the outputs are checked before the fit: stop there
         seen["out"] = out
         raise ident.IdentificationError("stop here")
 
-    monkeypatch.setattr(ident, "identify_dataset_file", fake)
+    monkeypatch.setattr(command, "check_outputs", fake)
     (tmp_path / "data" / "a.csv").write_text("t,x,F\n0,0,0\n0.001,0,0\n")
     d = tmp_path / "data" / "d.yaml"
     d.write_text("version: 1\nprotocol: constant_input\ncolumns: {time: t, displacement: x, force: F}\n"

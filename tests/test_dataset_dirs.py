@@ -32,7 +32,11 @@ def test_records_resolve_against_data_dir_then_the_option(lab):
     tmp, data, descs = lab
     keyed = descs / "keyed.yaml"
     keyed.write_text(DESC.format(data_dir="data_dir: ../lab/data\n"))
-    assert load_dataset(keyed).files[0].path == str(data / "rec" / "a.csv")
+    with pytest.raises(ConfigError) as e:  # its data_dir: key leaves the description's directory
+        load_dataset(keyed)
+    assert "--data-dir" in str(e.value) and "--allow-outside-paths" in str(e.value)
+    assert load_dataset(keyed, allow_outside=True).files[0].path == str(data / "rec" / "a.csv")
+    assert load_dataset(keyed, data).files[0].path == str(data / "rec" / "a.csv")  # confirmed by the option
     plain = descs / "plain.yaml"
     plain.write_text(DESC.format(data_dir=""))
     with pytest.raises(ConfigError) as e:

@@ -50,8 +50,8 @@ def _failing_log(monkeypatch, ok_lines: int) -> None:
 
     real = files.create_log
 
-    def create(path, force=False):
-        fh = real(path, force)
+    def create(path, force=False, mkdir=False):
+        fh = real(path, force, mkdir)
         fh.close()
         return FailingFile(Path(path), ok_lines)
 

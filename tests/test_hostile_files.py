@@ -164,8 +164,8 @@ def test_simulate_on_a_full_disk_leaves_a_sidecar_that_says_so(tmp_path, monkeyp
 
     real = files.create_log
 
-    def create(path, force=False):
-        real(path, force).close()
+    def create(path, force=False, mkdir=False):
+        real(path, force, mkdir).close()
         return _FullDisk(Path(path))
 
     monkeypatch.setattr(files, "create_log", create)
@@ -285,11 +285,14 @@ def test_data_paths_stay_under_the_description_and_errors_do_not_echo_contents(b
 
 # -- D10: deep nesting ---------------------------------------------------------------------
 def test_deeply_nested_yaml_is_a_config_error(tmp_path, capsys):
-    (tmp_path / "deep.yaml").write_text("[" * 200_000 + "\n")
+    (tmp_path / "deep.yaml").write_text("[" * 60_000 + "\n")  # under the 64 KiB cap: the parser sees it
     assert main(["check", str(tmp_path / "deep.yaml")]) == 2
     assert main(["identify", str(tmp_path / "deep.yaml"), "--out", str(tmp_path / "P.yaml")]) == 2
     err = capsys.readouterr().err
     assert err.count("nested too deeply") == 2 and "internal error" not in err
+    (tmp_path / "deeper.yaml").write_text("[" * 200_000 + "\n")  # over the cap: refused before parsing
+    assert main(["check", str(tmp_path / "deeper.yaml")]) == 2
+    assert "too large" in capsys.readouterr().err
 
 
 def test_deeply_nested_sidecar_is_no_sidecar(tmp_path):

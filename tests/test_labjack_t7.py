@@ -354,8 +354,10 @@ def test_sigkill_dac0_to_0v_within_the_watchdog_and_enable_off_within_50ms(tmp_p
         run = Run(exp, tmp_path / "run.csv", 30.0)
         st = run.wait_for(lambda s: s.get("ticks", 0) > 200 or s.get("loop", {}).get("ticks", 0) > 200, 30.0)
         assert st is not None, run.stderr()
-        time.sleep(0.5)
-        dac_before = _read_f32(port, 1000)
+        dac_before = 0.0
+        for _ in range(20):  # the command follows the demand through zero: driven is its peak, not one sample
+            dac_before = max(dac_before, _read_f32(port, 1000))
+            time.sleep(0.025)
         t_kill = time.monotonic_ns()
         os.kill(run.pid, signal.SIGKILL)
         run.wait(10)

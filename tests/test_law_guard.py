@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mrctl.errors import ExitCode
+
 from mrctl.cli import main
 from mrctl.daemon.recorder import read_run, read_sidecar
 from mrctl.core.safety import Fault
@@ -129,7 +131,7 @@ def test_a_law_that_waits_is_not_faulted_slow(tmp_path):
     process) is an overrun for the loop, not a law fault: the budget is CPU time."""
     svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: 'bad_laws:Sleeps', after_ticks: 100}"))
     assert svc.ctl.law_fault is None, svc.ctl.law_fault
-    assert code == 0
+    assert code == ExitCode.DEGRADED  # the skipped deadlines break the run's acceptance bound, not the law
     assert svc.loop.stats.summary()["overruns"] >= 3
 
 

@@ -356,7 +356,7 @@ def data_base_dir(path: Path, data: Any, data_dir: str | Path | None = None) -> 
     return base
 
 
-def load_dataset(path: str | Path, *, data_dir: str | Path | None = None, allow_outside: bool = False) -> Node:
+def load_dataset(path: str | Path, data_dir: str | Path | None = None, *, allow_outside: bool = False) -> Node:
     """Load and validate a dataset description (YAML); its records are
     looked for in :func:`data_base_dir` and must lie under ``data_dir``
     (``--data-dir``) or else the description's directory, unless

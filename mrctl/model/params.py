@@ -65,6 +65,12 @@ class LuGreParams:
     k_x: float = 0.0  # N/m, stiffness on displacement
     tau_input: float = 0.0  # s, first-order lag of the input the damper feels
 
+    def __reduce__(self) -> tuple[type[LuGreParams], tuple[float, ...]]:
+        """Pickled by value: the compiled build's frozen class cannot be
+        rebuilt field by field, and the reload child and sweep workers send
+        parameter sets across processes."""
+        return (LuGreParams, tuple([getattr(self, f.name) for f in fields(self)]))
+
     # -- laws (6)–(11) -----------------------------------------------------
     def Fc(self, I: float) -> float:
         """Coulomb force (N), eq (6): a squared Langevin function of I/Bc."""

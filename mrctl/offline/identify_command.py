@@ -46,8 +46,10 @@ def identify_command(args: argparse.Namespace) -> int:
         return _identify_dataset(args, dataset)
     if args.holdout is not None:
         raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
-    if args.data_dir is not None or args.allow_outside_paths:
-        raise BadInput("identify: --data-dir and --allow-outside-paths are for --dataset (not run CSVs)")
+    if args.data_dir is not None:
+        raise BadInput("identify: --data-dir is for --dataset (where its records are)")
+    if args.allow_outside_paths:
+        raise BadInput("identify: --allow-outside-paths is for --dataset (run CSVs are named on the command line)")
     from mrctl.offline.identify import format_summary, identify_files
     from mrctl.offline.identify.result import params_yaml_bytes
     from mrctl.runlog.files import sidecar_path

@@ -271,6 +271,17 @@ def _ride_line(cols: dict[str, np.ndarray], m: dict[str, Any]) -> str:
             f"I = 0: {100.0 * m['share_zero']:.1f} %")
 
 
+def check_panels(panels: Sequence[str]) -> list[str]:
+    """``--panels`` as a list; ReportError naming any unknown panel (checked
+    before any file is touched)."""
+    panels = list(panels)
+    unknown = [q for q in panels if q not in PANELS]
+    if unknown or not panels:
+        raise ReportError(f"--panels: unknown panel(s) {', '.join(unknown) or '(none given)'}; "
+                          f"choose from {', '.join(PANELS)}")
+    return panels
+
+
 def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], title: str | None = None,
                  settle: float | None = None, size: tuple[float, float] | None = None,
                  time: tuple[float, float] | None = None,
@@ -299,11 +310,7 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
         loaded.append((cols, m))
     if panels is None:
         panels = QUARTER_CAR_PANELS if all(m["quarter_car"] for _, m in loaded) else DEFAULT_PANELS
-    panels = list(panels)
-    unknown = [q for q in panels if q not in PANELS]
-    if unknown or not panels:
-        raise ReportError(f"--panels: unknown panel(s) {', '.join(unknown) or '(none given)'}; "
-                          f"choose from {', '.join(PANELS)}")
+    panels = check_panels(panels)
     missing = [q for q in panels if q in ("body_acc", "tyre") and not all(m["quarter_car"] for _, m in loaded)]
     if missing:
         raise ReportError(f"--panels: {', '.join(missing)} needs a quarter-car run (columns a_sprung, tyre_defl)")

@@ -297,12 +297,17 @@ DEFAULT_LOG = "runs/{name}-%Y%m%d-%H%M%S.csv"
 
 
 def default_log_path(name: str) -> str:
-    """``runs/<name>-<date>-<time>.csv`` (the name made safe for a file name),
-    its directory created: a forgotten ``--out`` loses no experiment."""
+    """``runs/<name>-<date>-<time>.csv`` (the name made safe for a file name;
+    ``-2``, ``-3``, … when a run of the same second has it), its directory
+    created: a forgotten ``--out`` loses no experiment."""
     import re
     import time
 
     safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "run"
     path = time.strftime(DEFAULT_LOG.format(name=safe))
     os.makedirs(os.path.dirname(path), exist_ok=True)
+    stem, n = path[: -len(".csv")] if path.endswith(".csv") else path, 1
+    while os.path.lexists(path) or os.path.lexists(sidecar_path(path)):  # two runs started in one second
+        n += 1
+        path = f"{stem}-{n}.csv"
     return path

@@ -79,8 +79,7 @@ EXIT_CODES: dict[str, str] = {
     "2": "bad input (config, option, --out, a file it names, a missing optional dependency)",
     "3": "link failure (cannot open, infeasible rate, driver lost, device owned by another mrctl)",
     "4": "run log incomplete (rows lost, disk full or failing)",
-    "5": "run completed but degraded: an acceptance bound was broken (share of ticks in fault or of skipped "
-         "deadlines, longest gap between ticks, longest forced 0 A, force NRMSE); the sidecar's verdict says which",
+    "5": "run completed but degraded",
 }
 
 
