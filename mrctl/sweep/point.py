@@ -46,6 +46,12 @@ def prewarm(task: dict[str, Any]) -> None:
         pass
 
 
+def run_points(tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows of several points, one after another (one task of the pool or
+    the cluster: a point is too short to pay a round trip of its own)."""
+    return [run_point(t) for t in tasks]
+
+
 def run_point(task: dict[str, Any]) -> dict[str, Any]:
     """Simulate one point and return its row (metrics, status, error, wall time)."""
     from mrctl.config import ConfigError, validate_experiment

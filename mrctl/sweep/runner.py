@@ -4,10 +4,11 @@ Local by default: a process pool with one worker per core (no server to
 start); ``scheduler`` (``tcp://HOST:PORT`` or a ``distributed.Client``) runs
 the same tasks on a Dask distributed cluster. Both ship the point's plain
 data (:meth:`Point.task`), so a worker needs mrctl installed and nothing
-else, and both call the one function :func:`mrctl.sweep.point.run_point`:
-the table does not depend on where a point ran. At most a few tasks per
-worker are in flight, so a Ctrl-C stops within one point's time and a
-10⁴-point sweep never sits in memory as futures.
+else, and both call the one function :func:`mrctl.sweep.point.run_point`
+(up to :data:`MAX_BATCH` points per task, :func:`run_points`): the table
+does not depend on where a point ran. At most a few tasks per worker are in
+flight, so a Ctrl-C stops within one batch's time and a 10⁴-point sweep
+never sits in memory as futures.
 """
 
 from __future__ import annotations
@@ -22,11 +23,26 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
 from mrctl.errors import BadInput, DependencyMissing, ExitCode, MrctlError
-from mrctl.sweep.point import prewarm, run_point
+from mrctl.sweep.point import prewarm, run_point, run_points
 from mrctl.sweep.spec import Point, Sweep, expand
 from mrctl.sweep.table import ResultsTable, columns
 
 IN_FLIGHT_PER_WORKER = 4
+#: most points sent to a worker at once: a compiled point is ~8 ms, and a
+#: task's round trip through a process pool or Dask costs a good part of that
+MAX_BATCH = 8
+
+
+def batch_size(n_points: int, n_workers: int) -> int:
+    """Points per task: up to :data:`MAX_BATCH`, fewer when the sweep is
+    small, so every worker still gets several tasks."""
+    return max(1, min(MAX_BATCH, n_points // (IN_FLIGHT_PER_WORKER * max(1, n_workers))))
+
+
+def _batches(tasks: Iterable[dict[str, Any]], size: int) -> Iterator[list[dict[str, Any]]]:
+    it = iter(tasks)
+    while batch := list(itertools.islice(it, size)):
+        yield batch
 
 
 class SweepInterrupted(MrctlError):
@@ -54,11 +70,11 @@ def _bounded(submit: Callable[[dict[str, Any]], Any], tasks: Iterable[dict[str, 
             return
         done, pending = done_of(pending)
         for f in done:
-            yield f.result()
+            yield from f.result()  # a batch's rows
 
 
-def run_local(tasks: Iterable[dict[str, Any]], workers: int) -> Iterator[dict[str, Any]]:
-    """Rows of ``tasks`` on ``workers`` processes (1: in this process)."""
+def run_local(tasks: Iterable[dict[str, Any]], workers: int, batch: int = 1) -> Iterator[dict[str, Any]]:
+    """Rows of ``tasks`` on ``workers`` processes (1: in this process), ``batch`` points per task."""
     if workers <= 1:
         for t in tasks:
             yield run_point(t)
@@ -75,7 +91,8 @@ def run_local(tasks: Iterable[dict[str, Any]], workers: int) -> Iterator[dict[st
             d, p = wait(pending, return_when=FIRST_COMPLETED)
             return list(d), list(p)
 
-        yield from _bounded(lambda t: pool.submit(run_point, t), tasks, IN_FLIGHT_PER_WORKER * workers, done_of)
+        yield from _bounded(lambda b: pool.submit(run_points, b), _batches(tasks, batch),
+                            IN_FLIGHT_PER_WORKER * workers, done_of)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -98,8 +115,8 @@ def dask_client(scheduler: Any) -> tuple[Any, bool]:
         raise LinkFailure(f"--scheduler {scheduler}: cannot connect: {exc}") from None
 
 
-def run_dask(tasks: Iterable[dict[str, Any]], client: Any) -> Iterator[dict[str, Any]]:
-    """Rows of ``tasks`` on a Dask cluster (the same :func:`run_point`)."""
+def run_dask(tasks: Iterable[dict[str, Any]], client: Any, batch: int = 1) -> Iterator[dict[str, Any]]:
+    """Rows of ``tasks`` on a Dask cluster (the same :func:`run_points`), ``batch`` points per task."""
     from distributed import wait as dwait
 
     n = max(1, sum(client.nthreads().values()))
@@ -110,13 +127,13 @@ def run_dask(tasks: Iterable[dict[str, Any]], client: Any) -> Iterator[dict[str,
 
     futures: list[Any] = []
 
-    def submit(t: dict[str, Any]) -> Any:
-        f = client.submit(run_point, t, key=f"mrctl-point-{t['hash']}-{t['index']}", pure=False)
+    def submit(b: list[dict[str, Any]]) -> Any:
+        f = client.submit(run_points, b, key=f"mrctl-points-{b[0]['hash']}-{b[0]['index']}-{len(b)}", pure=False)
         futures.append(f)
         return f
 
     try:
-        yield from _bounded(submit, tasks, IN_FLIGHT_PER_WORKER * n, done_of)
+        yield from _bounded(submit, _batches(tasks, batch), IN_FLIGHT_PER_WORKER * n, done_of)
     finally:
         client.cancel([f for f in futures if not f.done()])
 
@@ -183,7 +200,10 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], scheduler: Any = None, 
     bar = _Progress(total, total - len(todo), progress)
     n_workers = workers if workers is not None else (os.cpu_count() or 1)
     tasks = (p.task(sweep.metrics) for p in todo)
-    rows = run_dask(tasks, client) if client is not None else run_local(tasks, n_workers)
+    if client is not None:
+        n_workers = max(1, sum(client.nthreads().values()))
+    size = batch_size(len(todo), n_workers)
+    rows = run_dask(tasks, client, size) if client is not None else run_local(tasks, n_workers, size)
     complete = False
     try:
         for row in rows:
