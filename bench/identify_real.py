@@ -14,7 +14,7 @@ skipped with the reason. Per dataset:
 - the time of the shipped fit: median of ``--repeat`` runs, with the
   machine it ran on (identification is single-threaded numpy).
 
-Usage: python bench/identify_real.py [--repeat 3] [--only NAME] [--figures DIR] [--json OUT]
+Usage: python bench/identify_real.py [--data-dir /work/shared/data] [--repeat 3] [--only NAME] [--figures DIR] [--json OUT]
 (``--figures docs/img`` redraws the documentation's figures.)
 """
 
@@ -54,10 +54,13 @@ def machine() -> str:
     return f"{platform.node()}: {os.cpu_count()} CPU(s) {cpu}, Python {platform.python_version()}, load {load:.2f}"
 
 
+DATA_DIR: str | None = None  # --data-dir
+
+
 def run(path: Path, **kw):
     t0 = time.perf_counter()
     try:
-        res = identify_dataset(path, allow_outside=True, **kw)  # the shipped descriptions point at ../shared/data
+        res = identify_dataset(path, allow_outside=True, data_dir=DATA_DIR, **kw)  # the shipped descriptions point at ../shared/data
     except MrctlError as exc:
         return None, str(exc).splitlines()[0], time.perf_counter() - t0
     return res, None, time.perf_counter() - t0
@@ -188,12 +191,15 @@ def main() -> int:
     ap.add_argument("--only", help="only the dataset with this name")
     ap.add_argument("--figures", help="write each shipped fit's figure here (NAME.png)")
     ap.add_argument("--json", help="write every number to this JSON file")
+    ap.add_argument("--data-dir", help="where the shared data are (over each description's data_dir:)")
     args = ap.parse_args()
+    global DATA_DIR
+    DATA_DIR = args.data_dir
     print(machine())
     out: dict = {"machine": machine()}
     for path in sorted(DATASETS.glob("*.yaml")):
         try:
-            ds = load_dataset(path, allow_outside=True)
+            ds = load_dataset(path, data_dir=args.data_dir, allow_outside=True)
         except MrctlError as exc:
             print(f"\n{path.name}: skipped: {str(exc).splitlines()[0]}")
             continue
