@@ -26,7 +26,7 @@ from mrctl.model.params import TABLE_NAMES, LuGreParams, ThetaTable
 from mrctl.offline.identify.bbmodel import SpanData
 from mrctl.offline.identify.broadband import fit_broadband, predict, warmup_samples
 from mrctl.offline.identify.dataset_result import DatasetResult, Score, Trace, write_dataset_outputs
-from mrctl.offline.identify.errors import IdentificationError, require_scipy
+from mrctl.offline.identify.errors import IdentificationError, merge_warnings, require_scipy
 from mrctl.offline.identify.guards import Support, check_laws, theta_problems
 from mrctl.offline.identify.laws import fit_laws, theta_from_params
 from mrctl.offline.identify.model import THETA_NAMES
@@ -189,8 +189,7 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
                 sc = Score(rec, float(lf.level), _nrmse(M, P), int(M.size), by_laws["paper"], part=part,
                            nrmse_paper=by_laws["paper"], nrmse_table=by_laws.get("table"))
                 (hold if part == "holdout" else train).append(sc)
-                if part == "holdout":
-                    traces.append(Trace(rec, float(lf.level), np.concatenate(tt), np.concatenate(vv), M, P))
+                traces.append(Trace(rec, float(lf.level), np.concatenate(tt), np.concatenate(vv), M, P, part=part))
     loo = _leave_level_out(spans, segs, fits, use, sup, "holdout" if hold else "fit")
     params, law_choice = _choose_laws(candidates, loo, ds.fit.get("laws", "auto"), warnings)
     for sc in hold + train:
@@ -339,7 +338,10 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
     use = {k: bool(ds.model.get(k)) for k in ("offset", "stiffness", "lag", "inertia")}
     use.update(model or {})
     if ds.protocol == "constant_input":
-        use["lag"] = use["inertia"] = False
+        if use["inertia"]:  # the schema refuses it in a description; an override is refused the same
+            raise IdentificationError("model.inertia: not identifiable from constant_input records (a steady "
+                                      "sine's m·a is in phase with the stiffness k_x·x); fit broadband records")
+        use["lag"] = False
     warnings: list[str] = []
     spans, info = prepare(records, band_hz=ds.motion_band_hz, resample_hz=ds.resample_hz,
                           need_accel=use["inertia"], warnings=warnings)
@@ -352,6 +354,7 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
     if not out["holdout"]:
         warnings.append("no held-out data (holdout fraction 0 and no record with role: holdout): every score "
                         "is on data the fit has seen")
+    warnings = merge_warnings(warnings, [r.name for r in records])
     settings = {"holdout_fraction": frac, "holdout_records": sorted({r.name for r in records if r.role == "holdout"}),
                 "model": use, "records": info["records"], "method": method}
     return DatasetResult(ds.name or Path(src).stem, src, ds.protocol, ds.input, INPUT_KINDS[ds.input], out["params"],

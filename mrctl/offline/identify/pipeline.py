@@ -15,7 +15,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from mrctl.offline.identify.errors import IdentificationError, require_scipy
+from mrctl.offline.identify.errors import IdentificationError, merge_warnings, require_scipy
 from mrctl.offline.identify.fit import DEFAULT_METHOD, METHODS, _fit_one_current, _identifiability, _noise_N
 from mrctl.offline.identify.guards import Support, check_laws, theta_problems
 from mrctl.offline.identify.laws import fit_laws, theta_from_params
@@ -163,7 +163,8 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
     return IdentificationResult(params=params, fits=fits, laws=laws, method=method, period_s=T,
                                 dt_s=float(np.median(dts)), settle_periods=settle_periods,
                                 warmup_periods=warmup_periods, fit_periods=fit_periods,
-                                sources=labels, time_s=time.perf_counter() - t_start, warnings=warnings)
+                                sources=labels, time_s=time.perf_counter() - t_start,
+                                warnings=merge_warnings(warnings, labels))
 
 
 def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str] | None, *,
