@@ -141,9 +141,12 @@ def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], ti
     p = res.params
     extra = f", inertia {res.inertia_kg:.3g} kg" if res.inertia_kg else ""
     head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
-    fig.suptitle(f"{head}\nF_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input {1e3 * p.tau_input:.3g} ms"
-                 f"{extra}; red: the model fitted at that level (per level), on held-out cycles where a record "
-                 "has them", fontsize="large")
+    bench = ("per level (table)" if p.table is not None and p.table.has_bench()
+             else f"F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m")
+    fig.suptitle(f"{head}, laws: {p.laws}\n{bench}, tau_input {1e3 * p.tau_input:.3g} ms"
+                 f"{extra}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
+                                      if res.protocol == "constant_input" else "the fitted model on data the fit "
+                                      "never saw"), fontsize="large")
     buf = io.BytesIO()
     fig.savefig(buf, format=ext)
     if write:
