@@ -105,3 +105,14 @@ def test_a_csv_with_a_preamble_needs_skip_rows(tmp_path):
     (tmp_path / "all.yaml").write_text(DS + "files: [{path: r.csv}]\nformat: {skip_rows: 100000}\n")
     with pytest.raises(IdentificationError, match="skip_rows 100000 skips the whole file"):
         identify_dataset(tmp_path / "all.yaml")
+
+
+def test_run_csv_identification_folds_its_warnings_too():
+    from test_identify import staircase
+
+    from mrctl.offline.identify import identify
+
+    runs = [staircase([0.0, 0.25, 0.5], step_s=1.5, seed=s) for s in (1, 2, 3)]
+    res = identify(runs, sources=["a.csv", "b.csv", "c.csv"], max_rate_hz=500.0)
+    dec = [w for w in res.warnings if "decimated by 2" in w]
+    assert dec == ["decimated by 2 to 500 Hz (anti-aliased) (3 records: a.csv, b.csv, c.csv)"], res.warnings
