@@ -116,3 +116,13 @@ def test_run_csv_identification_folds_its_warnings_too():
     res = identify(runs, sources=["a.csv", "b.csv", "c.csv"], max_rate_hz=500.0)
     dec = [w for w in res.warnings if "decimated by 2" in w]
     assert dec == ["decimated by 2 to 500 Hz (anti-aliased) (3 records: a.csv, b.csv, c.csv)"], res.warnings
+
+
+def test_table_laws_for_broadband_are_refused(tmp_path):
+    (tmp_path / "r.csv").write_text("t,x,F,u\n0,0,0,0\n")
+    (tmp_path / "ds.yaml").write_text("version: 1\nprotocol: broadband\ninput: current\n"
+                                      "columns: {time: t, displacement: x, force: F, input: u}\n"
+                                      "files: [{path: r.csv}]\nfit: {laws: table}\n")
+    with pytest.raises(ConfigError) as exc:
+        load_dataset(tmp_path / "ds.yaml")
+    assert any(e.startswith("fit.laws: table is for constant_input") for e in exc.value.errors)

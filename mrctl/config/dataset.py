@@ -309,6 +309,9 @@ def _cross_checks(node: Node) -> list[str]:
             errors.append("columns.input: broadband identification needs the input column")
         if node.manifest is not None:
             errors.append("manifest: only for constant_input (it gives per-file levels)")
+        if node.fit.laws == "table":
+            errors.append("fit.laws: table is for constant_input (a table of per-level values); a broadband "
+                          "fit's laws are the paper's (6)-(11)")
         for i, f in enumerate(files):
             if f.level is not None or f.levels:
                 errors.append(f"files[{i}]: level/levels are for constant_input; broadband reads columns.input")
