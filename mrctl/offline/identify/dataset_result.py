@@ -215,6 +215,10 @@ def format_dataset_summary(res: DatasetResult) -> str:
     else:
         lines.append("no held-out data: the scores are on fitted data only (see warnings)")
     p = res.params
+    if p.table is not None and p.table.has_bench():
+        lines.append(f"laws: table, with per-level F_offset {min(p.table.values[6]):.4g}–{max(p.table.values[6]):.4g} N "
+                     f"and k_x {min(p.table.values[7]):.4g}–{max(p.table.values[7]):.4g} N/m (the constants below "
+                     "are the paper-law set's)")
     lines.append(f"bench terms: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input "
                  f"{1e3 * p.tau_input:.3g} ms" + (f", inertia {res.inertia_kg:.3g} kg (measurement term, not in "
                                                   "the set)" if res.inertia_kg else ""))
