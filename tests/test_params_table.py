@@ -280,6 +280,13 @@ def test_mrctl_simulate_runs_a_table_set(tmp_path, capsys):
     rows = [ln.split(",") for ln in lines[lines.index(",".join(head)) + 1:]]
     I = np.array([float(r[head.index("I")]) for r in rows])
     assert len(rows) >= 999 and np.all((I >= 0.0) & (I <= 0.6)) and I.max() > 0.05
+    # the log's sidecar carries the table: a replay runs the same laws
+    rep = tmp_path / "rep.csv"
+    assert main(["simulate", "--replay", str(out), "--law", "paper", "--out", str(rep), "-q"]) == 0
+    import json
+
+    side = json.loads(rep.with_suffix(".json").read_text())
+    assert side["parameters"]["laws"] == "table" and side["parameters"]["table"]["k_x"] == [0.0, 50.0, 100.0, 80.0]
 
 
 def test_hil_sim_bench_takes_a_table_set(tmp_path):
