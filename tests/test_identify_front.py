@@ -126,3 +126,48 @@ def test_table_laws_for_broadband_are_refused(tmp_path):
     with pytest.raises(ConfigError) as exc:
         load_dataset(tmp_path / "ds.yaml")
     assert any(e.startswith("fit.laws: table is for constant_input") for e in exc.value.errors)
+
+
+# -- mrctl's own constant-current runs: the same choice of laws as a dataset -------------------
+
+def _curved_table_i(levels):
+    """Table I with a hump in Fs and a curve in σ2 over the currents: not the paper's straight lines."""
+    import numpy as np
+
+    from mrctl.model.params import TABLE_I, ThetaTable
+
+    u = np.asarray(levels, float)
+    cols = [[TABLE_I.Fc(x) for x in u], 0.6 + 30.0 * np.sin(np.pi * u / 0.55),
+            [TABLE_I.sigma0(x) for x in u], [TABLE_I.sigma1(x) for x in u], 15.0 + 500.0 * u ** 2,
+            [TABLE_I.vs(x) for x in u]]
+    from dataclasses import replace
+
+    return replace(TABLE_I, table=ThetaTable(tuple(u.tolist()), tuple(tuple(float(x) for x in c) for c in cols)))
+
+
+def test_run_csvs_write_table_laws_where_the_paper_laws_cannot_follow(tmp_path):
+    import numpy as np
+    from test_identify import staircase
+
+    from mrctl.config import load_params_file, load_yaml
+    from mrctl.offline.identify import identify, write_params_yaml
+
+    currents = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    truth = _curved_table_i(np.linspace(0.0, 0.55, 23))
+    res = identify([staircase(currents, step_s=1.5, params=truth)])
+    ch = res.laws_choice
+    assert ch["laws"] == "table" and res.params.laws == "table", ch
+    assert ch["leave_level_out_mean"]["table"] < ch["leave_level_out_mean"]["paper"]
+    for f in res.fits:
+        assert f.nrmse_laws == f.nrmse_table and f.nrmse_table <= 1.2 * f.nrmse + 1e-4
+    assert max(f.nrmse_paper for f in res.fits) > 2.0 * max(f.nrmse_table for f in res.fits)
+    out = tmp_path / "p.yaml"
+    write_params_yaml(res, out)
+    assert load_params_file(out).laws == "table" and load_yaml(out)["fit"]["laws_choice"]["laws"] == "table"
+    # and the paper's laws where the damper follows them (Table I), or when asked
+    plain = identify([staircase(currents, step_s=1.5)])
+    assert plain.laws_choice["laws"] == "paper" and plain.params.table is None, plain.laws_choice
+    forced = identify([staircase(currents, step_s=1.5, params=truth)], laws_kind="paper")
+    assert forced.params.laws == "paper" and all(f.nrmse_laws == f.nrmse_paper for f in forced.fits)
+    with pytest.raises(IdentificationError, match="laws: 'spline' not allowed"):
+        identify([staircase(currents, step_s=1.5)], laws_kind="spline")

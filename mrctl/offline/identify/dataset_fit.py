@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -22,13 +21,13 @@ import numpy as np
 
 from mrctl.config.dataset import load_dataset
 from mrctl.config.params import INPUT_KINDS
-from mrctl.model.params import TABLE_NAMES, LuGreParams, ThetaTable
+from mrctl.model.params import LuGreParams
 from mrctl.offline.identify.bbmodel import SpanData
 from mrctl.offline.identify.broadband import fit_broadband, predict, warmup_samples
 from mrctl.offline.identify.dataset_result import DatasetResult, Score, Trace, write_dataset_outputs
 from mrctl.offline.identify.errors import IdentificationError, merge_warnings, require_scipy
 from mrctl.offline.identify.guards import Support, check_laws, theta_problems
-from mrctl.offline.identify.laws import fit_laws, theta_from_params
+from mrctl.offline.identify.laws import bench_at, fit_laws, table_set, theta_from_params
 from mrctl.offline.identify.model import THETA_NAMES
 from mrctl.offline.identify.prep import Span, prepare
 from mrctl.offline.identify.progress import make_bar
@@ -165,7 +164,7 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
                 warnings.append(f"{rec}: level {lv:g} {unit} is held out but no record was fitted at it; "
                                 "not scored")
                 continue
-            th_laws = {name: (theta_from_params(cand, lf.level), *_bench_at(cand, lf.level))
+            th_laws = {name: (theta_from_params(cand, lf.level), *bench_at(cand, lf.level))
                        for name, cand in candidates.items()}
             for part, sel in (("holdout", lambda s: s.h1 > s.f1), ("fit", lambda s: s.cycles_fit > 0)):
                 mm, pp, tt, vv = [], [], [], []
@@ -208,13 +207,6 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
             "details": details, "inertia": 0.0}
 
 
-def _bench_at(p: LuGreParams, level: float) -> tuple[float, float]:
-    """(F_offset, k_x) of the set at an input level: the table's per-level terms, or the constants."""
-    if p.table is not None and p.table.has_bench():
-        return p.table.value(6, level), p.table.value(7, level)
-    return p.F_offset, p.k_x
-
-
 def _candidates(fits: list[Any], use: dict[str, bool], sup: Support) -> tuple[dict[str, LuGreParams], dict[str, Any]]:
     """The sets the per-level fits give: ``paper`` (laws 6–11 fitted to the
     levels, the bench terms their sample-weighted means) and, from 2 levels,
@@ -227,11 +219,11 @@ def _candidates(fits: list[Any], use: dict[str, bool], sup: Support) -> tuple[di
     kx = float(np.average([lf.k_x for lf in fits], weights=w))
     params = params.with_overrides(F_offset=off, k_x=kx, tau_input=0.0)
     out = {"paper": params}
-    if len(fits) >= 2:  # fits are sorted by level
-        cols = [tuple(float(lf.theta[k]) for lf in fits) for k in TABLE_NAMES]
-        if use["offset"] or use["stiffness"]:  # the per-level bench terms too: they differ between levels
-            cols += [tuple(float(lf.offset_N) for lf in fits), tuple(float(lf.k_x) for lf in fits)]
-        out["table"] = replace(params, table=ThetaTable(tuple(float(lf.level) for lf in fits), tuple(cols)))
+    if len(fits) >= 2:  # fits are sorted by level; the per-level bench terms too: they differ between levels
+        bench = use["offset"] or use["stiffness"]
+        out["table"] = table_set(params, levels, {k: np.array([lf.theta[k] for lf in fits]) for k in THETA_NAMES},
+                                 np.array([lf.offset_N for lf in fits]) if bench else None,
+                                 np.array([lf.k_x for lf in fits]) if bench else None)
     return out, laws
 
 
@@ -257,7 +249,7 @@ def _leave_level_out(spans: list[Span], segs: list[Any], fits: list[Any], use: d
             if not mine:
                 continue
             for name, cand in cands.items():
-                th, (off, kx) = theta_from_params(cand, lv), _bench_at(cand, lv)
+                th, (off, kx) = theta_from_params(cand, lv), bench_at(cand, lv)
                 mm, pp = [], []
                 for s in mine:
                     start, end = (s.f1, s.h1) if part == "holdout" else (s.f0, s.f1)
