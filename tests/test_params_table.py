@@ -63,6 +63,9 @@ def test_a_table_file_loads_and_interpolates_piecewise_linearly(tmp_path):
     grid = np.linspace(0.0, 0.5, 101)
     fc = [p.Fc(float(u)) for u in grid]
     assert np.all(np.diff(fc) >= 0.0)
+    # at a level, exactly that level's value (the written set is the level's fit there)
+    t = ThetaTable((0.0, 0.1, 0.3), ((0.1, 0.3, 0.7),) * 6)
+    assert [t.value(0, u) for u in t.u] == [0.1, 0.3, 0.7]
     # the paper's set is untouched by default
     assert TABLE_I.laws == "paper" and TABLE_I.table is None
 

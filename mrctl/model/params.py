@@ -102,6 +102,8 @@ class ThetaTable:
         k = 1
         while u[k] < I:
             k += 1
+        if u[k] == I:  # at a level: its value exactly
+            return col[k]
         u0 = u[k - 1]
         w = (I - u0) / (u[k] - u0)
         return col[k - 1] + (col[k] - col[k - 1]) * w
