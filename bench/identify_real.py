@@ -14,7 +14,7 @@ skipped with the reason. Per dataset:
 - the time of the shipped fit: median of ``--repeat`` runs, with the
   machine it ran on (identification is single-threaded numpy).
 
-Usage: python bench/identify_real.py [--repeat 3] [--only NAME] [--figures DIR] [--json OUT]
+Usage: python bench/identify_real.py [--data-dir /work/shared/data] [--repeat 3] [--only NAME] [--figures DIR] [--json OUT]
 (``--figures docs/img`` redraws the documentation's figures.)
 """
 
@@ -54,10 +54,13 @@ def machine() -> str:
     return f"{platform.node()}: {os.cpu_count()} CPU(s) {cpu}, Python {platform.python_version()}, load {load:.2f}"
 
 
+DATA_DIR: str | None = None  # --data-dir
+
+
 def run(path: Path, **kw):
     t0 = time.perf_counter()
     try:
-        res = identify_dataset(path, allow_outside=True, **kw)  # the shipped descriptions point at ../shared/data
+        res = identify_dataset(path, allow_outside=True, data_dir=DATA_DIR, **kw)  # the shipped descriptions point at ../shared/data
     except MrctlError as exc:
         return None, str(exc).splitlines()[0], time.perf_counter() - t0
     return res, None, time.perf_counter() - t0
@@ -151,34 +154,48 @@ def constant_input(path: Path, ds, repeat: int, out: dict) -> object:
         return None
     no_off = {(s.record, s.level): s.nrmse for s in (plain.holdout if plain else [])}
     print(f"\n{ds.name} (constant input; held-out force NRMSE per record, the second half of its steady cycles)")
-    print(f"  {'record':<16} {'level':>7} {'offset':>8} {'laws':>8} {'no offset':>10}")
+    print(f"  {'record':<16} {'level':>7} {'offset':>8} {'written':>8} {'paper':>8} {'table':>8} {'no offset':>10}")
     for s in res.holdout:
         nf = no_off.get((s.record, s.level))
         print(f"  {s.record:<16} {s.level:7.4g} {100 * s.nrmse:7.2f}% {100 * s.nrmse_laws:7.2f}% "
+              f"{100 * s.nrmse_paper:7.2f}% {100 * (s.nrmse_table or float('nan')):7.2f}% "
               + (f"{100 * nf:9.2f}%" if nf is not None else f"{'refused' if perr else '-':>10}"))
     levels = sorted({s.level for s in res.holdout})
     per_level = []
     print(f"\n  per level ({res.unit}): median [min–max] over its records")
-    print(f"  {'level':>7} {'records':>7} {'with offset':>20} {'with laws':>20} {'no offset':>20} {'beats':>6}")
+    ch = res.details["laws_choice"]
+    print(f"  written laws: {ch['laws']} (fit.laws: {ch['asked']})")
+    print(f"  {'level':>7} {'records':>7} {'with offset':>20} {'written set':>20} {'paper laws':>20} "
+          f"{'table laws':>20} {'ratio':>6} {'no offset':>20} {'beats':>6}")
     for lv in levels:
         a = [s.nrmse for s in res.holdout if s.level == lv]
         b = [s.nrmse_laws for s in res.holdout if s.level == lv]
+        bp = [s.nrmse_paper for s in res.holdout if s.level == lv]
+        bt = [s.nrmse_table for s in res.holdout if s.level == lv and s.nrmse_table is not None]
         c = [no_off[(s.record, s.level)] for s in res.holdout if s.level == lv and (s.record, s.level) in no_off]
 
         def f(x):
             return f"{100 * statistics.median(x):5.2f} [{100 * min(x):.2f}–{100 * max(x):.2f}]" if x else "-"
 
         beats = bool(c) and max(a) < min(c)
+        ratio = statistics.median(b) / statistics.median(a)
         per_level.append({"level": lv, "records": len(a), "median": statistics.median(a), "min": min(a),
-                          "max": max(a), "median_laws": statistics.median(b),
+                          "max": max(a), "median_laws": statistics.median(b), "written_laws": ch["laws"],
+                          "median_paper": statistics.median(bp), "median_table": statistics.median(bt) if bt else None,
+                          "written_over_per_level": ratio,
                           "median_no_offset": statistics.median(c) if c else None, "beats_no_offset": beats})
-        print(f"  {lv:7.4g} {len(a):7d} {f(a):>20} {f(b):>20} {f(c):>20} {'yes' if beats else 'NO':>6}")
+        print(f"  {lv:7.4g} {len(a):7d} {f(a):>20} {f(b):>20} {f(bp):>20} {f(bt):>20} {ratio:6.2f} {f(c):>20} "
+              f"{'yes' if beats else 'NO':>6}")
+    loo = ch["leave_level_out_nrmse"]
+    print("  each interior level predicted from the other levels' fits (leave one level out), mean NRMSE: "
+          + "; ".join(f"{lv} V paper {100 * loo['paper'][lv]:.2f} % table {100 * loo['table'].get(lv, float('nan')):.2f} %"
+                      for lv in loo["paper"]))
     p = res.params
     print(f"  final set: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m; time median "
           f"{statistics.median(times):.1f} s of {len(times)}")
     out[ds.name] = {"protocol": "constant_input", "holdout": [s.as_dict() for s in res.holdout],
                     "no_offset": {f"{k[0]}@{k[1]}": v for k, v in no_off.items()}, "per_level": per_level,
-                    "time_s": times, "no_offset_error": perr}
+                    "time_s": times, "no_offset_error": perr, "laws_choice": ch}
     return res
 
 
@@ -188,12 +205,15 @@ def main() -> int:
     ap.add_argument("--only", help="only the dataset with this name")
     ap.add_argument("--figures", help="write each shipped fit's figure here (NAME.png)")
     ap.add_argument("--json", help="write every number to this JSON file")
+    ap.add_argument("--data-dir", help="where the shared data are (over each description's data_dir:)")
     args = ap.parse_args()
+    global DATA_DIR
+    DATA_DIR = args.data_dir
     print(machine())
     out: dict = {"machine": machine()}
     for path in sorted(DATASETS.glob("*.yaml")):
         try:
-            ds = load_dataset(path, allow_outside=True)
+            ds = load_dataset(path, data_dir=args.data_dir, allow_outside=True)
         except MrctlError as exc:
             print(f"\n{path.name}: skipped: {str(exc).splitlines()[0]}")
             continue
@@ -206,7 +226,7 @@ def main() -> int:
 
             fig = Path(args.figures) / f"{ds.name}.png"
             fig.parent.mkdir(parents=True, exist_ok=True)
-            make_dataset_report(res, fig, dpi=80)
+            make_dataset_report(res, fig, dpi=80, force=True)  # redraws the docs' figures
             try:  # a palette PNG: a third of the size, for the docs
                 from PIL import Image
 

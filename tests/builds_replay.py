@@ -41,7 +41,18 @@ CASES: list[tuple[str, dict[str, Any], dict[str, Any], dict[str, Any] | None]] =
     ("groundhook_onoff", {"type": "viscous", "c_des": 500.0}, {"law": "groundhook_onoff"}, None),
     ("clipped_optimal", {"type": "lqr"}, {"law": "clipped_optimal"}, None),
     ("law_fault", {"type": "viscous", "c_des": 500.0}, {"law": "bad_laws:ReturnsNaN", "after_ticks": 300}, None),
+    # laws: table (per-level Θ and bench terms interpolated) in the plant and the laws
+    ("smooth_table", {"type": "viscous", "c_des": 500.0}, {"law": "smooth", "_parameters": "table"}, None),
+    ("closed_table", {"type": "viscous", "c_des": 500.0}, {"law": "closed", "_parameters": "table"}, None),
+    ("paper_table", {"type": "viscous", "c_des": 500.0}, {"law": "paper", "_parameters": "table"}, None),
 ]
+
+#: a table set for the ``_parameters: table`` cases: Θ through 4 levels, with bench terms
+TABLE_PARAMS: dict[str, Any] = {"laws": "table", "table": {
+    "input": [0.0, 0.15, 0.35, 0.6], "Fc": [3.0, 12.0, 20.0, 26.0], "Fs": [2.5, 5.0, 9.0, 11.0],
+    "sigma0": [9.0e4, 1.1e5, 1.4e5, 1.8e5], "sigma1": [-280.0, -100.0, 120.0, 400.0],
+    "sigma2": [15.0, 30.0, 50.0, 75.0], "vs": [0.028, 0.026, 0.023, 0.018],
+    "F_offset": [1.0, 1.5, 2.5, 2.0], "k_x": [0.0, 50.0, 100.0, 80.0]}}
 
 
 def _samples(n: int, seed: int) -> list[Any]:
@@ -131,8 +142,10 @@ def _experiment(demand: dict[str, Any], inverse: dict[str, Any], sensing: dict[s
     from mrctl.config import validate_experiment
     from mrctl.experiment import build
 
+    inverse = dict(inverse)
+    params: Any = TABLE_PARAMS if inverse.pop("_parameters", None) == "table" else "table1"
     data: dict[str, Any] = {
-        "version": 1, "name": "builds", "duration_s": 1.0, "rate_hz": 1000, "parameters": "table1",
+        "version": 1, "name": "builds", "duration_s": 1.0, "rate_hz": 1000, "parameters": params,
         "excitation": {"type": "sine", "amplitude_m": 0.01, "frequency_hz": 1.0},
         "demand": demand, "inverse": inverse,
         "safety": {"I_max": 0.6, "max_slew_A_per_s": 200.0, "hold_ticks": 3, "auto_resume": True,

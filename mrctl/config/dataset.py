@@ -247,6 +247,8 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
             "type": Str(default=None, optional=True, choices=("csv", "mat"),
                         doc="file format; null = by extension (.mat is MATLAB, anything else CSV)"),
             "delimiter": Custom(_delimiter, default=",", doc="CSV field separator (one character)"),
+            "skip_rows": Num(default=0, integer=True, min=0, max=100000,
+                             doc="CSV: lines before the header to skip (an instrument's preamble)"),
         }, doc="how to read the files"),
         "sample_rate_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=MAX_RATE_HZ,
                               doc="sample rate; when set, time is rebuilt as t0 + k/rate (for rounded or missing "
@@ -285,6 +287,9 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
                                         "fraction of the segment's steady stroke"),
             "min_cycles": Num(default=2, integer=True, min=2, max=1000,
                               doc="constant_input: steady cycles a segment needs to be used"),
+            "laws": Str(default="auto", choices=("auto", "paper", "table"),
+                        doc="constant_input: the written laws: paper (6)-(11), table (per-level values "
+                            "interpolated piecewise linearly), auto = whichever predicts the held-out data better"),
         }, doc="fit settings"),
     }
 
@@ -304,6 +309,9 @@ def _cross_checks(node: Node) -> list[str]:
             errors.append("columns.input: broadband identification needs the input column")
         if node.manifest is not None:
             errors.append("manifest: only for constant_input (it gives per-file levels)")
+        if node.fit.laws == "table":
+            errors.append("fit.laws: table is for constant_input (a table of per-level values); a broadband "
+                          "fit's laws are the paper's (6)-(11)")
         for i, f in enumerate(files):
             if f.level is not None or f.levels:
                 errors.append(f"files[{i}]: level/levels are for constant_input; broadband reads columns.input")
@@ -311,6 +319,9 @@ def _cross_checks(node: Node) -> list[str]:
         for i, f in enumerate(files):
             if f.level is None and not f.levels and cols.get("input") is None:
                 errors.append(f"files[{i}]: no input level: give level, levels, or columns.input")
+    if node.protocol == "constant_input" and node.model.inertia:
+        errors.append("model.inertia: not identifiable from constant_input records (a steady sine's m·a is "
+                      "in phase with the stiffness k_x·x); set model.inertia: false, or fit broadband records")
     if node.model.stiffness and cols.get("displacement") is None:
         errors.append("model.stiffness: needs columns.displacement (or set model.stiffness: 0)")
     names = [f.name or Path(f.path).stem for f in files]

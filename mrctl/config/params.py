@@ -6,7 +6,10 @@ them); inline overrides in an experiment change single values of a base set.
 A file may say what its laws are a function of: ``input: current`` (A, the
 default and Table I's) or ``input: voltage`` (V, a driver's command voltage:
 a set identified from a voltage-driven bench), and ``input_range: [lo, hi]``,
-the input range it was identified over. An experiment's ``backend.input``
+the input range it was identified over. ``laws: table`` with a ``table:``
+mapping (input levels, strictly increasing, and Θ at each) replaces the
+paper's laws (6)–(11) by piecewise-linear interpolation of Θ
+(:class:`mrctl.model.params.ThetaTable`; docs/identification.md). An experiment's ``backend.input``
 must match (:func:`input_kind_errors`): a daemon that commands currents must
 not run laws written in volts.
 """
@@ -14,11 +17,11 @@ not run laws written in volts.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from mrctl.model.params import LuGreParams, params_from_mapping
+from mrctl.model.params import LuGreParams, params_from_mapping, table_from_mapping
 from mrctl.util.schema import ConfigError, load_yaml, short_repr
 
 __all__ = ["INPUT_KINDS", "ParamsFile", "read_params_file", "load_params_file", "params_check",
@@ -72,16 +75,16 @@ def read_params_file(path: str | Path) -> ParamsFile:
         raise ConfigError(["must be a mapping of parameter names to numbers"], str(path))
     values = {k: v for k, v in data.items() if k not in _PARAM_FILE_META}
     kind, rng, errors = _check_meta(data)
-    known = set(LuGreParams.all_names())
+    known = set(LuGreParams.all_names()) | {"laws", "table"}
     for k in values:
         if k not in known:
-            errors.append(f"{k}: unknown parameter (expected: {', '.join(LuGreParams.all_names())})")
+            errors.append(f"{k}: unknown parameter (expected: {', '.join(LuGreParams.all_names())}, laws, table)")
     if errors:
         raise ConfigError(errors, str(path))
     try:
         params = params_from_mapping(values)
     except ValueError as exc:
-        raise ConfigError([str(exc)], str(path)) from None
+        raise ConfigError(str(exc).split("; "), str(path)) from None
     if rng is not None:
         problems = params.check_range(rng[1], I_min=rng[0], unit=INPUT_KINDS[kind])
         if problems:
@@ -163,6 +166,12 @@ def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
         errors = []
         good: dict[str, float] = {}
         known = set(LuGreParams.all_names())
+        if "laws" in overrides or "table" in overrides:  # laws: table inline (a sweep writes sets so)
+            try:
+                base = replace(base, table=table_from_mapping(overrides.pop("laws", "paper"),
+                                                              overrides.pop("table", None)))
+            except ValueError as exc:
+                errors += [f"{path}.{e}" for e in str(exc).split("; ")]
         for k, v in overrides.items():
             if k not in known:
                 errors.append(f"{path}.{k}: unknown parameter (expected: file, {', '.join(LuGreParams.all_names())})")

@@ -39,7 +39,7 @@ from typing import Any
 
 from mrctl.laws.base import CurrentLaw, InverseLaw, LawContext, Measurement
 from mrctl.model.lugre import LuGreModel
-from mrctl.model.params import LuGreParams
+from mrctl.model.params import LuGreParams, ThetaTable
 from mrctl.util.schema import Custom, Num, check_num
 
 
@@ -86,6 +86,10 @@ class _ModelBasedLaw(InverseLaw):
         self._A = (params.sigma0A, params.sigma1A, params.sigma2A)
         self._Fo = params.F_offset
         self._kx = params.k_x
+        # laws: table: ∂Θ/∂I of the segment around the previous current, and the
+        # per-level bench terms when the table has them (None: the paper's laws)
+        self._table: ThetaTable | None = params.table
+        self._tbench = params.table is not None and params.table.has_bench()
 
     @classmethod
     def from_config(cls, cfg: Any, ctx: LawContext) -> "_ModelBasedLaw":
@@ -98,6 +102,24 @@ class _ModelBasedLaw(InverseLaw):
 
     def applied(self, I: float) -> None:
         self.I_prev = I
+
+    def _bench(self, I: float, x: float) -> float:
+        """The force around the friction (N) at input I: the set's F_offset + k_x·x,
+        or the table's per-level terms."""
+        table = self._table
+        if table is not None and self._tbench:
+            return table.bench_force(I, x)
+        return self._Fo + self._kx * x
+
+    def _slopes(self, I: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """((σ0A, σ1A, σ2A), (σ0B, σ1B, σ2B)): the laws' affine form around the input I."""
+        table = self._table
+        if table is None:
+            return self._A, self._B
+        a0, b0 = table.local(2, I)
+        a1, b1 = table.local(3, I)
+        a2, b2 = table.local(4, I)
+        return (a0, a1, a2), (b0, b1, b2)
 
     def _advance(self, v: float) -> float:
         """Step 3 of eq (12): move z to now with the previous current."""
@@ -121,14 +143,18 @@ class PaperInverse(_ModelBasedLaw):
 
     def current(self, m: Measurement, F_des: float) -> float:
         v = m.v
-        if self._kx != 0.0 or self._Fo != 0.0:
-            F_des -= self._Fo + self._kx * m.x
         Ip = self.I_prev
+        if self._table is not None:
+            F_des -= self._bench(Ip, m.x)
+            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
+        else:
+            if self._kx != 0.0 or self._Fo != 0.0:
+                F_des -= self._Fo + self._kx * m.x
+            s0B, s1B, s2B = self._B
+            s0A, s1A, s2A = self._A
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
         zdot = self.model.zdot(v, Ip)
-        s0B, s1B, s2B = self._B
-        s0A, s1A, s2A = self._A
         num = F_des - (s0B * z + s1B * zdot + s2B * v)
         den = s0A * z + s1A * zdot + s2A * v
         if den != 0.0:
@@ -216,13 +242,17 @@ class SmoothInverse(_ModelBasedLaw):
         if self._a1 != 1.0:
             return self._current_lagged(m, F_des)
         v = m.v
-        if self._kx != 0.0 or self._Fo != 0.0:
-            F_des -= self._Fo + self._kx * m.x
         Ip = self.I_prev
+        if self._table is not None:
+            F_des -= self._bench(Ip, m.x)
+            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
+        else:
+            if self._kx != 0.0 or self._Fo != 0.0:
+                F_des -= self._Fo + self._kx * m.x
+            s0B, s1B, s2B = self._B
+            s0A, s1A, s2A = self._A
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ip)  # as in eq (12): ż with the previous current
-        s0B, s1B, s2B = self._B
-        s0A, s1A, s2A = self._A
         B = s0B * z + s1B * zdot + s2B * v
         D = s0A * z + s1A * zdot + s2A * v
         den = D * D + self.eps2
@@ -244,13 +274,17 @@ class SmoothInverse(_ModelBasedLaw):
         there within the horizon, inside the slew bound around the previous
         command."""
         v = m.v
-        if self._kx != 0.0 or self._Fo != 0.0:
-            F_des -= self._Fo + self._kx * m.x
         Ia = self.I_coil
+        if self._table is not None:
+            F_des -= self._bench(Ia, m.x)
+            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
+        else:
+            if self._kx != 0.0 or self._Fo != 0.0:
+                F_des -= self._Fo + self._kx * m.x
+            s0B, s1B, s2B = self._B
+            s0A, s1A, s2A = self._A
         z = self.model.advance(v, Ia, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ia)
-        s0B, s1B, s2B = self._B
-        s0A, s1A, s2A = self._A
         B = s0B * z + s1B * zdot + s2B * v
         D = s0A * z + s1A * zdot + s2A * v
         den = D * D + self.eps2

@@ -45,6 +45,12 @@ def rate_coefficient(p: LuGreParams, v: float, I: float, Fc: float | None = None
 def force(p: LuGreParams, z: float, v: float, I: float) -> float:
     """Damper force F (N), eq (1), with ż from eq (2) at the same (z, v, I)."""
     Fc = p.Fc(I)
+    if p.table is not None:  # laws: table
+        s0 = p.sigma0(I)
+        r = v / p.vs(I)
+        g = Fc + (p.Fs(I) - Fc) * math.exp(-r * r)
+        zdot = v - s0 * abs(v) * z / g
+        return s0 * z + p.sigma1(I) * zdot + p.sigma2(I) * v
     s0 = p.sigma0A * I + p.sigma0B
     r = v / (p.vsA * I + p.vsB)
     g = Fc + (p.FsA * I + p.FsB - Fc) * math.exp(-r * r)
@@ -85,6 +91,15 @@ class LuGreModel:
     def _set_current(self, I: float) -> None:
         p = self.p
         self._I = I
+        table = p.table
+        if table is not None:  # laws: table (one branch per change of current)
+            self._Fc = table.value(0, I)
+            self._Fs = table.value(1, I)
+            self._s0 = table.value(2, I)
+            self._s1 = table.value(3, I)
+            self._s2 = table.value(4, I)
+            self._vs = table.value(5, I)
+            return
         Bc = p.Bc
         x = I / Bc if Bc != 0.0 else math.inf
         if -_LANGEVIN_SERIES_BELOW < x < _LANGEVIN_SERIES_BELOW or Bc == 0.0:

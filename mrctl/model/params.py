@@ -9,7 +9,7 @@ Units are SI: m, m/s, N, A, s.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Final
 
 # Below this |x| = |I/Bc| the Langevin function is evaluated by its Taylor
@@ -24,6 +24,118 @@ def langevin(x: float) -> float:
         # x/3 - x^3/45 + 2x^5/945 - x^7/4725; next term ~2e-17 at |x| = 0.05
         return x * (1.0 / 3.0 + x2 * (-1.0 / 45.0 + x2 * (2.0 / 945.0 - x2 / 4725.0)))
     return 1.0 / math.tanh(x) - 1.0 / x
+
+
+#: the per-level quantities a table law holds, in the order of :meth:`ThetaTable.at`
+TABLE_NAMES: Final = ("Fc", "Fs", "sigma0", "sigma1", "sigma2", "vs")
+#: optional per-level bench terms of a table (both or neither), after TABLE_NAMES
+TABLE_BENCH_NAMES: Final = ("F_offset", "k_x")
+
+
+@dataclass(frozen=True, slots=True)
+class ThetaTable:
+    """``laws: table``: Θ at identified input levels, interpolated piecewise linearly.
+
+    Why: the paper's laws (6)–(11) have a fixed shape (a squared Langevin
+    function, straight lines) that a real damper's per-level Θ need not
+    follow; a table passes through every identified level. Piecewise linear
+    interpolation is monotone (it never overshoots between levels, so a
+    positive Θ at the levels stays positive) and, within a segment, affine in
+    the input as the paper's linear laws are. Outside ``[u[0], u[-1]]`` the
+    end values are held (no extrapolated, possibly negative, Θ).
+
+    ``u``: the levels (A or V, strictly increasing, ≥ 2); ``values``: one
+    tuple per name of :data:`TABLE_NAMES`, as long as ``u``, SI units, and
+    optionally two more, :data:`TABLE_BENCH_NAMES`: the force offset (N) and
+    stiffness (N/m) per level, which then replace the set's constant
+    ``F_offset`` and ``k_x`` (a real bench's per-level fits differ in them).
+    """
+
+    u: tuple[float, ...]
+    values: tuple[tuple[float, ...], ...]
+
+    def __reduce__(self) -> tuple[type[ThetaTable], tuple[Any, ...]]:
+        """Pickled by value (as :class:`LuGreParams`)."""
+        return (ThetaTable, (self.u, self.values))
+
+    def problems(self) -> list[str]:
+        """What makes the table unusable (empty if fine): key paths under ``table``."""
+        out: list[str] = []
+        n = len(self.u)
+        if n < 2:
+            out.append(f"table.input: needs at least 2 levels, got {n}")
+        for k in range(n):
+            if not math.isfinite(self.u[k]):
+                out.append(f"table.input[{k}]: must be finite, got {self.u[k]!r}")
+        for k in range(1, n):
+            if not self.u[k] > self.u[k - 1]:
+                out.append(f"table.input: must be strictly increasing (monotone), but [{k - 1}] = "
+                           f"{self.u[k - 1]:g} and [{k}] = {self.u[k]:g}")
+                break
+        names = TABLE_NAMES + TABLE_BENCH_NAMES
+        if len(self.values) != len(TABLE_NAMES) and len(self.values) != len(names):
+            out.append(f"table: needs {', '.join(TABLE_NAMES)} (and optionally both {', '.join(TABLE_BENCH_NAMES)})")
+            return out
+        for j in range(len(self.values)):
+            name = names[j]
+            col = self.values[j]
+            if len(col) != n:
+                out.append(f"table.{name}: {len(col)} values for {n} levels in table.input")
+                continue
+            for k in range(n):
+                x = col[k]
+                if not math.isfinite(x):
+                    out.append(f"table.{name}[{k}]: must be finite, got {x!r}")
+                elif j < 6 and name != "sigma1" and not x > 0.0:
+                    out.append(f"table.{name}[{k}]: must be > 0, got {x:g}")
+        return out
+
+    def value(self, j: int, I: float) -> float:
+        """Θ entry ``TABLE_NAMES[j]`` at input I, piecewise linear, ends held."""
+        u = self.u
+        col = self.values[j]
+        n = len(u)
+        if I <= u[0]:
+            return col[0]
+        if I >= u[n - 1]:
+            return col[n - 1]
+        k = 1
+        while u[k] < I:
+            k += 1
+        if u[k] == I:  # at a level: its value exactly
+            return col[k]
+        u0 = u[k - 1]
+        w = (I - u0) / (u[k] - u0)
+        return col[k - 1] + (col[k] - col[k - 1]) * w
+
+    def local(self, j: int, I: float) -> tuple[float, float]:
+        """(A, B) of the segment the input I falls in, value = A·I + B there
+        (the end segments beyond the levels): the inverse laws' ∂Θ/∂I, as the
+        paper's linear laws give it."""
+        u = self.u
+        col = self.values[j]
+        n = len(u)
+        k = 1
+        while k < n - 1 and u[k] < I:
+            k += 1
+        a = (col[k] - col[k - 1]) / (u[k] - u[k - 1])
+        return a, col[k - 1] - a * u[k - 1]
+
+    def has_bench(self) -> bool:
+        """Whether the table holds the per-level F_offset and k_x."""
+        return len(self.values) == len(TABLE_NAMES) + len(TABLE_BENCH_NAMES)
+
+    def bench_force(self, I: float, x: float) -> float:
+        """F_offset(I) + k_x(I)·x (N), the per-level bench terms interpolated."""
+        return self.value(6, I) + self.value(7, I) * x
+
+    def as_dict(self) -> dict[str, list[float]]:
+        """The ``table:`` mapping of a parameters file."""
+        out: dict[str, list[float]] = {"input": list(self.u)}
+        names = TABLE_NAMES + TABLE_BENCH_NAMES
+        for j in range(len(self.values)):
+            out[names[j]] = list(self.values[j])
+        return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +158,11 @@ class LuGreParams:
 
     The damper's force is then F = F_LuGre(z, v, I_d) + F_offset + k_x·x,
     where I_d follows the command with time constant ``tau_input``.
+
+    ``table`` (None by default: the paper's laws) replaces laws (6)–(11) by
+    a :class:`ThetaTable` (``laws: table`` in a parameters file); the thirteen
+    constants are then still the paper-law fit of the same levels, which the
+    inverse laws' ∂F/∂I uses.
     """
 
     F0: float = 2.90  # N, residual Coulomb force at 0 A
@@ -64,16 +181,24 @@ class LuGreParams:
     F_offset: float = 0.0  # N, constant force (accumulator preload, load-cell zero)
     k_x: float = 0.0  # N/m, stiffness on displacement
     tau_input: float = 0.0  # s, first-order lag of the input the damper feels
+    table: ThetaTable | None = None  # laws: table (None: the paper's laws 6-11)
 
-    def __reduce__(self) -> tuple[type[LuGreParams], tuple[float, ...]]:
+    def __reduce__(self) -> tuple[type[LuGreParams], tuple[Any, ...]]:
         """Pickled by value: the compiled build's frozen class cannot be
         rebuilt field by field, and the reload child and sweep workers send
         parameter sets across processes."""
         return (LuGreParams, tuple([getattr(self, f.name) for f in fields(self)]))
 
     # -- laws (6)–(11) -----------------------------------------------------
+    @property
+    def laws(self) -> str:
+        """``"paper"`` (laws 6–11) or ``"table"``."""
+        return "paper" if self.table is None else "table"
+
     def Fc(self, I: float) -> float:
         """Coulomb force (N), eq (6): a squared Langevin function of I/Bc."""
+        if self.table is not None:
+            return self.table.value(0, I)
         if self.Bc == 0.0:  # degenerate fit: L(±inf)² = 1 for I != 0
             return self.F0 if I == 0.0 else self.Ac + self.F0
         L = langevin(I / self.Bc)
@@ -81,22 +206,32 @@ class LuGreParams:
 
     def sigma0(self, I: float) -> float:
         """Bristle stiffness (N/m), eq (7)."""
+        if self.table is not None:
+            return self.table.value(2, I)
         return self.sigma0A * I + self.sigma0B
 
     def sigma1(self, I: float) -> float:
         """Bristle damping (N·s/m), eq (8)."""
+        if self.table is not None:
+            return self.table.value(3, I)
         return self.sigma1A * I + self.sigma1B
 
     def sigma2(self, I: float) -> float:
         """Viscous coefficient (N·s/m), eq (9)."""
+        if self.table is not None:
+            return self.table.value(4, I)
         return self.sigma2A * I + self.sigma2B
 
     def Fs(self, I: float) -> float:
         """Stiction force (N), eq (10)."""
+        if self.table is not None:
+            return self.table.value(1, I)
         return self.FsA * I + self.FsB
 
     def vs(self, I: float) -> float:
         """Stribeck velocity (m/s), eq (11)."""
+        if self.table is not None:
+            return self.table.value(5, I)
         return self.vsA * I + self.vsB
 
     def bench_force(self, x: float) -> float:
@@ -111,11 +246,20 @@ class LuGreParams:
         return Fc + (self.Fs(I) - Fc) * math.exp(-r * r)
 
     # -- bookkeeping ---------------------------------------------------------
-    def as_dict(self) -> dict[str, float]:
-        return asdict(self)
+    def as_dict(self) -> dict[str, Any]:
+        """The sixteen constants by name; with a table also ``laws`` and ``table``
+        (what :func:`params_from_mapping` and a parameters file read back)."""
+        out: dict[str, Any] = {}
+        for f in fields(self)[:16]:
+            out[f.name] = getattr(self, f.name)
+        if self.table is not None:
+            out["laws"] = "table"
+            out["table"] = self.table.as_dict()
+        return out
 
     def with_overrides(self, **overrides: float) -> "LuGreParams":
-        return replace(self, **overrides)
+        kw: dict[str, Any] = dict(overrides)  # the numbers; the table is kept
+        return replace(self, **kw)
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -125,12 +269,12 @@ class LuGreParams:
     @classmethod
     def bench_names(cls) -> tuple[str, ...]:
         """The bench terms around the friction: F_offset, k_x, tau_input."""
-        return tuple(f.name for f in fields(cls))[13:]
+        return tuple(f.name for f in fields(cls))[13:16]
 
     @classmethod
     def all_names(cls) -> tuple[str, ...]:
-        """Every name a parameters file may set."""
-        return tuple(f.name for f in fields(cls))
+        """Every number a parameters file may set (``laws``/``table`` aside)."""
+        return tuple(f.name for f in fields(cls))[:16]
 
     def check_range(self, I_max: float, samples: int = 201, I_min: float = 0.0, unit: str = "A") -> list[str]:
         """Problems that make the model meaningless on [I_min, I_max] (empty if fine).
@@ -141,6 +285,10 @@ class LuGreParams:
         identified from a driver's command voltage has laws in volts: pass its
         fitted input range and ``unit="V"``."""
         problems: list[str] = []
+        if self.table is not None:
+            problems.extend(self.table.problems())
+            if problems:
+                return problems
         if not self.tau_input >= 0.0:
             problems.append(f"tau_input must be >= 0 s, got {self.tau_input:g}")
         span = I_max - I_min
@@ -165,7 +313,10 @@ def params_from_mapping(data: Any) -> LuGreParams:
         raise ValueError(f"parameters must be a mapping of {', '.join(LuGreParams.all_names())}")
     known = set(LuGreParams.all_names())
     values: dict[str, float] = {}
+    table = table_from_mapping(data.get("laws", "paper"), data.get("table"))
     for key, value in data.items():
+        if key in ("laws", "table"):
+            continue
         if key not in known:
             raise ValueError(f"{key}: unknown parameter (expected one of {', '.join(LuGreParams.all_names())})")
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -173,4 +324,43 @@ def params_from_mapping(data: Any) -> LuGreParams:
         if not math.isfinite(float(value)):
             raise ValueError(f"{key}: must be finite, got {value!r}")
         values[key] = float(value)
-    return TABLE_I.with_overrides(**values)
+    return replace(TABLE_I.with_overrides(**values), table=table)
+
+
+def table_from_mapping(laws: Any, data: Any) -> ThetaTable | None:
+    """``laws:`` and ``table:`` of a parameters mapping: None for the paper's
+    laws, else a checked :class:`ThetaTable`. ``ValueError`` lists every
+    problem with its key path (the input strictly increasing, Θ finite and,
+    σ1 aside, > 0)."""
+    if laws == "paper" or laws is None:
+        if data is not None:
+            raise ValueError("table: given but laws is not 'table' (set laws: table, or drop the table)")
+        return None
+    if laws != "table":
+        raise ValueError(f"laws: {laws!r} not allowed (paper: laws (6)-(11); table: interpolated per-level values)")
+    if not isinstance(data, dict):
+        raise ValueError("table: laws: table needs a mapping with input and " + ", ".join(TABLE_NAMES)
+                         + " (lists of numbers, one per level)")
+    problems: list[str] = []
+    for key in data:
+        if key != "input" and key not in TABLE_NAMES and key not in TABLE_BENCH_NAMES:
+            problems.append(f"table.{key}: unknown (expected input, {', '.join(TABLE_NAMES + TABLE_BENCH_NAMES)})")
+    bench = [k for k in TABLE_BENCH_NAMES if k in data]
+    if len(bench) == 1:
+        problems.append(f"table.{bench[0]}: give both {' and '.join(TABLE_BENCH_NAMES)}, or neither")
+    cols: list[tuple[float, ...]] = []
+    for key in ("input",) + TABLE_NAMES + (TABLE_BENCH_NAMES if len(bench) == 2 else ()):
+        raw = data.get(key)
+        if not isinstance(raw, list) or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in raw):
+            problems.append(f"table.{key}: must be a list of numbers (one per level)")
+            cols.append(())
+        else:
+            cols.append(tuple(float(x) for x in raw))
+    if problems:
+        raise ValueError("; ".join(problems))
+    table = ThetaTable(cols[0], tuple(cols[1:]))
+    problems = table.problems()
+    if problems:
+        raise ValueError("; ".join(problems))
+    return table

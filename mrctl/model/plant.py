@@ -12,7 +12,7 @@ import math
 import random
 
 from mrctl.model.lugre import LuGreModel
-from mrctl.model.params import LuGreParams
+from mrctl.model.params import LuGreParams, ThetaTable
 
 
 class DriverLag:
@@ -52,7 +52,7 @@ class DamperPlant:
     The input lag is ``driver_tau_s`` when given, else the parameter set's
     ``tau_input``: a bench key may impose a lag on a set that has none."""
 
-    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx")
+    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx", "_table")
 
     def __init__(self, params: LuGreParams, dt: float, driver_tau_s: float | None = None) -> None:
         self.model = LuGreModel(params)
@@ -63,6 +63,8 @@ class DamperPlant:
         self._started = False
         self._Fo = params.F_offset
         self._kx = params.k_x
+        table = params.table
+        self._table: ThetaTable | None = table if table is not None and table.has_bench() else None
 
     @property
     def z(self) -> float:
@@ -85,7 +87,10 @@ class DamperPlant:
         driver.I = I
         self.I_applied = I
         F = self.model.force(v, I)
-        if self._kx != 0.0:
+        table = self._table
+        if table is not None:  # laws: table with per-level F_offset and k_x
+            F += table.bench_force(I, x)
+        elif self._kx != 0.0:
             F += self._Fo + self._kx * x
         elif self._Fo != 0.0:
             F += self._Fo

@@ -1,9 +1,11 @@
 """The figure of an identification from a dataset: held-out force and F–v loops.
 
-:func:`make_dataset_report` draws, for the records the fit never saw (or
-their held-out part), the measured and the predicted force over time and
-the force–velocity loops, with each record's held-out NRMSE in its title;
-a last panel lists the held-out NRMSE of every record and level. The format
+:func:`make_dataset_report` draws the measured and the predicted force over
+time and the force–velocity loops: for constant input one record fitted at
+every level (its held-out cycles where it has some, else its fitted ones),
+for broadband the held-out parts of the first records, each with its NRMSE
+in its title; a last panel lists the held-out NRMSE of every record and
+level under its whole name. The format
 follows the file's extension (.png, .pdf, .svg). matplotlib is imported only
 here (``mrctl[plot]``); the identification package never imports this module.
 """
@@ -20,10 +22,10 @@ from mrctl.errors import BadInput
 from mrctl.offline.identify.dataset_result import DatasetResult, Trace
 from mrctl.runlog.files import write_outputs
 
-__all__ = ["make_dataset_report", "FORMATS"]
+__all__ = ["make_dataset_report", "score_table", "FORMATS"]
 
 FORMATS = ("png", "pdf", "svg")
-#: panels of held-out traces at most (one per level for constant-input data)
+#: records shown for broadband data; panels per row (constant input shows every level)
 _MAX_TRACES = 4
 #: seconds of the held-out force shown over time: broadband records are long
 #: and fast, a constant-input one shows a few cycles
@@ -35,19 +37,39 @@ class FigureError(BadInput):
 
 
 def _pick(traces: list[Trace]) -> list[Trace]:
-    """One trace per level (the longest), or the first records, up to _MAX_TRACES."""
+    """Constant input: one trace per level, every level, of a record fitted at
+    it (the longest; its held-out cycles when it has some, else its fitted
+    ones); broadband: the held-out parts of the first records, up to
+    _MAX_TRACES."""
     if any(tr.level is not None for tr in traces):
+        fitted = {(tr.record, tr.level) for tr in traces if tr.part == "fit"}
         best: dict[float, Trace] = {}
         for tr in traces:
             k = float(tr.level)  # type: ignore[arg-type]
-            if k not in best or tr.t.size > best[k].t.size:
+            key = ((tr.record, tr.level) in fitted, tr.part == "holdout", tr.t.size)
+            old = best.get(k)
+            if old is None or key > ((old.record, old.level) in fitted, old.part == "holdout", old.t.size):
                 best[k] = tr
-        chosen = [best[k] for k in sorted(best)]
-        if len(chosen) > _MAX_TRACES:
-            idx = np.linspace(0, len(chosen) - 1, _MAX_TRACES).round().astype(int)
-            chosen = [chosen[i] for i in idx]
-        return chosen
-    return traces[:_MAX_TRACES]
+        return [best[k] for k in sorted(best)]
+    return [tr for tr in traces if tr.part == "holdout"][:_MAX_TRACES]
+
+
+def score_table(res: DatasetResult, max_rows: int = 40) -> str:
+    """The figure's table of held-out scores: every record under its whole name."""
+    if not res.holdout:
+        return "no held-out data"
+    shown = res.holdout[:max_rows]
+    width = max([len("record")] + [len(s.record) for s in shown]) + 1
+    laws = any(s.nrmse_laws is not None for s in shown)
+    rows = [f"{'record':<{width}}{'level':>8}{'NRMSE':>8}" + (f"{'laws':>8}" if laws else "")]
+    for s in shown:
+        lv = "-" if s.level is None else f"{s.level:.4g}"
+        rows.append(f"{s.record:<{width}}{lv:>8}{100 * s.nrmse:7.2f}%"
+                    + (f"{100 * s.nrmse_laws:7.2f}%" if s.nrmse_laws is not None else ""))
+    if len(res.holdout) > len(shown):
+        rows.append(f"… {len(res.holdout) - len(shown)} more (JSON summary)")
+    head = "held-out force NRMSE" + (f" (laws: the written {res.params.laws} laws)" if laws else "")
+    return head + "\n\n" + "\n".join(rows)
 
 
 def _window(tr: Trace, show_s: float) -> slice:
@@ -75,20 +97,24 @@ def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], ti
         from matplotlib.figure import Figure
     except ImportError:
         raise FigureError("matplotlib is needed for figures: pip install 'mrctl[plot]'") from None
-    traces = _pick([tr for tr in res.traces if tr.part == "holdout"])
+    traces = _pick(res.traces)
     if not traces:
-        raise FigureError("no held-out data to draw (holdout fraction 0 and no record with role: holdout)")
+        raise FigureError("no data to draw (no fitted or held-out record)")
     n = len(traces)
-    fig = Figure(figsize=(4.2 * n + 3.8, 7.2), dpi=dpi, layout="constrained")
+    ncol = min(n, _MAX_TRACES)
+    nrow = -(-n // ncol)
+    fig = Figure(figsize=(4.2 * ncol + 4.6, 7.2 * nrow), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(2, n + 1, width_ratios=[1.0] * n + [0.85])
-    scores = {(s.record, s.level): s for s in res.holdout}
+    gs = fig.add_gridspec(2 * nrow, ncol + 1, width_ratios=[1.0] * ncol + [1.05])
+    scores = {(s.record, s.level, s.part): s for s in res.holdout + res.train}
     u = res.unit
     for j, tr in enumerate(traces):
-        sc = scores.get((tr.record, tr.level))
+        r0, c0 = 2 * (j // ncol), j % ncol
+        sc = scores.get((tr.record, tr.level, tr.part))
         lv = "" if tr.level is None else f" at {tr.level:.4g} {u}"
-        head = f"{tr.record}{lv}" + (f": NRMSE {100 * sc.nrmse:.2f} %" if sc else "")
-        ax = fig.add_subplot(gs[0, j])
+        what = "held out" if tr.part == "holdout" else "fitted"
+        head = f"{tr.record}{lv}, {what}" + (f": NRMSE {100 * sc.nrmse:.2f} %" if sc else "")
+        ax = fig.add_subplot(gs[r0, c0])
         w = _window(tr, _SHOW_S.get(res.protocol, 1.0))
         t0 = tr.t[w][0]
         ax.plot(tr.t[w] - t0, tr.F_meas[w], color="0.1", lw=1.0, label="measured")
@@ -98,31 +124,29 @@ def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], ti
         ax.grid(True, lw=0.5, alpha=0.5)
         if j == 0:
             ax.legend(loc="upper right", fontsize="small")
-        ax2 = fig.add_subplot(gs[1, j])
+        ax2 = fig.add_subplot(gs[r0 + 1, c0])
         step = max(1, tr.v.size // 3000)  # a few thousand points show the loop
         ax2.plot(1e3 * tr.v[::step], tr.F_meas[::step], ".", ms=1.5, color="0.15", alpha=0.3, rasterized=True,
                  label="measured")
         ax2.plot(1e3 * tr.v[::step], tr.F_pred[::step], ".", ms=1.0, color="tab:red", alpha=0.3, rasterized=True,
                  label="predicted")
-        ax2.set(xlabel="velocity (mm/s)", ylabel="force (N)", title="force–velocity, held-out part")
+        ax2.set(xlabel="velocity (mm/s)", ylabel="force (N)", title=f"force–velocity, {what} part")
         ax2.title.set_fontsize("medium")
         ax2.grid(True, lw=0.5, alpha=0.5)
     # the table of every held-out score
-    axt = fig.add_subplot(gs[:, n])
+    axt = fig.add_subplot(gs[:, ncol])
     axt.axis("off")
-    rows = [f"{'record':<14}{'level':>8}{'NRMSE':>8}"]
-    for s in res.holdout[:40]:
-        lv = "-" if s.level is None else f"{s.level:.4g}"
-        rows.append(f"{s.record[:14]:<14}{lv:>8}{100 * s.nrmse:7.2f}%")
-    if len(res.holdout) > 40:
-        rows.append(f"… {len(res.holdout) - 40} more (JSON summary)")
-    axt.text(0.0, 1.0, "held-out force NRMSE\n\n" + "\n".join(rows), va="top", ha="left", family="monospace",
-             fontsize="small", transform=axt.transAxes)
+    axt.text(0.0, 1.0, score_table(res, 40 * nrow), va="top", ha="left", family="monospace", fontsize="small",
+             transform=axt.transAxes)
     p = res.params
     extra = f", inertia {res.inertia_kg:.3g} kg" if res.inertia_kg else ""
     head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
-    fig.suptitle(f"{head}\nF_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input {1e3 * p.tau_input:.3g} ms"
-                 f"{extra}; red: the fitted model on data the fit never saw", fontsize="large")
+    bench = ("per level (table)" if p.table is not None and p.table.has_bench()
+             else f"F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m")
+    fig.suptitle(f"{head}, laws: {p.laws}\n{bench}, tau_input {1e3 * p.tau_input:.3g} ms"
+                 f"{extra}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
+                                      if res.protocol == "constant_input" else "the fitted model on data the fit "
+                                      "never saw"), fontsize="large")
     buf = io.BytesIO()
     fig.savefig(buf, format=ext)
     if write:

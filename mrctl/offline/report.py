@@ -17,6 +17,8 @@ imported only inside the figure functions: the daemon never needs it.
 
 from __future__ import annotations
 
+import dataclasses
+
 import io
 import math
 import os
@@ -599,13 +601,17 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
     style = [Line2D([], [], ls="none", marker=".", ms=6, color="0.15", alpha=0.5),
              Line2D([], [], color="0.5", lw=2.2),
              Line2D([], [], color="black", lw=0.9, ls=(0, (2, 3)))]
-    ax_fv.legend(cur_handles + style, cur_labels + ["measured", "fit at this current", "laws (6)–(11)"],
+    ax_fv.legend(cur_handles + style, cur_labels + ["measured", "fit at this current",
+                                                    "laws (6)–(11)" if res.params.table is None else "laws: table"],
                  loc="upper left", fontsize="small", ncol=2, framealpha=0.9)
 
     # (b) fit quality per current
     ax_q.plot(I, [100 * f.nrmse for f in fits], "o-", color="tab:blue", ms=4, label="per-current fit")
-    ax_q.plot(I, [100 * f.nrmse_laws for f in fits], "s--", color="black", ms=3.5, mfc="none",
-              label="laws (6)–(11)")
+    ax_q.plot(I, [100 * f.nrmse_paper for f in fits], "s--", color="black", ms=3.5, mfc="none",
+              label="laws (6)–(11)" + (" (written)" if res.params.table is None else ""))
+    if res.params.table is not None:
+        ax_q.plot(I, [100 * f.nrmse_table for f in fits], "^-.", color="tab:green", ms=3.5, mfc="none",
+                  label="laws: table (written)")
     ax_q.plot(I, [100 * f.noise_nrmse for f in fits], ":", color="tab:gray", lw=2.0, label="sensor-noise floor")
     ax_q.set(xlabel="current (A)", ylabel="NRMSE (% of peak-to-peak force)", title="(b) fit error")
     ax_q.set_ylim(bottom=0.0)
@@ -613,7 +619,10 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
 
     # (c)–(h) Fig 3: parameters vs current
     Ig = np.linspace(0.0, max(float(I.max()), 1e-3), 200)
-    law = np.array([theta_from_params(res.params, float(i)) for i in Ig])
+    paper = dataclasses.replace(res.params, table=None)  # the 13 constants: laws (6)-(11)
+    law = np.array([theta_from_params(paper, float(i)) for i in Ig])
+    table = (np.array([theta_from_params(res.params, float(i)) for i in Ig]) if res.params.table is not None
+             else None)
     ref = np.array([theta_from_params(reference, float(i)) for i in Ig]) if reference is not None else None
     from mrctl.offline.identify import THETA_NAMES
 
@@ -626,6 +635,8 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
         if ref is not None:
             ax.plot(Ig, ref[:, j] * scale, color="0.6", lw=1.0, ls=":", zorder=1)
         ax.plot(Ig, law[:, j] * scale, color="black", lw=1.3, zorder=2)
+        if table is not None:
+            ax.plot(Ig, table[:, j] * scale, color="tab:green", lw=1.1, ls="-.", zorder=2)
         ax.errorbar(I, y, yerr=2 * se, fmt="none", ecolor="tab:blue", elinewidth=0.9, capsize=2, zorder=3)
         ax.plot(I[well], y[well], "o", color="tab:blue", ms=5, zorder=4)
         if (~well).any():
@@ -645,6 +656,9 @@ def make_identification_report(runs_or_result, out_path: str | os.PathLike[str],
                  Line2D([], [], color="black", lw=1.3)]
     p_labels = ["identified (well determined)", "identified, poorly determined", "±2 standard errors",
                 "approximating law (6)–(11)"]
+    if table is not None:
+        p_handles.append(Line2D([], [], color="tab:green", lw=1.1, ls="-."))
+        p_labels.append("laws: table (written)")
     if ref is not None:
         p_handles.append(Line2D([], [], color="0.6", lw=1.0, ls=":"))
         p_labels.append("paper, Table I")

@@ -35,14 +35,17 @@ class Score:
     level: float | None  # constant-input level; None for a broadband record
     nrmse: float
     samples: int
-    nrmse_laws: float | None = None  # with the final set's laws (constant input)
+    nrmse_laws: float | None = None  # with the written set's laws (constant input)
     part: str = "holdout"  # "holdout" or "fit"
+    nrmse_paper: float | None = None  # with the paper's laws (6)-(11) (constant input)
+    nrmse_table: float | None = None  # with laws: table (constant input, >= 2 levels)
 
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"record": self.record, "level": _r(self.level) if self.level is not None else None,
                              "nrmse": _r(self.nrmse, 5), "samples": self.samples}
-        if self.nrmse_laws is not None:
-            d["nrmse_laws"] = _r(self.nrmse_laws, 5)
+        for key in ("nrmse_laws", "nrmse_paper", "nrmse_table"):
+            if getattr(self, key) is not None:
+                d[key] = _r(getattr(self, key), 5)
         return d
 
 
@@ -117,7 +120,9 @@ def summary_dict(res: DatasetResult) -> dict[str, Any]:
         "F_offset_N": _r(p.F_offset),
         "k_x_N_per_m": _r(p.k_x),
         "inertia_kg": _r(res.inertia_kg),
-        "parameters": {k: _r(v) for k, v in p.as_dict().items()},
+        "parameters": {k: _r(getattr(p, k)) for k in p.all_names()},
+        "laws": p.laws,
+        "laws_choice": res.details.get("laws_choice"),
         "settings": res.settings,
         "details": res.details,
         "warnings": list(res.warnings),
@@ -145,9 +150,13 @@ def dataset_output_bytes(res: DatasetResult, out: str | Path) -> list[tuple[Path
     }
     values = p.as_dict()
     doc.update({k: float(values[k]) for k in p.all_names()})
+    if p.table is not None:  # the written laws: the per-level table (the 13 constants stay, for the inverse laws)
+        doc["laws"] = "table"
+        doc["table"] = {k: [_r(x, 8) for x in col] for k, col in p.table.as_dict().items()}
     doc["fit"] = {
         "summary": json_path(out).name,
         "protocol": res.protocol,
+        "laws": summary["laws_choice"],
         "holdout": summary["holdout"],
         "tau_input_s": summary["tau_input_s"],
         "inertia_kg": summary["inertia_kg"],
@@ -155,7 +164,8 @@ def dataset_output_bytes(res: DatasetResult, out: str | Path) -> list[tuple[Path
     }
     out = Path(out)
     text = io.StringIO()
-    text.write(f"# mrctl identify --dataset: LuGre parameters, laws (6)-(11) in the input ({res.unit}); SI units\n")
+    laws = "a table of per-level values" if p.table is not None else "laws (6)-(11)"
+    text.write(f"# mrctl identify --dataset: LuGre parameters, {laws} in the input ({res.unit}); SI units\n")
     yaml.dump(doc, text, Dumper=_compact_dumper(), sort_keys=False, allow_unicode=True, width=120)
     return [(out, text.getvalue().encode("utf-8")),
             (json_path(out), (json.dumps(summary, indent=2, allow_nan=False) + "\n").encode("utf-8"))]
@@ -188,15 +198,27 @@ def format_dataset_summary(res: DatasetResult) -> str:
                          f"{lv['offset_N']:10.4g} {100 * lv['nrmse_fit']:6.2f}%")
     if res.holdout:
         lines.append("held-out force NRMSE (RMSE / peak-to-peak of the measured force, data the fit never saw):")
-        lines.append(f"  {'record':<24} {'level':>9} {'NRMSE':>8}" + ("  with laws" if any(
-            s.nrmse_laws is not None for s in res.holdout) else ""))
+        both = any(s.nrmse_paper is not None for s in res.holdout)
+        table = any(s.nrmse_table is not None for s in res.holdout)
+        lines.append(f"  {'record':<24} {'level':>9} {'NRMSE':>8}" + ("  with laws: paper" if both else "")
+                     + ("    table" if table else ""))
         for s in res.holdout:
             lv = "-" if s.level is None else f"{s.level:.4g}"
-            laws = f"  {100 * s.nrmse_laws:8.2f}%" if s.nrmse_laws is not None else ""
+            laws = f" {100 * s.nrmse_paper:16.2f}%" if s.nrmse_paper is not None else ""
+            laws += f" {100 * s.nrmse_table:7.2f}%" if s.nrmse_table is not None else ""
             lines.append(f"  {s.record:<24} {lv:>9} {100 * s.nrmse:7.2f}%{laws}")
+        ch = res.details.get("laws_choice")
+        if ch:
+            mean = ", ".join(f"{k} {100 * v:.2f} %" for k, v in ch["leave_level_out_mean"].items() if v is not None)
+            lines.append(f"written laws: {ch['laws']} (fit.laws: {ch['asked']}; each interior level predicted from "
+                         f"the others' fits: {mean or 'no interior level'})")
     else:
         lines.append("no held-out data: the scores are on fitted data only (see warnings)")
     p = res.params
+    if p.table is not None and p.table.has_bench():
+        lines.append(f"laws: table, with per-level F_offset {min(p.table.values[6]):.4g}–{max(p.table.values[6]):.4g} N "
+                     f"and k_x {min(p.table.values[7]):.4g}–{max(p.table.values[7]):.4g} N/m (the constants below "
+                     "are the paper-law set's)")
     lines.append(f"bench terms: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input "
                  f"{1e3 * p.tau_input:.3g} ms" + (f", inertia {res.inertia_kg:.3g} kg (measurement term, not in "
                                                   "the set)" if res.inertia_kg else ""))

@@ -112,13 +112,8 @@ def law_problems(p: LuGreParams, u_lo: float, u_hi: float, sup: Support, unit: s
                  scope: str = "law") -> list[str]:
     """Every way the laws of ``p`` leave the physical/supported range on [u_lo, u_hi]."""
     u = np.linspace(u_lo, u_hi, _GRID)
-    vals = {
-        "sigma0": p.sigma0A * u + p.sigma0B,
-        "sigma2": p.sigma2A * u + p.sigma2B,
-        "Fs": p.FsA * u + p.FsB,
-        "vs": p.vsA * u + p.vsB,
-        "Fc": np.array([p.Fc(float(q)) for q in u]),
-    }
+    vals = {name: np.array([getattr(p, name)(float(q)) for q in u])  # paper or table laws
+            for name in ("sigma0", "sigma2", "Fs", "vs", "Fc")}
     out = []
 
     def where(mask: np.ndarray, arr: np.ndarray, worst_low: bool) -> tuple[float, float]:

@@ -14,10 +14,12 @@ from typing import Mapping
 
 import numpy as np
 
-from mrctl.model.params import _LANGEVIN_SERIES_BELOW, LuGreParams
+from dataclasses import replace
+
+from mrctl.model.params import _LANGEVIN_SERIES_BELOW, TABLE_NAMES, LuGreParams, ThetaTable
 from mrctl.offline.identify.errors import IdentificationError
 
-__all__ = ["LawFit", "fit_laws", "theta_from_params"]
+__all__ = ["LawFit", "fit_laws", "theta_from_params", "table_set", "bench_at"]
 
 
 @dataclass
@@ -158,3 +160,21 @@ def theta_from_params(p: LuGreParams, I: float) -> np.ndarray:
     """Θ at current I from a 13-constant parameter set (laws 6–11)."""
     return np.array([p.sigma0(I), p.sigma1(I), p.sigma2(I), p.Fc(I), p.Fs(I), p.vs(I)])
 
+
+
+def table_set(params: LuGreParams, levels: np.ndarray, thetas: Mapping[str, np.ndarray],
+              offsets: np.ndarray | None = None, k_xs: np.ndarray | None = None) -> LuGreParams:
+    """``params`` with ``laws: table``: Θ at each level (ascending), and the
+    per-level offset and stiffness when given (both or neither), interpolated
+    piecewise linearly (:class:`mrctl.model.params.ThetaTable`)."""
+    cols = [tuple(float(x) for x in np.asarray(thetas[k], float)) for k in TABLE_NAMES]
+    if offsets is not None and k_xs is not None:
+        cols += [tuple(float(x) for x in offsets), tuple(float(x) for x in k_xs)]
+    return replace(params, table=ThetaTable(tuple(float(u) for u in levels), tuple(cols)))
+
+
+def bench_at(p: LuGreParams, level: float) -> tuple[float, float]:
+    """(F_offset, k_x) of a set at an input level: a table's per-level terms, or the constants."""
+    if p.table is not None and p.table.has_bench():
+        return p.table.value(6, level), p.table.value(7, level)
+    return p.F_offset, p.k_x

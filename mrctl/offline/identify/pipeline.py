@@ -15,10 +15,11 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from mrctl.offline.identify.errors import IdentificationError, require_scipy
+from mrctl.offline.identify.errors import IdentificationError, merge_warnings, require_scipy
 from mrctl.offline.identify.fit import DEFAULT_METHOD, METHODS, _fit_one_current, _identifiability, _noise_N
 from mrctl.offline.identify.guards import Support, check_laws, theta_problems
-from mrctl.offline.identify.laws import fit_laws, theta_from_params
+from mrctl.model.params import LuGreParams
+from mrctl.offline.identify.laws import bench_at, fit_laws, table_set, theta_from_params
 from mrctl.offline.identify.model import THETA_NAMES, _model_batch
 from mrctl.offline.identify.result import CurrentFit, IdentificationResult, write_params_yaml
 from mrctl.offline.identify.runs import _check_run, common_period, decimate, fit_windows, load_identification_run
@@ -33,7 +34,7 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
              settle_periods: float = 1.0, warmup_periods: float = 1.0, fit_periods: float | None = None,
              max_rate_hz: float | None = 2000.0, period_s: float | None = None, F0: str = "fit",
              progress: ProgressFn | None = None, sources: Sequence[str] | None = None,
-             offset: bool = False, stiffness: bool = False) -> IdentificationResult:
+             offset: bool = False, stiffness: bool = False, laws_kind: str = "auto") -> IdentificationResult:
     """Identify the 13 LuGre constants from constant-current sine runs.
 
     Args:
@@ -56,12 +57,17 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
             bench's load-cell zero, accumulator preload), solved exactly for
             every Θ; the set's F_offset is their mean weighted by samples.
         stiffness: fit a stiffness k_x on the displacement too (needs x_meas or x).
+        laws_kind: the written laws: "paper" (6)–(11), "table" (every current's
+            Θ, offset and stiffness interpolated piecewise linearly), or "auto":
+            whichever predicts better each interior current left out of the laws.
     Raises:
         IdentificationError: bad or insufficient input, with a message for the
             user; also a fit that leaves what the data support (a per-current
             Θ or a law over the identified range): no absurd set is returned.
         DependencyMissing: scipy is not installed.
     """
+    if laws_kind not in ("auto", "paper", "table"):
+        raise IdentificationError(f"laws: {laws_kind!r} not allowed (auto, paper or table)")
     if method not in METHODS:
         raise IdentificationError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
     if isinstance(runs, Mapping):
@@ -150,20 +156,69 @@ def identify(runs: Sequence[Mapping[str, Any]], *, method: str = DEFAULT_METHOD,
         params = params.with_overrides(F_offset=float(np.average([f.offset_N for f in fits], weights=w)),
                                        k_x=float(np.average([f.k_x for f in fits], weights=w)))
     check_laws(params, float(I_arr.min()), float(I_arr.max()), sup)
-    for f in fits:
-        th = theta_from_params(params, f.current)
-        rec = f._rec  # type: ignore[attr-defined]
+    bench = offset or use_x
+
+    def candidates(part: list[CurrentFit]) -> dict[str, LuGreParams]:
+        """The paper-law set and the table of these currents' fits."""
+        I_p = np.array([f.current for f in part])
+        th = {k: np.array([f.theta[k] for f in part]) for k in THETA_NAMES}
+        if part is fits:
+            paper = params
+        else:
+            paper, _ = fit_laws(I_p, th, F0, floors=sup.floors())
+            if bench:
+                wp = np.array([f.samples for f in part], float)
+                paper = paper.with_overrides(F_offset=float(np.average([f.offset_N for f in part], weights=wp)),
+                                             k_x=float(np.average([f.k_x for f in part], weights=wp)))
+        out = {"paper": paper}
+        if len(part) >= 2 and np.all(np.diff(I_p) > 0.0):
+            out["table"] = table_set(paper, I_p, th, np.array([f.offset_N for f in part]) if bench else None,
+                                     np.array([f.k_x for f in part]) if bench else None)
+        return out
+
+    def law_force(p: LuGreParams, f: CurrentFit) -> np.ndarray:
+        off, kx = bench_at(p, f.current)
         with np.errstate(all="ignore"):
-            F_law = _model_batch(th[None, :], rec)[0] + params.F_offset
-        if f._x is not None:  # type: ignore[attr-defined]
-            F_law = F_law + params.k_x * f._x  # type: ignore[attr-defined]
-        f.F_laws = F_law
-        f.nrmse_laws = float(np.sqrt(np.mean((F_law - rec.F) ** 2))) / f.ptp_N
+            F = _model_batch(theta_from_params(p, f.current)[None, :], f._rec)[0] + off  # type: ignore[attr-defined]
+        return F + kx * f._x if f._x is not None else F  # type: ignore[attr-defined]
+
+    # which laws to write: each interior current predicted by the sets of the others' fits
+    loo: dict[str, dict[float, float]] = {"paper": {}, "table": {}}
+    for k in range(1, len(fits) - 1):
+        try:
+            cands = candidates(fits[:k] + fits[k + 1:])
+        except IdentificationError:  # pragma: no cover - the laws of fewer currents do not fit
+            continue
+        f = fits[k]
+        for name, cand in cands.items():
+            loo[name][f.current] = float(np.sqrt(np.mean((law_force(cand, f) - f._rec.F) ** 2))) / f.ptp_N  # type: ignore[attr-defined]
+    mean = {name: (float(np.mean(list(v.values()))) if v else None) for name, v in loo.items()}
+    cands = candidates(fits)
+    pick = "table" if mean["table"] is not None and mean["paper"] is not None and mean["table"] < mean["paper"] \
+        else "paper"
+    if laws_kind in cands:
+        pick = laws_kind
+    elif laws_kind == "table":
+        raise IdentificationError("laws: table needs at least 2 currents")
+    for f in fits:
+        for name, cand in cands.items():
+            F_law = law_force(cand, f)
+            nr = float(np.sqrt(np.mean((F_law - f._rec.F) ** 2))) / f.ptp_N  # type: ignore[attr-defined]
+            setattr(f, "nrmse_" + name, nr)
+            if name == pick:
+                f.F_laws, f.nrmse_laws = F_law, nr
         del f._rec, f._x, f._support  # type: ignore[attr-defined]
+    params = cands[pick]
+    law_choice = {"laws": pick, "asked": laws_kind,
+                  "rule": "auto: the lower mean NRMSE predicting each interior current from the other currents' "
+                          "fits (leave one current out)",
+                  "leave_level_out_nrmse": {name: {f"{k:g}": v for k, v in d.items()} for name, d in loo.items()},
+                  "leave_level_out_mean": mean}
     return IdentificationResult(params=params, fits=fits, laws=laws, method=method, period_s=T,
                                 dt_s=float(np.median(dts)), settle_periods=settle_periods,
                                 warmup_periods=warmup_periods, fit_periods=fit_periods,
-                                sources=labels, time_s=time.perf_counter() - t_start, warnings=warnings)
+                                sources=labels, time_s=time.perf_counter() - t_start,
+                                warnings=merge_warnings(warnings, labels), laws_choice=law_choice)
 
 
 def identify_files(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str] | None, *,

@@ -62,14 +62,19 @@ def _read_bytes(path: Path, max_bytes: int | None = None) -> bytes:
         raise IdentificationError(f"{path}: {exc}") from None
 
 
-def _read_csv(path: Path, names: dict[str, str], delimiter: str) -> dict[str, np.ndarray]:
+def _read_csv(path: Path, names: dict[str, str], delimiter: str, skip_rows: int = 0) -> dict[str, np.ndarray]:
+    """The named columns of a CSV; ``skip_rows`` lines before the header are
+    an instrument's preamble (``format.skip_rows``), skipped whatever they hold."""
     try:
         text = _read_bytes(path).decode("utf-8-sig")
     except UnicodeDecodeError:
         raise IdentificationError(f"{path}: not a text (UTF-8) CSV file; is it a .mat file? "
                                   "(set format.type: mat)") from None
     lines = text.splitlines()
-    k = 0
+    if skip_rows and skip_rows >= len(lines):
+        raise IdentificationError(f"{path}: format.skip_rows {skip_rows} skips the whole file "
+                                  f"({len(lines)} line(s))")
+    k = skip_rows
     while k < len(lines) and (not lines[k].strip() or lines[k].lstrip().startswith("#")):
         k += 1
     if k == len(lines):
@@ -170,7 +175,8 @@ def read_signals(path: str, ds: Any) -> dict[str, np.ndarray]:
     if kind == "mat":
         raw = _read_mat(p, specs)
     else:
-        raw = _read_csv(p, {r: s.name for r, s in specs.items()}, ds.format.delimiter)
+        raw = _read_csv(p, {r: s.name for r, s in specs.items()}, ds.format.delimiter,
+                        int(ds.format.get("skip_rows", 0) or 0))
     n = {r: a.size for r, a in raw.items()}
     if len(set(n.values())) > 1:
         raise IdentificationError(f"{p}: the columns have different lengths: "

@@ -38,7 +38,9 @@ class CurrentFit:
     start_notes: dict[str, str]
     nrmse: float  # RMS(F_meas − F_fit) / ptp(F_meas) with this current's Θ
     noise_nrmse: float  # sensor-noise floor of the same ratio (estimated from F_meas)
-    nrmse_laws: float = math.nan  # same with Θ from the fitted laws (6)–(11)
+    nrmse_laws: float = math.nan  # same with Θ from the written set's laws
+    nrmse_paper: float = math.nan  # same through the paper's laws (6)–(11)
+    nrmse_table: float = math.nan  # same through laws: table (every current's fit: its own NRMSE)
     rms_N: float = math.nan
     ptp_N: float = math.nan
     noise_N: float = math.nan
@@ -78,6 +80,7 @@ class IdentificationResult:
     sources: list[str]
     time_s: float
     warnings: list[str] = field(default_factory=list)
+    laws_choice: dict[str, Any] = field(default_factory=dict)  # the written laws and the scores that chose them
 
     @property
     def currents(self) -> np.ndarray:
@@ -121,6 +124,7 @@ def result_metadata(result: IdentificationResult) -> dict[str, Any]:
             "current_A": _r(f.current), "current_cmd_A": _r(f.current_cmd),
             "theta": {k: _r(v) for k, v in f.theta.items()},
             "nrmse": _r(f.nrmse, 4), "nrmse_noise_floor": _r(f.noise_nrmse, 4), "nrmse_laws": _r(f.nrmse_laws, 4),
+            "nrmse_paper": _r(f.nrmse_paper, 4), "nrmse_table": _r(f.nrmse_table, 4),
             "rms_N": _r(f.rms_N, 4), "noise_N": _r(f.noise_N, 4),
             "offset_N": _r(f.offset_N), "k_x": _r(f.k_x),
             "std_error": {k: _r(v, 3) for k, v in f.se.items()},
@@ -154,6 +158,7 @@ def result_metadata(result: IdentificationResult) -> dict[str, Any]:
         "laws": {k: {"equation": lf.equation, "coefficients": {c: _r(v) for c, v in lf.coefficients.items()},
                      "rms": _r(lf.rms, 4), "rel_rms": _r(lf.rel_rms, 4), "max_abs": _r(lf.max_abs, 4),
                      "r2": _r(lf.r2, 4)} for k, lf in result.laws.items()},
+        "laws_choice": result.laws_choice,
         "per_current": per,
         "warnings": list(result.warnings),
         "time_s": _r(result.time_s, 3),
@@ -203,9 +208,14 @@ def params_yaml_bytes(result: IdentificationResult, description: str | None = No
     values = p.as_dict()
     doc.update({k: float(values[k]) for k in p.names()})
     doc.update({k: float(values[k]) for k in p.bench_names() if values[k] != 0.0})  # only the terms a fit set
+    if p.table is not None:  # the written laws: every current's Θ (the 13 constants stay, for the inverse laws)
+        doc["laws"] = "table"
+        doc["table"] = {k: [_r(x, 8) for x in col] for k, col in p.table.as_dict().items()}
     doc["fit"] = result_metadata(result)
     text = io.StringIO()
-    text.write("# mrctl identify: LuGre parameters (SI units), laws (6)-(11) of Palka & Maslanka 2013\n")
+    text.write("# mrctl identify: LuGre parameters (SI units), " + (
+        "a table of per-current values (laws: table)\n" if p.table is not None
+        else "laws (6)-(11) of Palka & Maslanka 2013\n"))
     yaml.dump(doc, text, Dumper=_CompactDumper, sort_keys=False, allow_unicode=True, width=120)
     return text.getvalue().encode("utf-8")
 
@@ -236,6 +246,11 @@ def format_summary(result: IdentificationResult) -> str:
                      f"{100 * f.nrmse_laws:6.2f}%  {poor}")
     lines.append("laws (6)-(11): " + "; ".join(
         f"{k} rms {lf.rms:.4g} ({100 * lf.rel_rms:.1f} %)" for k, lf in result.laws.items()))
+    ch = result.laws_choice
+    if ch:
+        mean = ", ".join(f"{k} {100 * v:.2f} %" for k, v in ch["leave_level_out_mean"].items() if v is not None)
+        lines.append(f"written laws: {ch['laws']} (each interior current predicted from the others' fits: "
+                     f"{mean or 'no interior current'})")
     lines.append("identifiability: " + ", ".join(f"{k} {v}" for k, v in result.summary_determined().items()))
     p = result.params
     lines.append("parameters: " + ", ".join(f"{k}={getattr(p, k):.5g}" for k in p.names()))
