@@ -286,11 +286,14 @@ def test_calibrate_recovers_the_benchs_offsets_and_lag(tmp_path) -> None:
     # an experiment takes it: offsets, the observer's noise, the law's lag
     from mrctl.config import load_experiment
 
-    exp = _exp_for(tmp_path, port, calibration="cal.yaml")
+    exp = _exp_for(tmp_path, port, calibration="cal.yaml", sensing={"velocity": "observer"})
     cfg = load_experiment(exp)
     assert cfg.backend.device.channels["x"].offset_V == cal["channels"]["x"]["offset_V"]
     assert cfg.sensing.x_noise_m == cal["noise"]["x_m"]
     assert cfg.parameters.tau_input == cal["driver"]["tau_s"]
+    # the shipped experiment's own x_noise_m (noise plus the host clock's timing jitter) wins
+    shipped = load_experiment(_exp_for(tmp_path, port, calibration="cal.yaml"))
+    assert shipped.sensing.x_noise_m == yaml.safe_load(EXPERIMENT.read_text())["sensing"]["x_noise_m"]
 
 
 def _nrmse_load_cell(path: Path) -> float:
