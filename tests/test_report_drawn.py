@@ -136,3 +136,18 @@ def test_cli_options_are_checked(tmp_path, capsys):
     assert main(["report", str(path), "--out", str(png), "--panels", "nope"]) == 2
     err = capsys.readouterr().err
     assert "--size" in err and "--time" in err and "--panels" in err and "Traceback" not in err
+
+
+def test_the_error_panel_is_scaled_to_the_metrics_window(tmp_path):
+    """A start-up transient inside the settling window does not flatten the
+    error the metrics judge: the panel's limits come from t >= settle."""
+    path, cols = _known_run(tmp_path)
+    text = path.read_text().splitlines()
+    head, rows = text[0], text[1:]
+    first = rows[0].split(",")
+    first[head.split(",").index("F")] = repr(float(first[head.split(",").index("F_des")]) - 400.0)  # a 400 N kick at t = 0
+    path.write_text("\n".join([head, ",".join(first), *rows[1:]]) + "\n")
+    fig, _ = build_figure(path)
+    lo, hi = _axes(fig)["error"].get_ylim()
+    err = 0.5 + 0.1 * cols["t"][cols["t"] >= 0.5]  # F - F_des in the metrics window (settle_s 0.5)
+    assert lo > -5.0 and err.min() >= lo and err.max() <= hi, (lo, hi)

@@ -410,6 +410,9 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
             ax.set_xlim(t_lo, t_hi)
         if q == "error":
             ax.axhline(0.0, color="0.3", lw=0.6, zorder=1)
+            lim = _error_limits(loaded, t_lo, t_hi)
+            if lim is not None:  # scaled to the metrics window: a start-up transient is not the story
+                ax.set_ylim(*lim)
         ax.grid(True, lw=0.5, alpha=0.5)
     # one shared legend below the panels, so no legend ever covers data; the
     # shaded spans once each
@@ -466,6 +469,24 @@ def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     fig, runs_out = build_figure(runs, title=title, settle=settle, size=size, time=time, panels=panels)
     _save(fig, out_path, fmt, force)
     return runs_out
+
+
+def _error_limits(loaded: list, t_lo: float, t_hi: float) -> tuple[float, float] | None:
+    """y limits of the error panel: the runs' F - F_des over their metrics
+    windows within [t_lo, t_hi], 15 % margin; None when there is nothing
+    finite there (matplotlib's own limits then)."""
+    lo, hi = math.inf, -math.inf
+    for cols, m in loaded:
+        t = cols["t"]
+        sel = (t >= max(t_lo, m["t_start"])) & (t <= t_hi)
+        e = (cols["F"] - cols["F_des"])[sel]
+        e = e[np.isfinite(e)]
+        if e.size:
+            lo, hi = min(lo, float(e.min())), max(hi, float(e.max()))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return None
+    pad = 0.15 * max(hi - lo, 1e-9)
+    return lo - pad, hi + pad
 
 
 def _same_demand(loaded: list, n: int) -> bool:
