@@ -369,10 +369,7 @@ class ClosedLoopInverse(SmoothInverse):
         F = m.F
         guard = self._correct(F, Ia, dk)
         self._F_seen = F
-        if self._table is not None:
-            Fb = self._bench(Ia, m.x)
-        else:
-            Fb = self._Fo + self._kx * m.x if (self._kx != 0.0 or self._Fo != 0.0) else 0.0
+        Fb = self._bench(Ia, m.x)
         if self._started:
             s = self._slope
             self._dv += s * (v - self.model.v_prev - self._dv)
@@ -382,11 +379,7 @@ class ClosedLoopInverse(SmoothInverse):
         else:
             z = self._first(v)
         zdot = self.model.zdot(v, Ia)
-        if self._table is not None:
-            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
-        else:
-            s0B, s1B, s2B = self._B
-            s0A, s1A, s2A = self._A
+        (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
         D = s0A * z + s1A * zdot + s2A * v
         # the reversal detector and the table's feed-forward for the coming ticks
         n = self._n + dk

@@ -77,13 +77,13 @@ class _ModelBasedLaw(InverseLaw):
         self.p = params
         self.I_max = float(I_max)
         self.dt = float(dt)
+        # compiled (mypyc), self.model.advance(...) is a native call; a bound
+        # method kept in an attribute would be a Python call
         self.model = LuGreModel(params)
         self.I_prev = 0.0
         self._started = False
-        # compiled (mypyc), self.model.advance(...) is a native call; a bound
-        # method kept in an attribute would be a Python call
-        self._B = (params.sigma0B, params.sigma1B, params.sigma2B)
-        self._A = (params.sigma0A, params.sigma1A, params.sigma2A)
+        # the paper's affine form ((σ0A, σ1A, σ2A), (σ0B, σ1B, σ2B)), built once, not per tick
+        self._AB = ((params.sigma0A, params.sigma1A, params.sigma2A), (params.sigma0B, params.sigma1B, params.sigma2B))
         self._Fo = params.F_offset
         self._kx = params.k_x
         # laws: table: ∂Θ/∂I of the segment around the previous current, and the
@@ -105,17 +105,19 @@ class _ModelBasedLaw(InverseLaw):
 
     def _bench(self, I: float, x: float) -> float:
         """The force around the friction (N) at input I: the set's F_offset + k_x·x,
-        or the table's per-level terms."""
+        or the table's per-level terms; 0.0 without either (x is not read then)."""
         table = self._table
         if table is not None and self._tbench:
             return table.bench_force(I, x)
-        return self._Fo + self._kx * x
+        if self._kx != 0.0 or self._Fo != 0.0:
+            return self._Fo + self._kx * x
+        return 0.0
 
     def _slopes(self, I: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """((σ0A, σ1A, σ2A), (σ0B, σ1B, σ2B)): the laws' affine form around the input I."""
         table = self._table
         if table is None:
-            return self._A, self._B
+            return self._AB
         a0, b0 = table.local(2, I)
         a1, b1 = table.local(3, I)
         a2, b2 = table.local(4, I)
@@ -144,14 +146,8 @@ class PaperInverse(_ModelBasedLaw):
     def current(self, m: Measurement, F_des: float) -> float:
         v = m.v
         Ip = self.I_prev
-        if self._table is not None:
-            F_des -= self._bench(Ip, m.x)
-            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
-        else:
-            if self._kx != 0.0 or self._Fo != 0.0:
-                F_des -= self._Fo + self._kx * m.x
-            s0B, s1B, s2B = self._B
-            s0A, s1A, s2A = self._A
+        F_des -= self._bench(Ip, m.x)
+        (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
         zdot = self.model.zdot(v, Ip)
@@ -243,14 +239,8 @@ class SmoothInverse(_ModelBasedLaw):
             return self._current_lagged(m, F_des)
         v = m.v
         Ip = self.I_prev
-        if self._table is not None:
-            F_des -= self._bench(Ip, m.x)
-            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
-        else:
-            if self._kx != 0.0 or self._Fo != 0.0:
-                F_des -= self._Fo + self._kx * m.x
-            s0B, s1B, s2B = self._B
-            s0A, s1A, s2A = self._A
+        F_des -= self._bench(Ip, m.x)
+        (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ip)  # as in eq (12): ż with the previous current
         B = s0B * z + s1B * zdot + s2B * v
@@ -275,14 +265,8 @@ class SmoothInverse(_ModelBasedLaw):
         command."""
         v = m.v
         Ia = self.I_coil
-        if self._table is not None:
-            F_des -= self._bench(Ia, m.x)
-            (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
-        else:
-            if self._kx != 0.0 or self._Fo != 0.0:
-                F_des -= self._Fo + self._kx * m.x
-            s0B, s1B, s2B = self._B
-            s0A, s1A, s2A = self._A
+        F_des -= self._bench(Ia, m.x)
+        (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
         z = self.model.advance(v, Ia, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ia)
         B = s0B * z + s1B * zdot + s2B * v
