@@ -31,6 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from loop_under_attack import FIG5, ROOT, Daemon, alias_bomb, flood, plugin_config, run_daemon  # noqa: E402
 
+from mrctl.errors import ExitCode  # noqa: E402
+
 TCP_EXP = (ROOT / "config" / "experiments" / "hil_modbus_tcp.yaml").read_text()
 #: a bad config's extra keys removed, so that a plugin law's empty params validate
 _PLAIN = ("  eps_N_per_A: 3.0        # hold the current where dF/dI is below ~3 N/A\n",
@@ -190,7 +192,7 @@ def _reload_sequence(texts: list[str]) -> Callable[[Daemon], list[tuple[float | 
 #: a run that completed: 0, or 5 when the machine's load broke its timing
 #: bound (the verdict); the attack's own effect on timing is judged by the
 #: longest gap against the quiet run's
-COMPLETED = (0, 5)
+COMPLETED = (ExitCode.OK, ExitCode.DEGRADED)
 
 
 def _gap_ok(attack_us: float | None, quiet_us: float | None) -> bool:

@@ -80,6 +80,8 @@ def out_path(args: argparse.Namespace, default: str | None = None) -> str | None
 
     from mrctl.util.files import check_out_parent
 
+    if args.out is not None and not args.out.strip():  # not a silent "no file" or "the default"
+        raise BadInput("--out '': an empty value names no file; give a file name, or leave --out out")
     out = args.out if args.out else default
     if out is None:
         return None
@@ -137,8 +139,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from mrctl.util.options import check_duration
 
     override = check_duration(args.duration)
-    if args.out is not None and not args.out.strip():
-        raise BadInput("--out '': an empty value would silently turn it off; leave --out out for none")
     args.out = out_path(args)
     if args.out is not None:
         files.check_log_path(args.out, args.force, args.mkdir)  # before a long simulation, not after
@@ -222,10 +222,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mrctl.daemon.instances import check_instance
     from mrctl.daemon.service import RunOptions, run
 
-    for opt, value in (("--out", args.out), ("--stream", args.stream)):
-        if value is not None and not value.strip():  # not a silent "off": leaving the option out is
-            raise BadInput(f"{opt} '': an empty value would silently turn it off; leave {opt} out for none")
-    if args.no_log and args.out:
+    if args.stream is not None and not args.stream.strip():  # not a silent "off": leaving the option out is
+        raise BadInput("--stream '': an empty value would silently turn it off; leave --stream out for none")
+    if args.no_log and args.out is not None:
         raise BadInput("run: --out and --no-log contradict each other")
     if args.no_log:
         out = None
@@ -383,11 +382,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
     runs = list(args.runs)
     dataset = args.dataset
     if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
-        dataset = runs[0]
+        dataset, runs = runs[0], []  # one .yaml: the description (identify_command takes it from here)
     if dataset is None and not runs:
         raise BadInput("identify: give run CSVs or a dataset description (--dataset D.yaml)")
-    if args.out is not None and not args.out.strip():
-        raise BadInput("--out '': an empty name; give the parameters file to write (.yaml)")
+    args.dataset, args.runs = dataset, runs
     src = Path(dataset if dataset is not None else runs[0])
     args.out = out_path(args, str(src.with_name(src.stem + ".params.yaml")))
     if args.report:

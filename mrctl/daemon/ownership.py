@@ -254,12 +254,19 @@ def acquire(key: str, note: str = "", lock_dir: Path | None = None) -> DeviceLoc
     raise LinkFailure(f"device {key}: could not take its lock {path} (it keeps changing)")
 
 
+def device_key_of(link: Any) -> str | None:
+    """The device ``link`` is for (:meth:`Link.device_key`), None for one
+    nothing else can reach (the in-process bench); every Link has the
+    method, a test's stand-in may not."""
+    key_of = getattr(link, "device_key", None)
+    return key_of() if key_of is not None else None
+
+
 def own(link: Any, note: str, warn: Callable[[str], None]) -> DeviceLock | None:
     """The service's step: lock the device ``link`` is for (None: a device
     nothing else can reach, e.g. the in-process bench). :class:`DeviceBusy`
     names the device as the user gave it, too; a per-user lock is warned about."""
-    key_of = getattr(link, "device_key", None)  # every Link has it; a test's stand-in may not
-    key = key_of() if key_of is not None else None
+    key = device_key_of(link)
     if not key:
         return None
     try:

@@ -229,8 +229,7 @@ class Service:
         if err:
             raise LinkFailure(f"could not command 0 A at start: {err}")
         self._zero_error = None
-        key_of = getattr(link, "device_key", None)  # every Link has it; a test's stand-in may not
-        if not link.split or (key_of is not None and key_of() is not None):  # every link but the in-process bench
+        if not link.split or ownership.device_key_of(link) is not None:  # every link but the in-process bench
             exp = self.exp = self._check_link(exp, link)
         if exp.config.loop.pacing == "device":
             self._set_device_pacing(exp, link)

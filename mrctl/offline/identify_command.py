@@ -34,9 +34,7 @@ def identify_command(args: argparse.Namespace) -> int:
     exit 1, ReportError exit 2) for :func:`main`'s handler. Outputs: checked
     before the fit, written after it (:mod:`mrctl.offline.identify.outputs`)."""
     runs = list(args.runs)
-    dataset = args.dataset
-    if dataset is None and len(runs) == 1 and runs[0].lower().endswith((".yaml", ".yml")):
-        dataset, runs = runs[0], []
+    dataset = args.dataset  # a single .yaml among the runs is already taken as it (mrctl.cli)
     if dataset is not None:
         if runs:
             raise BadInput("identify: give run CSVs or --dataset, not both")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from mrctl.errors import ExitCode
+
 from hil_sim.testing.fault_suite.analysis import _fault_made_misses
 from hil_sim.testing.fault_suite.scenario import Scenario
 
@@ -14,7 +16,7 @@ __all__ = ["table_row", "deviations", "usable"]
 #: a run that completed while its fault broke an acceptance bound (more than
 #: 2 % of its ticks in fault, or over 100 ms at forced 0 A): the verdict is
 #: degraded, exit 5, and the reaction under test is judged as for exit 0
-COMPLETED_DEGRADED = 5
+COMPLETED_DEGRADED = ExitCode.DEGRADED
 
 
 def table_row(sc: Scenario, r: dict[str, Any]) -> dict[str, str]:
