@@ -222,11 +222,11 @@ def main() -> int:
         fn = broadband if ds.protocol == "broadband" else constant_input
         res = fn(path, ds, max(1, args.repeat), out)
         if args.figures and res is not None:
-            from mrctl.offline.identify_figure import make_dataset_report
+            from mrctl.offline.identify_figure import make_identification_figure
 
             fig = Path(args.figures) / f"{ds.name}.png"
             fig.parent.mkdir(parents=True, exist_ok=True)
-            make_dataset_report(res, fig, dpi=80, force=True)  # redraws the docs' figures
+            make_identification_figure(res, fig, dpi=80, force=True)  # redraws the docs' figures
             try:  # a palette PNG: a third of the size, for the docs
                 from PIL import Image
 

@@ -547,28 +547,35 @@ def build_parser() -> argparse.ArgumentParser:
     xp.set_defaults(func=cmd_exporter)
 
     ip = sub.add_parser("identify", help="fit the LuGre parameter set: from run CSVs of constant-current steps, "
-                                         "or from measured data described by a dataset YAML")
+                                         "or from measured data described by a dataset YAML (one pipeline)")
     ip.add_argument("runs", nargs="*", metavar="RUN.csv", help="run CSVs (simulate or run) with a constant-current "
-                                                               "schedule; or one dataset .yaml")
+                                                               "schedule, described as a dataset by mrctl itself; "
+                                                               "or one dataset .yaml")
     ip.add_argument("--dataset", metavar="D.yaml",
                     help="dataset description (docs/identification.md): measured records, any columns")
-    add_out_options(ip, "parameters YAML to write (usable as parameters: FILE); a dataset also writes the JSON "
-                        "summary beside it", default="STEM.params.yaml beside the dataset or the first run")
-    ip.add_argument("--report", metavar="FIG", help="also draw a figure (.png/.pdf/.svg): run CSVs the paper's Figs 2 "
-                                                    "and 3, a dataset its held-out force and F-v loops")
+    add_out_options(ip, "parameters YAML to write (usable as parameters: FILE); the JSON summary is written "
+                        "beside it", default="STEM.params.yaml beside the dataset or the first run")
+    ip.add_argument("--report", metavar="FIG", help="also draw a figure (.png/.pdf/.svg): measured and predicted "
+                                                    "force, F-v loops, the parameters per level and their laws")
+    ip.add_argument("--describe", metavar="D.yaml",
+                    help="run CSVs: write the dataset description mrctl makes of them (edit it, then "
+                         "--dataset D.yaml) and fit nothing")
     ip.add_argument("--data-dir", metavar="DIR",
                     help="dataset: where its records are (over its data_dir: key; default its own directory); "
                          "they must lie under it")
-    ip.add_argument("--holdout", help="dataset: held out of the fit: a fraction (0.3), none, or record names "
-                                      "(a,b) held out whole; default the description's")
-    ip.add_argument("--period", type=float, metavar="S",
-                    help="run CSVs: the excitation period (s), if it cannot be estimated")
+    ip.add_argument("--holdout", help="held out of the fit: a fraction (0.3), none, or record names (a,b) held "
+                                      "out whole; default the description's (run CSVs: half of each level's steady "
+                                      "cycles)")
+    ip.add_argument("--fit-laws", choices=("auto", "paper", "table"),
+                    help="constant input: the written laws (the description's fit.laws), paper (6)-(11) or a table of the "
+                         "per-level values; "
+                         "default auto (whichever predicts a left-out level better)")
     ip.add_argument("--no-offset", action="store_true", help="fit no force offset and stiffness (for comparison)")
     add_quiet_options(ip)
     ip.add_argument("--force", action="store_true", help="replace existing output files (never an input)")
     _outside_option(ip)
     ip.add_argument("--method", default="trf", choices=("trf", "trf-bounds", "lm", "nelder-mead"),
-                    help="run CSVs: optimiser (docs/identification.md); default trf")
+                    help="constant input: the per-level optimiser (docs/identification.md); default trf")
     ip.set_defaults(func=cmd_identify)
 
     cp = sub.add_parser("check", help="validate an experiment or sweep file (every error at once); list the laws")

@@ -24,7 +24,7 @@ from mrctl.experiment import build
 from mrctl.model.params import TABLE_I
 from mrctl.model.plant import DamperPlant
 from mrctl.offline.identify import identify_dataset
-from mrctl.offline.identify.dataset_result import write_dataset_outputs
+from mrctl.offline.identify.result import write_result
 from mrctl.offline.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +41,7 @@ def identified(tmp_path_factory):
                                "force: F, input: I}\nresample_hz: 1000\nfiles: [r.csv]\nfit: {starts: 1, max_nfev: 40}\n")
     res = identify_dataset(d / "ds.yaml")
     out = d / "identified.yaml"
-    write_dataset_outputs(res, out)
+    write_result(res, out)
     return out
 
 

@@ -21,7 +21,7 @@ from mrctl.cli import main
 from mrctl.config import load_params_file
 from mrctl.config.params import read_params_file
 from mrctl.offline.identify import identify_dataset
-from mrctl.offline.identify.dataset_result import write_dataset_outputs
+from mrctl.offline.identify.result import write_result
 from mrctl.offline.identify.bbmodel import SpanData, from_params, simulate
 from mrctl.model.plant import DamperPlant
 
@@ -121,16 +121,16 @@ def test_cli_writes_yaml_json_and_figure(bb_dir, result, tmp_path, capsys):
     assert summary["tau_input_s"] == pytest.approx(pf.params.tau_input, rel=1e-5)
     assert fig.read_text().lstrip().startswith("<?xml")
     # a figure format matplotlib cannot be asked for is refused, exit 2
-    from mrctl.offline.identify_figure import make_dataset_report
+    from mrctl.offline.identify_figure import make_identification_figure
 
     with pytest.raises(Exception, match="unknown figure format 'bmp'") as ei:
-        make_dataset_report(result, tmp_path / "x.bmp")
+        make_identification_figure(result, tmp_path / "x.bmp")
     assert ei.value.exit_code == 2
 
 
 def test_a_voltage_set_runs_only_on_a_voltage_driver(result, tmp_path, capsys):
     out = tmp_path / "bb.yaml"
-    write_dataset_outputs(result, out)
+    write_result(result, out)
     exp = tmp_path / "exp.yaml"
     exp.write_text(f"version: 1\nparameters: {out}\nexcitation: {{type: sine, amplitude_m: 0.004, frequency_hz: 2}}\n"
                    "demand: {type: viscous, c_des: 2000}\ninverse: {law: smooth}\nsafety: {I_max: 2.0}\n"

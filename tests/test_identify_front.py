@@ -66,7 +66,7 @@ def test_the_figure_shows_every_level_and_whole_names(fast):
 
 
 def test_every_level_is_drawn_past_four(tmp_path):
-    from mrctl.offline.identify_figure import _pick, make_dataset_report
+    from mrctl.offline.identify_figure import _pick, make_identification_figure
 
     rec, _ = sine_levels_record([0.0, 0.5, 1.0, 1.5, 2.0], seed=21)
     write_csv(tmp_path / "r.csv", rec, {"t": "t", "x": "x", "F": "F", "u": "u"})
@@ -74,7 +74,7 @@ def test_every_level_is_drawn_past_four(tmp_path):
     res = identify_dataset(tmp_path / "ds.yaml")
     picked = _pick(res.traces)  # no held-out data: the fitted cycles, still every level
     assert [tr.level for tr in picked] == [0.0, 0.5, 1.0, 1.5, 2.0] and {tr.part for tr in picked} == {"fit"}
-    png = make_dataset_report(res, tmp_path / "f.png", dpi=40)
+    png = make_identification_figure(res, tmp_path / "f.png", dpi=40)
     assert png[:4] == b"\x89PNG"
 
 
@@ -107,15 +107,13 @@ def test_a_csv_with_a_preamble_needs_skip_rows(tmp_path):
         identify_dataset(tmp_path / "all.yaml")
 
 
-def test_run_csv_identification_folds_its_warnings_too():
-    from test_identify import staircase
+def test_run_csv_identification_folds_its_warnings_too(tmp_path):
+    from test_identify import identify_csvs, staircase
 
-    from mrctl.offline.identify import identify
-
-    runs = [staircase([0.0, 0.25, 0.5], step_s=1.5, seed=s) for s in (1, 2, 3)]
-    res = identify(runs, sources=["a.csv", "b.csv", "c.csv"], max_rate_hz=500.0)
+    runs = [staircase([0.0, 0.25, 0.5], dt=5e-4, step_s=2.0, seed=s) for s in (1, 2, 3)]
+    res = identify_csvs(tmp_path, runs, names=["a", "b", "c"])
     dec = [w for w in res.warnings if "decimated by 2" in w]
-    assert dec == ["decimated by 2 to 500 Hz (anti-aliased) (3 records: a.csv, b.csv, c.csv)"], res.warnings
+    assert dec == ["decimated by 2 to 1000 Hz (anti-aliased) (3 records: a, b, c)"], res.warnings
 
 
 def test_table_laws_for_broadband_are_refused(tmp_path):
@@ -147,27 +145,30 @@ def _curved_table_i(levels):
 
 def test_run_csvs_write_table_laws_where_the_paper_laws_cannot_follow(tmp_path):
     import numpy as np
-    from test_identify import staircase
+    from test_identify import identify_csvs, staircase
 
     from mrctl.config import load_params_file, load_yaml
-    from mrctl.offline.identify import identify, write_params_yaml
+    from mrctl.offline.identify import write_result
 
     currents = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
     truth = _curved_table_i(np.linspace(0.0, 0.55, 23))
-    res = identify([staircase(currents, step_s=1.5, params=truth)])
-    ch = res.laws_choice
+    res = identify_csvs(tmp_path, [staircase(currents, step_s=2.0, params=truth)], names=["curved"])
+    ch = res.details["laws_choice"]
     assert ch["laws"] == "table" and res.params.laws == "table", ch
     assert ch["leave_level_out_mean"]["table"] < ch["leave_level_out_mean"]["paper"]
-    for f in res.fits:
-        assert f.nrmse_laws == f.nrmse_table and f.nrmse_table <= 1.2 * f.nrmse + 1e-4
-    assert max(f.nrmse_paper for f in res.fits) > 2.0 * max(f.nrmse_table for f in res.fits)
+    for s in res.holdout:
+        assert s.nrmse_laws == s.nrmse_table and s.nrmse_table <= 1.2 * s.nrmse + 1e-4
+    assert max(s.nrmse_paper for s in res.holdout) > 2.0 * max(s.nrmse_table for s in res.holdout)
     out = tmp_path / "p.yaml"
-    write_params_yaml(res, out)
-    assert load_params_file(out).laws == "table" and load_yaml(out)["fit"]["laws_choice"]["laws"] == "table"
+    write_result(res, out)
+    assert load_params_file(out).laws == "table" and load_yaml(out)["fit"]["laws"]["laws"] == "table"
     # and the paper's laws where the damper follows them (Table I), or when asked
-    plain = identify([staircase(currents, step_s=1.5)])
-    assert plain.laws_choice["laws"] == "paper" and plain.params.table is None, plain.laws_choice
-    forced = identify([staircase(currents, step_s=1.5, params=truth)], laws_kind="paper")
-    assert forced.params.laws == "paper" and all(f.nrmse_laws == f.nrmse_paper for f in forced.fits)
-    with pytest.raises(IdentificationError, match="laws: 'spline' not allowed"):
-        identify([staircase(currents, step_s=1.5)], laws_kind="spline")
+    plain = identify_csvs(tmp_path, [staircase(currents, step_s=2.0)], names=["plain"])
+    assert plain.details["laws_choice"]["laws"] == "paper" and plain.params.table is None
+    forced = identify_csvs(tmp_path, [staircase(currents, step_s=2.0, params=truth)], names=["forced"], laws="paper")
+    assert forced.params.laws == "paper" and all(s.nrmse_laws == s.nrmse_paper for s in forced.holdout)
+    from mrctl.cli import main
+
+    assert main(["identify", str(tmp_path / "forced.csv"), "--fit-laws", "table", "--out", str(tmp_path / "t.yaml"),
+                 "-q", "--no-progress"]) == 0
+    assert load_params_file(tmp_path / "t.yaml").laws == "table"

@@ -14,7 +14,7 @@ import pytest
 from identify_synth import sine_levels_record
 from mrctl.cli import main
 from mrctl.model.params import TABLE_I
-from mrctl.offline.identify import IdentificationError, identify, identify_dataset
+from mrctl.offline.identify import IdentificationError, identify_dataset, identify_runs
 from mrctl.offline.identify.guards import Support, check_laws, law_problems, theta_problems
 from mrctl.offline.identify.laws import fit_laws
 
@@ -79,21 +79,22 @@ def rest_and_ramps():
 
 
 def test_run_with_rest_and_ramps(rest_and_ramps, tmp_path):
-    run = rest_and_ramps
-    # one period for the whole record does not exist: said so, with both ways out
-    with pytest.raises(IdentificationError, match=r"(?s)not periodic.*--period S.*--dataset"):
-        identify([run])
-    # with the period but no offset the fit is absurd (the Fs spike): refused
-    with pytest.raises(IdentificationError, match=r"(?s)not physical.*0 A: Fc = .* is below") as ei:
-        identify([run], period_s=0.5)
-    assert "Fs = " in str(ei.value)
-    # with the offset, a physical set (Table I's Fs and vs), its offset found
-    res = identify([run], period_s=0.5, offset=True)
-    for f in res.fits:
-        assert f.theta["Fs"] == pytest.approx(TABLE_I.Fs(f.current_cmd), rel=0.1)
-        assert f.theta["vs"] == pytest.approx(TABLE_I.vs(f.current_cmd), rel=0.1)
-        assert f.offset_N == pytest.approx(30.0, abs=0.5)
+    from test_identify import write_run_csv
+
+    path = write_run_csv(tmp_path / "run.csv", rest_and_ramps)
+    # without the offset the fit is absurd (the Fs spike): refused
+    with pytest.raises(IdentificationError, match=r"(?s)not physical.*level 0 A: Fs = .* exceeds") as ei:
+        identify_runs([path], model={"offset": False, "stiffness": False})
+    assert "vs = " in str(ei.value)
+    # with the offset (the default for run CSVs), a physical set (Table I's Fs and vs), its offset found;
+    # only the steady cycles are fitted, each level's period its own
+    res = identify_runs([path])
+    for lv in res.details["levels"]:
+        assert lv["theta"]["Fs"] == pytest.approx(TABLE_I.Fs(lv["level"]), rel=0.1)
+        assert lv["theta"]["vs"] == pytest.approx(TABLE_I.vs(lv["level"]), rel=0.1)
+        assert lv["offset_N"] == pytest.approx(30.0, abs=0.5)
     assert res.params.F_offset == pytest.approx(30.0, abs=0.5)
+    assert all(s.nrmse < 0.01 for s in res.holdout)
 
 
 def test_the_cli_refuses_and_writes_nothing(rest_and_ramps, tmp_path, capsys):
@@ -102,11 +103,9 @@ def test_the_cli_refuses_and_writes_nothing(rest_and_ramps, tmp_path, capsys):
     rows = np.column_stack([rest_and_ramps[c] for c in cols])
     path.write_text(",".join(cols) + "\n" + "\n".join(",".join(f"{q:.9g}" for q in r) for r in rows) + "\n")
     out = tmp_path / "p.yaml"
-    assert main(["identify", str(path), "--out", str(out), "--period", "0.5", "--no-offset"]) == 2
+    assert main(["identify", str(path), "--out", str(out), "--no-offset"]) == 2
     err = capsys.readouterr().err
     assert "not physical" in err and "Traceback" not in err and not out.exists()
-    assert main(["identify", str(path), "--out", str(out), "--period", "-1"]) == 2
-    assert "--period must be > 0" in capsys.readouterr().err
     # the same record described as a dataset: steady cycles only, per-segment periods
     ds = tmp_path / "ds.yaml"
     ds.write_text("version: 1\nprotocol: constant_input\ncolumns: {time: t, displacement: x, velocity: v_meas, "

@@ -193,7 +193,7 @@ files: [{path: r.csv}]
 
 
 def test_identification_writes_table_laws_that_beat_the_paper_laws(curved, tmp_path):
-    from mrctl.offline.identify.dataset_result import write_dataset_outputs
+    from mrctl.offline.identify.result import write_result
 
     d, res = curved
     ch = res.details["laws_choice"]
@@ -212,7 +212,7 @@ def test_identification_writes_table_laws_that_beat_the_paper_laws(curved, tmp_p
         np.mean([s.nrmse_table for s in sc]) for sc in by_level.values())
     # written and read back: the same set, the controller's loader accepts it
     out = tmp_path / "p.yaml"
-    write_dataset_outputs(res, out)
+    write_result(res, out)
     back = read_params_file(out).params
     assert back.laws == "table" and back.table.u == pytest.approx(res.params.table.u)
     assert back.Fs(1.25) == pytest.approx(res.params.Fs(1.25), rel=1e-6)

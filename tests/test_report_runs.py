@@ -28,16 +28,22 @@ def _simulate(tmp_path: Path, name: str, duration: str = "2", text: str | None =
 
 # -- 7. a torn last line (full disk, SIGKILL) -------------------------------------------
 def test_report_and_identify_read_a_log_with_a_torn_last_line(tmp_path):
-    from mrctl.offline.identify import load_identification_run
+    from mrctl.config.dataset import validate_dataset
+    from mrctl.offline.identify import describe_runs
+    from mrctl.offline.identify.records import read_records
 
     csv = _simulate(tmp_path, "fig5.yaml")
     rows = len(csv.read_text().splitlines()) - 1
     with csv.open("a") as fh:
         fh.write("2.001,0.0099,-0.00")  # what a writer killed mid-line leaves
     assert main(["report", str(csv), "--out", str(tmp_path / "f.png")]) == 0
-    run = load_identification_run(csv)
+    doc = describe_runs([csv])
+    doc["columns"]["input"] = None  # fig5's current is closed loop: read the columns only
+    doc["files"][0]["level"] = 0.0
+    rec, = read_records(validate_dataset(doc, tmp_path, allow_outside=True))
     lag = json.loads(csv.with_suffix(".json").read_text())["load_cell_delay_ticks"]
-    assert len(run["t"]) == rows - lag  # every whole row, F moved back to its own tick
+    assert rec.t.size == rows - lag  # every whole row, F moved back to its own tick
+    assert rec.notes == ["its last line was cut off mid-write; dropped"]
 
 
 # -- 12. the format is the name's --------------------------------------------------------

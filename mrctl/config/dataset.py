@@ -51,7 +51,7 @@ MAX_RATE_HZ = 1e7
 
 
 def _column(value: Any, path: str) -> tuple[Any, list[str]]:
-    """A column: its name, or {name, scale, offset, index}; null = not recorded."""
+    """A column: its name, or {name, scale, offset, index, delay_samples}; null = not recorded."""
     if value is None:
         return None, []
     if isinstance(value, str):
@@ -62,6 +62,10 @@ def _column(value: Any, path: str) -> tuple[Any, list[str]]:
         "offset": Num(default=0.0, doc="then add this (SI units)"),
         "index": Num(default=None, optional=True, integer=True, min=0,
                      doc="column of a 2-D .mat variable (0-based)"),
+        "delay_samples": Num(default=0, integer=True, min=0, max=100000,
+                             doc="this signal is that many samples late (sample k+n measured the instant of "
+                                 "sample k, e.g. a load cell read one tick after x and v): moved back, the "
+                                 "record shortened by n"),
     }, value, path)
     if not errors and node.scale == 0.0:
         errors.append(f"{path}.scale: must not be 0")
@@ -249,6 +253,9 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
             "delimiter": Custom(_delimiter, default=",", doc="CSV field separator (one character)"),
             "skip_rows": Num(default=0, integer=True, min=0, max=100000,
                              doc="CSV: lines before the header to skip (an instrument's preamble)"),
+            "max_gap_samples": Num(default=0, integer=True, min=0, max=1000,
+                                   doc="missing samples in a row (a logger's skipped ticks) filled by linear "
+                                       "interpolation; 0 = a gap in the time column is an error"),
         }, doc="how to read the files"),
         "sample_rate_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=MAX_RATE_HZ,
                               doc="sample rate; when set, time is rebuilt as t0 + k/rate (for rounded or missing "
@@ -386,7 +393,10 @@ def dataset_markdown() -> str:
            "columns.<signal>.scale": Num(default=1.0, doc="multiply by this to get SI units"),
            "columns.<signal>.offset": Num(default=0.0, doc="then add this (SI units)"),
            "columns.<signal>.index": Num(default=None, optional=True, integer=True, min=0,
-                                         doc="column of a 2-D .mat variable (0-based)")}
+                                         doc="column of a 2-D .mat variable (0-based)"),
+           "columns.<signal>.delay_samples": Num(default=0, integer=True, min=0, max=100000,
+                                                 doc="the signal is n samples late: moved back, the record "
+                                                     "shortened by n")}
     return "\n".join([_markdown(dataset_schema(Path("."))), "### One record (`files[]`)", "", _markdown(entry),
                       "### One column (`columns.<signal>`: a name, or this mapping)", "", _markdown(col)])
 

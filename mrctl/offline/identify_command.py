@@ -1,4 +1,4 @@
-"""``mrctl identify``: run CSVs or a dataset description to a parameters YAML.
+"""``mrctl identify``: run CSVs or a dataset description to a parameters YAML (one pipeline).
 
 Checks the command line, then every output before the fit, fits, and writes
 the parameters, the dataset's JSON summary and the figure together after
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 from typing import Sequence
 
@@ -27,74 +26,82 @@ __all__ = ["identify_command", "check_outputs", "write_all"]
 
 
 def identify_command(args: argparse.Namespace) -> int:
-    """Run CSVs (mrctl's own logs of constant-current steps) or a dataset
-    description (a lab's measured records, ``--dataset`` or a .yaml argument).
-    Prints progress, the summary table, what was written. Errors are raised
-    (IdentificationError/ConfigError exit 2, DependencyMissing without scipy
-    exit 1, ReportError exit 2) for :func:`main`'s handler. Outputs: checked
-    before the fit, written after it (:mod:`mrctl.offline.identify.outputs`)."""
+    """Run CSVs (mrctl's own logs of constant-current steps, described by
+    :func:`mrctl.offline.identify.runs.describe_runs`) or a dataset
+    description (a lab's measured records, ``--dataset`` or a .yaml
+    argument): one pipeline either way. Prints progress, the summary table,
+    what was written. Errors are raised (IdentificationError/ConfigError
+    exit 2, DependencyMissing exit 2, FigureError exit 2) for :func:`main`'s
+    handler. Outputs: checked before the fit, written after it, all or
+    nothing."""
+    from mrctl.config.dataset import load_dataset
+    from mrctl.offline.identify import format_summary, identify_dataset, load_runs
+    from mrctl.offline.identify.result import result_bytes
+    from mrctl.runlog.files import sidecar_path
+
     runs = list(args.runs)
     dataset = args.dataset  # a single .yaml among the runs is already taken as it (mrctl.cli)
+    overrides = {"fit": {"laws": args.fit_laws}} if args.fit_laws else {}
     if dataset is not None:
         if runs:
             raise BadInput("identify: give run CSVs or --dataset, not both")
-        if args.period is not None or args.method != "trf":
-            raise BadInput("identify: --period and --method are for run CSVs; a dataset's segments have their own "
-                           "period")
-        return _identify_dataset(args, dataset)
-    if args.holdout is not None:
-        raise BadInput("identify: --holdout is for --dataset (run CSVs are scored on their fit windows)")
-    if args.data_dir is not None:
-        raise BadInput("identify: --data-dir is for --dataset (where its records are)")
-    if args.allow_outside_paths:
-        raise BadInput("identify: --allow-outside-paths is for --dataset (run CSVs are named on the command line)")
-    from mrctl.offline.identify import format_summary, identify_files
-    from mrctl.offline.identify.result import params_yaml_bytes
-    from mrctl.runlog.files import sidecar_path
-
-    def progress(i: int, n: int, I: float, elapsed: float, nrmse: float) -> None:
-        if not (args.quiet or args.no_progress):
-            print(f"[{i:2d}/{n}] I = {I:.3f} A  NRMSE {100 * nrmse:5.2f} %  ({elapsed:.1f} s)", flush=True)
-
-    if args.period is not None and not args.period > 0:
-        raise BadInput(f"identify: --period must be > 0 s, got {args.period:g}")
-    check_outputs(args.out, args.report, [q for r in runs for q in (r, sidecar_path(r))], force=args.force)
-    result = identify_files(runs, None, method=args.method, progress=progress, period_s=args.period,
-                            offset=not args.no_offset, stiffness="auto" if not args.no_offset else False)
-    items = [(args.out, params_yaml_bytes(result))]
+        if args.describe is not None:
+            raise BadInput("identify: --describe writes the description of run CSVs; a dataset has one")
+        ds = load_dataset(dataset, data_dir=args.data_dir, allow_outside=args.allow_outside_paths)
+        if overrides:
+            ds = ds.replace(fit=ds.fit.replace(**overrides["fit"]))
+        inputs = [dataset, *(f.path for f in ds.files or [])] + ([ds.manifest.path] if ds.manifest is not None else [])
+        source = str(dataset)
+    else:
+        if args.data_dir is not None:
+            raise BadInput("identify: --data-dir is for --dataset (where its records are)")
+        if args.allow_outside_paths:
+            raise BadInput("identify: --allow-outside-paths is for --dataset (run CSVs are named on the command "
+                           "line)")
+        ds, doc = load_runs(runs, overrides=overrides)
+        if args.describe is not None:
+            return _describe(args, doc)
+        inputs = [q for r in runs for q in (r, sidecar_path(r))]
+        source = ", ".join(runs)
+    check_outputs(args.out, args.report, inputs, force=args.force, summary=True)
+    model = {"offset": False, "stiffness": False} if args.no_offset else None
+    res = identify_dataset(ds, holdout=args.holdout, model=model, source=source, method=args.method,
+                           progress=not (args.no_progress or args.quiet))
+    if dataset is None:
+        res.settings["dataset"] = doc  # the description mrctl wrote: --describe writes it for --dataset
+    items = result_bytes(res, args.out)
     if args.report:
-        from mrctl.offline.report import make_identification_report
+        from mrctl.offline.identify_figure import make_identification_figure
 
-        items.append((args.report, make_identification_report(result, args.report, write=False)))
-    print(format_summary(result))
+        items.append((Path(args.report), make_identification_figure(res, args.report, write=False)))
+    print(format_summary(res))
     write_all(items, args.force)
-    _say(args, f"wrote {args.out} ({len(result.fits)} currents, {result.time_s:.1f} s, optimiser {result.method})")
+    _say(args, f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
     if args.report:
         _say(args, f"wrote {args.report}")
     return 0
 
 
-def _identify_dataset(args: argparse.Namespace, dataset: str) -> int:
-    from mrctl.config.dataset import load_dataset
-    from mrctl.offline.identify import format_dataset_summary, identify_dataset
-    from mrctl.offline.identify.dataset_result import dataset_output_bytes
+def _describe(args: argparse.Namespace, doc: dict) -> int:
+    """``--describe D.yaml``: the description of the run CSVs, paths relative to it, for ``--dataset``."""
+    import yaml
 
-    ds = load_dataset(dataset, data_dir=args.data_dir, allow_outside=args.allow_outside_paths)
-    inputs = [dataset, *(f.path for f in ds.files or [])] + ([ds.manifest.path] if ds.manifest is not None else [])
-    check_outputs(args.out, args.report, inputs, force=args.force, summary=True)
-    model = {"offset": False, "stiffness": False} if args.no_offset else None
-    res = identify_dataset(ds, holdout=args.holdout, model=model, source=str(dataset),
-                           progress=not (args.no_progress or args.quiet) and sys.stderr.isatty())
-    items = dataset_output_bytes(res, args.out)
-    if args.report:
-        from mrctl.offline.identify_figure import make_dataset_report
-
-        items.append((Path(args.report), make_dataset_report(res, args.report, write=False)))
-    print(format_dataset_summary(res))
-    write_all(items, args.force)
-    _say(args, f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
-    if args.report:
-        _say(args, f"wrote {args.report}")
+    out = Path(args.describe)
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise BadInput(f"--describe {args.describe}: name the description .yaml")
+    check_output_path(out, args.force, inputs=[q for f in doc["files"] for q in (f["path"],)],
+                      what="the description (--describe)")
+    base = out.resolve().parent
+    files = []
+    for f in doc["files"]:
+        rel = os.path.relpath(f["path"], base)
+        files.append({**f, "path": rel if not rel.startswith("..") else f["path"]})
+    text = ("# dataset description of mrctl run CSVs, written by mrctl identify --describe;\n"
+            f"# mrctl identify --dataset {out.name} fits the same (paths outside this directory need "
+            "--allow-outside-paths)\n" + yaml.safe_dump({**doc, "files": files}, sort_keys=False, allow_unicode=True,
+                                                          width=120))
+    write_all([(out, text.encode("utf-8"))], args.force)
+    _say(args, f"wrote {out}: mrctl identify --dataset {out} fits the same records")
     return 0
 
 

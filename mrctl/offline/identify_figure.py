@@ -1,11 +1,13 @@
-"""The figure of an identification from a dataset: held-out force and F–v loops.
+"""The figure of an identification: held-out force, F–v loops, the parameters per level.
 
-:func:`make_dataset_report` draws the measured and the predicted force over
+:func:`make_identification_figure` draws the measured and the predicted force over
 time and the force–velocity loops: for constant input one record fitted at
 every level (its held-out cycles where it has some, else its fitted ones),
 for broadband the held-out parts of the first records, each with its NRMSE
-in its title; a last panel lists the held-out NRMSE of every record and
-level under its whole name. The format
+in its title; for constant input with two levels or more, the six
+parameters per level (±2 standard errors) with the paper's laws and the
+table (the paper's Fig 3); a last panel lists the held-out NRMSE of every
+record and level under its whole name. The format
 follows the file's extension (.png, .pdf, .svg). matplotlib is imported only
 here (``mrctl[plot]``); the identification package never imports this module.
 """
@@ -19,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from mrctl.errors import BadInput
-from mrctl.offline.identify.dataset_result import DatasetResult, Trace
+from mrctl.offline.identify.result import IdentificationResult, Trace
 from mrctl.runlog.files import write_outputs
 
-__all__ = ["make_dataset_report", "score_table", "FORMATS"]
+__all__ = ["make_identification_figure", "score_table", "FORMATS"]
 
 FORMATS = ("png", "pdf", "svg")
 #: records shown for broadband data; panels per row (constant input shows every level)
@@ -54,7 +56,7 @@ def _pick(traces: list[Trace]) -> list[Trace]:
     return [tr for tr in traces if tr.part == "holdout"][:_MAX_TRACES]
 
 
-def score_table(res: DatasetResult, max_rows: int = 40) -> str:
+def score_table(res: IdentificationResult, max_rows: int = 40) -> str:
     """The figure's table of held-out scores: every record under its whole name."""
     if not res.holdout:
         return "no held-out data"
@@ -84,9 +86,59 @@ def _window(tr: Trace, show_s: float) -> slice:
     return slice(0, max(2, min(n, end)))
 
 
-def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], title: str | None = None,
+# (Θ name, label, unit scale, unit text) of the per-level panels (the paper's Fig 3)
+_THETA_PANELS = (
+    ("Fc", "Coulomb force $F_c$", 1.0, "N"),
+    ("Fs", "stiction force $F_s$", 1.0, "N"),
+    ("vs", "Stribeck velocity $v_s$", 1e3, "mm/s"),
+    ("sigma0", "bristle stiffness $\\sigma_0$", 1e-3, "kN/m"),
+    ("sigma1", "bristle damping $\\sigma_1$", 1.0, "N·s/m"),
+    ("sigma2", "viscous coefficient $\\sigma_2$", 1.0, "N·s/m"),
+)
+
+
+def _theta_panels(fig, gs, row0: int, width: int, res: IdentificationResult, levels: list[dict]) -> None:
+    """The six parameters per level (±2 standard errors, hollow where poorly
+    determined) with the paper's laws (6)–(11) and, when written, the table:
+    what the laws make of the levels (the paper's Fig 3)."""
+    import dataclasses
+
+    from mrctl.offline.identify.laws import theta_from_params
+    from mrctl.offline.identify.model import THETA_NAMES
+
+    u = np.array([lv["level"] for lv in levels], float)
+    grid = np.linspace(float(u.min()), float(u.max()), 200)
+    paper = dataclasses.replace(res.params, table=None)
+    law = np.array([theta_from_params(paper, float(g)) for g in grid])
+    table = (np.array([theta_from_params(res.params, float(g)) for g in grid]) if res.params.table is not None
+             else None)
+    for n, (name, label, scale, unit) in enumerate(_THETA_PANELS):
+        sub = gs[row0 + n // 3, :width].subgridspec(1, 3)
+        ax = fig.add_subplot(sub[0, n % 3])
+        j = THETA_NAMES.index(name)
+        y = np.array([lv["theta"][name] for lv in levels]) * scale
+        se = np.array([(lv.get("std_error") or {}).get(name, np.nan) for lv in levels], float) * abs(scale)
+        well = np.array([(lv.get("determined") or {}).get(name) == "well" for lv in levels])
+        ax.plot(grid, law[:, j] * scale, color="black", lw=1.3, label="laws (6)–(11)")
+        if table is not None:
+            ax.plot(grid, table[:, j] * scale, color="tab:green", lw=1.1, ls="-.", label="laws: table")
+        if np.isfinite(se).any():
+            ax.errorbar(u, y, yerr=2 * np.nan_to_num(se), fmt="none", ecolor="tab:blue", elinewidth=0.9, capsize=2)
+        ax.plot(u[well], y[well], "o", color="tab:blue", ms=5, label="per level")
+        if (~well).any():
+            ax.plot(u[~well], y[~well], "o", mfc="white", mec="tab:blue", ms=5, label="poorly determined")
+        ax.set(xlabel=f"input ({res.unit})", ylabel=unit, title=label)
+        ax.title.set_fontsize("medium")
+        ax.grid(True, lw=0.5, alpha=0.5)
+        if name == "sigma1":
+            ax.axhline(0.0, color="0.3", lw=0.6)
+        if n == 0:
+            ax.legend(fontsize="x-small", loc="best")
+
+
+def make_identification_figure(res: IdentificationResult, out_path: str | os.PathLike[str], title: str | None = None,
                         dpi: int = 110, force: bool = False, write: bool = True) -> bytes:
-    """Write the figure of a :class:`DatasetResult` to ``out_path`` (.png/.pdf/.svg; ``dpi`` for PNG),
+    """Write the figure of a :class:`IdentificationResult` to ``out_path`` (.png/.pdf/.svg; ``dpi`` for PNG),
     whole or not at all (an existing file refused unless ``force``); returns its bytes.
     ``write=False`` only renders them (the CLI writes them with the parameters)."""
     ext = Path(out_path).suffix.lower().lstrip(".")
@@ -103,9 +155,13 @@ def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], ti
     n = len(traces)
     ncol = min(n, _MAX_TRACES)
     nrow = -(-n // ncol)
-    fig = Figure(figsize=(4.2 * ncol + 4.6, 7.2 * nrow), dpi=dpi, layout="constrained")
+    levels = res.details.get("levels") or []
+    theta_rows = 2 if res.protocol == "constant_input" and len(levels) >= 2 else 0
+    fig = Figure(figsize=(4.2 * max(ncol, 3) + 4.6, 7.2 * nrow + 3.4 * theta_rows), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(2 * nrow, ncol + 1, width_ratios=[1.0] * ncol + [1.05])
+    gs = fig.add_gridspec(2 * nrow + theta_rows, max(ncol, 3) + 1,
+                          width_ratios=[1.0] * max(ncol, 3) + [1.05],
+                          height_ratios=[1.0] * (2 * nrow) + [0.95] * theta_rows)
     scores = {(s.record, s.level, s.part): s for s in res.holdout + res.train}
     u = res.unit
     for j, tr in enumerate(traces):
@@ -133,8 +189,10 @@ def make_dataset_report(res: DatasetResult, out_path: str | os.PathLike[str], ti
         ax2.set(xlabel="velocity (mm/s)", ylabel="force (N)", title=f"force–velocity, {what} part")
         ax2.title.set_fontsize("medium")
         ax2.grid(True, lw=0.5, alpha=0.5)
+    if theta_rows:
+        _theta_panels(fig, gs, 2 * nrow, max(ncol, 3), res, levels)
     # the table of every held-out score
-    axt = fig.add_subplot(gs[:, ncol])
+    axt = fig.add_subplot(gs[:, max(ncol, 3)])
     axt.axis("off")
     axt.text(0.0, 1.0, score_table(res, 40 * nrow), va="top", ha="left", family="monospace", fontsize="small",
              transform=axt.transAxes)

@@ -114,16 +114,6 @@ def _decimate_input(u: np.ndarray, q: int) -> np.ndarray:
     return np.convolve(padded, w, mode="valid")[::q]
 
 
-def _mask(rec: Record) -> np.ndarray:
-    t = rec.t
-    m = np.zeros(t.size, bool) if rec.use else np.ones(t.size, bool)
-    for a, b in rec.use:
-        m |= (t >= a) & (t <= b)
-    for a, b in rec.exclude:
-        m &= ~((t >= a) & (t <= b))
-    return m
-
-
 def _runs(m: np.ndarray) -> list[tuple[int, int]]:
     d = np.diff(np.concatenate(([0], m.astype(np.int8), [0])))
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
@@ -140,15 +130,51 @@ def _level_of(rec: Record) -> np.ndarray | None:
     return lv
 
 
+#: a record whose input holds still for less than this (s) over most of its samples is not a set of constant levels
+_MIN_LEVEL_S = 0.1
+
+
+def levels_from_input(rec: Record, u: np.ndarray) -> np.ndarray:
+    """The constant levels of a staircase input at the record's own rate: each
+    stretch where the input stays within 2 % of its range of the stretch's
+    first sample (a drift starts another) holds its median; a
+    step's transition samples belong to a stretch of their own, too short to
+    hold a cycle. Refuses an input that never holds still (a closed-loop run)."""
+    tol = max(1e-9, 0.02 * float(np.ptp(u)))
+    cuts = [0]
+    ref = float(u[0])
+    for k, x in enumerate(u.tolist()):  # a new stretch where the input leaves the first value of this one
+        if abs(x - ref) > tol:
+            cuts.append(k)
+            ref = x
+    edges = np.asarray(cuts + [u.size])
+    lengths = np.diff(edges)
+    short = int(lengths[lengths < _MIN_LEVEL_S * rec.fs].sum())
+    if edges.size > 3 and short > 0.5 * u.size:
+        raise IdentificationError(
+            f"{rec.name}: the input changes {edges.size - 2} times and holds still for less than "
+            f"{_MIN_LEVEL_S:g} s over {100 * short / u.size:.0f} % of the record: constant_input identification needs "
+            "steps of constant input (mrctl: the inverse law 'schedule' or 'constant'), not a closed-loop run; "
+            "describe such a record as protocol: broadband")
+    lv = np.empty_like(u)
+    for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
+        lv[a:b] = float(np.median(u[a:b]))
+    return lv
+
+
 def prepare(records: list[Record], *, band_hz: float | None, resample_hz: float | None, need_accel: bool,
-            warnings: list[str]) -> tuple[list[Span], dict]:
-    """Spans of every record at the fit rate, and what was done (for the JSON summary)."""
+            warnings: list[str], constant_input: bool = False) -> tuple[list[Span], dict]:
+    """Spans of every record at the fit rate, and what was done (for the JSON
+    summary). ``constant_input``: the levels of a record without ``level``/
+    ``levels`` come from its input column, found at its own rate
+    (:func:`levels_from_input`) before any decimation blurs the steps."""
     from scipy.signal import savgol_filter
 
     spans: list[Span] = []
     info: dict = {"records": {}}
     for rec in records:
-        m = _mask(rec)
+        warnings.extend(f"{rec.name}: {note}" for note in rec.notes)
+        m = rec.kept()
         if not m.any():
             raise IdentificationError(f"{rec.name}: its use/exclude windows leave no samples (record spans "
                                       f"{rec.t[0]:g}–{rec.t[-1]:g} s)")
@@ -174,6 +200,8 @@ def prepare(records: list[Record], *, band_hz: float | None, resample_hz: float 
             warnings.append(f"{rec.name}: {int(np.count_nonzero(u < 0.0))} negative input sample(s) (min "
                             f"{u.min():.3g}) read as 0, as the driver clamps them")
             u = np.maximum(u, 0.0)
+        if lv is None and constant_input and u is not None:
+            lv = levels_from_input(rec, u)
         info["records"][rec.name] = {"rate_hz": fs, "fit_rate_hz": fs / q, "decimation": q,
                                      "motion_band_hz": band, "velocity": velocity}
         for a, b in _runs(m):

@@ -68,7 +68,12 @@ class _Tqdm(Bar):
 
 
 def make_bar(total: int, desc: str, enabled: bool = True, stream: Any = None) -> Bar:
-    """A tqdm bar when enabled and tqdm is installed, else plain lines (or nothing)."""
+    """A tqdm bar when enabled, on a terminal, and tqdm is installed; else
+    plain lines (a log or a pipe gets a line every 10 %, not a redrawn bar)
+    or nothing."""
+    out = stream or sys.stderr
+    if enabled and not (hasattr(out, "isatty") and out.isatty()):
+        return Bar(total, desc, True, stream)
     if enabled:
         try:
             import tqdm  # noqa: F401

@@ -51,6 +51,17 @@ class Record:
     use: list[tuple[float, float]] = field(default_factory=list)
     exclude: list[tuple[float, float]] = field(default_factory=list)
     fs: float = 0.0  # sample rate (Hz)
+    notes: list[str] = field(default_factory=list)  # what reading did to it (warnings: a torn line, filled gaps)
+
+    def kept(self) -> np.ndarray:
+        """The samples used: inside a ``use`` window (default all), outside every ``exclude`` window."""
+        t = self.t
+        m = np.zeros(t.size, bool) if self.use else np.ones(t.size, bool)
+        for a, b in self.use:
+            m |= (t >= a) & (t <= b)
+        for a, b in self.exclude:
+            m &= ~((t >= a) & (t <= b))
+        return m
 
 
 def _read_bytes(path: Path, max_bytes: int | None = None) -> bytes:
@@ -62,9 +73,13 @@ def _read_bytes(path: Path, max_bytes: int | None = None) -> bytes:
         raise IdentificationError(f"{path}: {exc}") from None
 
 
-def _read_csv(path: Path, names: dict[str, str], delimiter: str, skip_rows: int = 0) -> dict[str, np.ndarray]:
+def _read_csv(path: Path, names: dict[str, str], delimiter: str, skip_rows: int = 0,
+              notes: list[str] | None = None) -> dict[str, np.ndarray]:
     """The named columns of a CSV; ``skip_rows`` lines before the header are
-    an instrument's preamble (``format.skip_rows``), skipped whatever they hold."""
+    an instrument's preamble (``format.skip_rows``), skipped whatever they hold.
+    A last line with too few fields and no line end is a torn write: dropped,
+    said in ``notes``."""
+    notes = [] if notes is None else notes
     try:
         text = _read_bytes(path).decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -88,6 +103,9 @@ def _read_csv(path: Path, names: dict[str, str], delimiter: str, skip_rows: int 
                                       "format.delimiter")
         idx[role] = header.index(name)
     rows = [ln for ln in lines[k + 1:] if ln.strip() and not ln.lstrip().startswith("#")]
+    if rows and len(rows[-1].split(delimiter)) < len(header) and not text.endswith(("\n", "\r")):
+        rows.pop()  # a torn last line (a logger killed mid-write, a full disk): the data before it stands
+        notes.append("its last line was cut off mid-write; dropped")
     if len(rows) < 3:
         raise IdentificationError(f"{path}: {len(rows)} data row(s); far too short to identify from")
     cols = sorted(set(idx.values()))
@@ -167,8 +185,10 @@ def _read_mat(path: Path, specs: dict[str, Any]) -> dict[str, np.ndarray]:
     return out
 
 
-def read_signals(path: str, ds: Any) -> dict[str, np.ndarray]:
-    """The described columns of one file, scaled to SI units (role → array)."""
+def read_signals(path: str, ds: Any, notes: list[str] | None = None) -> dict[str, np.ndarray]:
+    """The described columns of one file, scaled to SI units (role → array),
+    each delayed column (``columns.<signal>.delay_samples``) moved back to the
+    sample it measured: the record loses that many samples at its end."""
     p = Path(path)
     specs = {r: ds.columns.get(r) for r in _SIGNALS if ds.columns.get(r) is not None}
     kind = ds.format.type or ("mat" if p.suffix.lower() == ".mat" else "csv")
@@ -176,32 +196,52 @@ def read_signals(path: str, ds: Any) -> dict[str, np.ndarray]:
         raw = _read_mat(p, specs)
     else:
         raw = _read_csv(p, {r: s.name for r, s in specs.items()}, ds.format.delimiter,
-                        int(ds.format.get("skip_rows", 0) or 0))
+                        int(ds.format.get("skip_rows", 0) or 0), notes)
     n = {r: a.size for r, a in raw.items()}
     if len(set(n.values())) > 1:
         raise IdentificationError(f"{p}: the columns have different lengths: "
                                   + ", ".join(f"{r} {k}" for r, k in n.items()))
     out = {}
     for r, a in raw.items():
-        bad = np.flatnonzero(~np.isfinite(a))
-        if bad.size:
-            raise IdentificationError(f"{p}: column {specs[r].name!r} (columns.{r}) is not finite at sample "
-                                      f"{bad[0]} ({bad.size} sample(s) in all); cut it out with exclude: or use:")
         with np.errstate(over="ignore", invalid="ignore"):
             si = a * specs[r].scale + specs[r].offset
-            big = np.flatnonzero(~(np.abs(si) <= MAX_SI_MAGNITUDE))
+            big = np.flatnonzero(np.isfinite(a) & ~(np.abs(si) <= MAX_SI_MAGNITUDE))
         if big.size:
             raise IdentificationError(f"{p}: column {specs[r].name!r} (columns.{r}) scaled by columns.{r}.scale "
                                       f"{specs[r].scale:g} and columns.{r}.offset {specs[r].offset:g} is "
                                       f"{'not finite' if not np.isfinite(si[big[0]]) else 'beyond 1e12'} at sample "
                                       f"{big[0]}: check the scale and offset (SI value = raw · scale + offset)")
         out[r] = si
-    F = out.get("force")
-    if F is not None and F.size and float(np.ptp(F)) == 0.0:
-        raise IdentificationError(f"{p}: column {specs['force'].name!r} (columns.force) is constant "
-                                  f"({F[0]:g} N in every sample): no force to identify from; is it the right "
-                                  "column?")
+    delay = {r: int(specs[r].get("delay_samples", 0) or 0) for r in out}
+    most = max(delay.values(), default=0)
+    if most:
+        n0 = next(iter(out.values())).size
+        if n0 - most < 3:
+            raise IdentificationError(f"{p}: {n0} sample(s), too few for a delay of {most} sample(s) "
+                                      "(columns.<signal>.delay_samples)")
+        out = {r: a[delay[r]:n0 - most + delay[r]] for r, a in out.items()}
     return out
+
+
+def _fill_gaps(sig: dict[str, np.ndarray], max_gap: int, notes: list[str]) -> None:
+    """Samples missing from a uniform time axis (a logger's skipped ticks), at
+    most ``max_gap`` in a row, put back by linear interpolation of every
+    signal (in place). Any other irregularity leaves the record as it is,
+    for :func:`_time` to refuse with its message."""
+    t = sig["time"]
+    dt = np.diff(t)
+    if dt.size == 0 or not np.isfinite(t).all() or np.any(dt <= 0.0):
+        return
+    med = float(np.median(dt))
+    steps = np.rint(dt / med).astype(int)
+    if not np.any(steps > 1) or np.any(steps > max_gap + 1) or np.any(np.abs(dt - steps * med) > 0.05 * med):
+        return
+    k = np.concatenate(([0], np.cumsum(steps)))
+    full = np.arange(int(k[-1]) + 1, dtype=float)
+    for r, a in sig.items():
+        sig[r] = np.interp(full, k, a)
+    notes.append(f"{int((steps - 1).sum())} missing sample(s) in {int(np.count_nonzero(steps > 1))} gap(s) "
+                 "filled by linear interpolation (format.max_gap_samples)")
 
 
 def _time(sig: dict[str, np.ndarray], ds: Any, p: str) -> tuple[np.ndarray, float]:
@@ -210,6 +250,10 @@ def _time(sig: dict[str, np.ndarray], ds: Any, p: str) -> tuple[np.ndarray, floa
         t0 = float(sig["time"][0]) if "time" in sig else 0.0
         return t0 + np.arange(n) / ds.sample_rate_hz, float(ds.sample_rate_hz)
     t = sig["time"]
+    if not np.isfinite(t).all():
+        k = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise IdentificationError(f"{p}: the time column is not finite at sample {k}; set sample_rate_hz to "
+                                  "rebuild it")
     dt = np.diff(t)
     if np.any(dt <= 0.0):
         k = int(np.flatnonzero(dt <= 0.0)[0])
@@ -219,8 +263,9 @@ def _time(sig: dict[str, np.ndarray], ds: Any, p: str) -> tuple[np.ndarray, floa
     if np.max(np.abs(dt - med)) > 0.05 * med:
         k = int(np.argmax(np.abs(dt - med)))
         raise IdentificationError(f"{p}: not uniformly sampled: step {dt[k]:.4g} s at sample {k + 1} against "
-                                  f"{med:.4g} s typical (a gap or a rounded time column?); cut gaps with exclude: "
-                                  "into separate windows, or set sample_rate_hz if the time is only rounded")
+                                  f"{med:.4g} s typical (a gap or a rounded time column?); fill gaps of a few "
+                                  "samples with format.max_gap_samples, or set sample_rate_hz if the time is only "
+                                  "rounded")
     return t, 1.0 / med
 
 
@@ -233,12 +278,29 @@ def read_records(ds: Any) -> list[Record]:
     if ds.manifest is not None:
         entries += _manifest_entries(ds.manifest)
     records = []
+    max_gap = int(ds.format.get("max_gap_samples", 0) or 0)
     for path, name, role, use, exclude, level, levels in entries:
-        sig = read_signals(path, ds)
+        notes: list[str] = []
+        sig = read_signals(path, ds, notes)
+        if max_gap and "time" in sig and ds.sample_rate_hz is None:
+            _fill_gaps(sig, max_gap, notes)
         t, fs = _time(sig, ds, path)
-        records.append(Record(name=name or Path(path).stem, path=path, role=role, t=t, F=sig["force"],
-                              x=sig.get("displacement"), v=sig.get("velocity"), u=sig.get("input"),
-                              level=level, levels=levels, use=list(use), exclude=list(exclude), fs=fs))
+        rec = Record(name=name or Path(path).stem, path=path, role=role, t=t, F=sig["force"],
+                     x=sig.get("displacement"), v=sig.get("velocity"), u=sig.get("input"),
+                     level=level, levels=levels, use=list(use), exclude=list(exclude), fs=fs, notes=notes)
+        kept = rec.kept()
+        for r, a in sig.items():  # a gap in the data is fine where the windows leave it out, nowhere else
+            bad = np.flatnonzero(kept & ~np.isfinite(a))
+            if bad.size:
+                raise IdentificationError(
+                    f"{path}: column {ds.columns.get(r).name!r} (columns.{r}) is not finite at sample {bad[0]} (t = "
+                    f"{t[bad[0]]:.6g} s; {bad.size} sample(s) in the used windows); cut it out with exclude: or use:")
+        F = sig["force"][kept]
+        if F.size and float(np.ptp(F)) == 0.0:
+            raise IdentificationError(f"{path}: column {ds.columns.get('force').name!r} (columns.force) is constant "
+                                      f"({F[0]:g} N in every sample): no force to identify from; is it the right "
+                                      "column?")
+        records.append(rec)
     names = [r.name for r in records]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

@@ -1,15 +1,19 @@
 """What identification returns, and how it is written and shown.
 
-:class:`CurrentFit` per current and :class:`IdentificationResult` for the
-whole; :func:`write_params_yaml` writes the parameters file
-(``mrctl.config.load_params_file`` reads it; the ``fit:`` block below the 13
-constants is :func:`result_metadata`); :func:`format_summary` is the table
-``mrctl identify`` prints.
+One result for every source (a dataset description, or mrctl's run CSVs
+described by :mod:`.runs`): :class:`IdentificationResult` holds the fitted set, the held-out scores and the
+plotting data; :func:`write_result` writes the parameters YAML
+(``mrctl.config.load_params_file`` reads it: the set, ``input``,
+``input_range``, and a ``fit:`` block) and the JSON summary beside it
+(``PARAMS.json``: settings, the ``holdout`` list of ``{record, level,
+nrmse}``, per-level or per-record figures); :func:`format_summary`
+is what ``mrctl identify`` prints.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,150 +23,78 @@ import numpy as np
 
 from mrctl.model.params import LuGreParams
 from mrctl.offline.identify.errors import IdentificationError
-from mrctl.offline.identify.fit import _WELL_REL_SE, _WELL_SENS
-from mrctl.offline.identify.laws import LawFit
-from mrctl.offline.identify.model import THETA_NAMES
 
-__all__ = ["CurrentFit", "IdentificationResult", "result_metadata", "write_params_yaml", "params_yaml_bytes",
-           "format_summary"]
+__all__ = ["Score", "Trace", "IdentificationResult", "write_result", "result_bytes", "format_summary",
+           "json_path"]
 
 
 @dataclass
-class CurrentFit:
-    """Identification at one constant current."""
+class Score:
+    """Force NRMSE (RMSE / peak-to-peak of the measured force) of one record at one level."""
 
-    current: float  # A (mean applied current over the fit windows)
-    current_cmd: float  # commanded current (A)
-    theta: dict[str, float]
-    theta0: dict[str, float]  # starting values (from the data)
-    start_notes: dict[str, str]
-    nrmse: float  # RMS(F_meas − F_fit) / ptp(F_meas) with this current's Θ
-    noise_nrmse: float  # sensor-noise floor of the same ratio (estimated from F_meas)
-    nrmse_laws: float = math.nan  # same with Θ from the written set's laws
-    nrmse_paper: float = math.nan  # same through the paper's laws (6)–(11)
-    nrmse_table: float = math.nan  # same through laws: table (every current's fit: its own NRMSE)
-    rms_N: float = math.nan
-    ptp_N: float = math.nan
-    noise_N: float = math.nan
-    se: dict[str, float] = field(default_factory=dict)  # standard errors (white-noise assumption)
-    rel_se: dict[str, float] = field(default_factory=dict)  # se / |θ|
-    sensitivity: dict[str, float] = field(default_factory=dict)  # |Δθ|/|θ| moving F by 1 % of ptp
-    corr: list[list[float]] = field(default_factory=list)
-    determined: dict[str, str] = field(default_factory=dict)  # "well" / "poor"
-    offset_N: float = 0.0  # fitted force offset at this current (0 unless identify(offset=True))
-    k_x: float = 0.0  # fitted stiffness (N/m) (0 unless identify(stiffness=True))
-    nfev: int = 0
-    starts: int = 1
-    time_s: float = 0.0
-    samples: int = 0
-    periods: float = 0.0
-    segments: list[tuple[int, float, float]] = field(default_factory=list)  # (run, t0, t1) of fit windows
-    # plotting data (fit samples only)
-    v: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
-    F_meas: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
-    F_fit: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
-    F_laws: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    record: str
+    level: float | None  # constant-input level; None for a broadband record
+    nrmse: float
+    samples: int
+    nrmse_laws: float | None = None  # with the written set's laws (constant input)
+    part: str = "holdout"  # "holdout" or "fit"
+    nrmse_paper: float | None = None  # with the paper's laws (6)-(11) (constant input)
+    nrmse_table: float | None = None  # with laws: table (constant input, >= 2 levels)
+
+    def as_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"record": self.record, "level": _r(self.level) if self.level is not None else None,
+                             "nrmse": _r(self.nrmse, 5), "samples": self.samples}
+        for key in ("nrmse_laws", "nrmse_paper", "nrmse_table"):
+            if getattr(self, key) is not None:
+                d[key] = _r(getattr(self, key), 5)
+        return d
+
+
+@dataclass
+class Trace:
+    """Measured and predicted force of one record's held-out (or fitted) part, for the figure."""
+
+    record: str
+    level: float | None
+    t: np.ndarray
+    v: np.ndarray
+    F_meas: np.ndarray
+    F_pred: np.ndarray
+    part: str = "holdout"
 
 
 @dataclass
 class IdentificationResult:
-    """The 13 constants, the per-current fits they came from, and how they were obtained."""
+    """The fitted set and how good it is on data the fit never saw."""
 
-    params: LuGreParams  # the 13 constants (laws 6–11)
-    fits: list[CurrentFit]  # per current, ascending
-    laws: dict[str, LawFit]
-    method: str
-    period_s: float
-    dt_s: float
-    settle_periods: float
-    warmup_periods: float
-    fit_periods: float | None
-    sources: list[str]
-    time_s: float
+    name: str
+    source: str
+    protocol: str
+    input: str  # "current" | "voltage"
+    unit: str  # "A" | "V"
+    params: LuGreParams
+    input_range: tuple[float, float]
+    holdout: list[Score]
+    train: list[Score]
+    settings: dict[str, Any]
+    details: dict[str, Any]  # per level (constant input) or the broadband fit
+    traces: list[Trace] = field(default_factory=list, repr=False)
     warnings: list[str] = field(default_factory=list)
-    laws_choice: dict[str, Any] = field(default_factory=dict)  # the written laws and the scores that chose them
+    time_s: float = 0.0
+    inertia_kg: float = 0.0
 
     @property
-    def currents(self) -> np.ndarray:
-        return np.array([f.current for f in self.fits])
-
-    def theta(self, name: str) -> np.ndarray:
-        return np.array([f.theta[name] for f in self.fits])
-
-    def summary_determined(self) -> dict[str, str]:
-        """Per parameter: 'well' (at ≥ 75 % of the currents), 'poor' (≤ 25 %) or 'mixed'."""
-        out = {}
-        for k in THETA_NAMES:
-            share = float(np.mean([f.determined.get(k) == "well" for f in self.fits]))
-            out[k] = "well" if share >= 0.75 else ("poor" if share <= 0.25 else "mixed")
-        return out
+    def tau_s(self) -> float:
+        return self.params.tau_input
 
 
-def _r(x: float, digits: int = 6) -> float | str:
-    if x is None or not math.isfinite(x):
-        return "nan" if x is None or math.isnan(x) else ("inf" if x > 0 else "-inf")
+def _r(x: float | None, digits: int = 6) -> Any:
+    if x is None:
+        return None
+    x = float(x)
+    if not math.isfinite(x):
+        return None
     return float(f"{x:.{digits}g}")
-
-
-_METHOD_TEXT = {
-    "trf": "per-current least squares, trust-region reflective (scipy) on log(sigma0, Fc, Fs, vs) and scaled "
-           "sigma1, sigma2; vectorised LuGre model driven by the measured velocity",
-    "lm": "per-current least squares, Levenberg-Marquardt (scipy MINPACK) on log(sigma0, Fc, Fs, vs) "
-          "and scaled sigma1, sigma2; vectorised LuGre model driven by the measured velocity",
-    "trf-bounds": "per-current least squares, trust-region reflective (scipy) with bounds sigma0, Fc, Fs, vs > 0; "
-           "vectorised LuGre model driven by the measured velocity",
-    "nelder-mead": "per-current Nelder-Mead on Q (as the paper's fminsearch), log-scaled parameters; "
-                   "vectorised LuGre model driven by the measured velocity",
-}
-
-
-def result_metadata(result: IdentificationResult) -> dict[str, Any]:
-    """The ``fit:`` block of the parameters YAML (plain types only)."""
-    per = []
-    for f in result.fits:
-        per.append({
-            "current_A": _r(f.current), "current_cmd_A": _r(f.current_cmd),
-            "theta": {k: _r(v) for k, v in f.theta.items()},
-            "nrmse": _r(f.nrmse, 4), "nrmse_noise_floor": _r(f.noise_nrmse, 4), "nrmse_laws": _r(f.nrmse_laws, 4),
-            "nrmse_paper": _r(f.nrmse_paper, 4), "nrmse_table": _r(f.nrmse_table, 4),
-            "rms_N": _r(f.rms_N, 4), "noise_N": _r(f.noise_N, 4),
-            "offset_N": _r(f.offset_N), "k_x": _r(f.k_x),
-            "std_error": {k: _r(v, 3) for k, v in f.se.items()},
-            "rel_std_error": {k: _r(v, 3) for k, v in f.rel_se.items()},
-            "sensitivity_1pct": {k: _r(v, 3) for k, v in f.sensitivity.items()},
-            "determined": dict(f.determined),
-            "correlation": f.corr,
-            "start": {k: _r(v, 4) for k, v in f.theta0.items()},
-            "periods": _r(f.periods, 4), "samples": f.samples, "nfev": f.nfev, "starts": f.starts,
-            "time_s": _r(f.time_s, 3),
-        })
-    return {
-        "method": _METHOD_TEXT[result.method],
-        "optimiser": result.method,
-        "objective": "Q = sum over whole periods of (F_meas - F_LuGre(v_meas))^2, after a model warm-up",
-        "period_s": _r(result.period_s), "sample_interval_s": _r(result.dt_s),
-        "settle_periods": result.settle_periods, "warmup_periods": result.warmup_periods,
-        "fit_periods": result.fit_periods if result.fit_periods is not None else "all",
-        "source_runs": list(result.sources),
-        "nrmse_definition": "RMS(F_meas - F_model) / peak-to-peak(F_meas) over the fit windows",
-        "identifiability": {
-            "summary": result.summary_determined(),
-            "criterion": f"'well' at a current if rel_std_error < {_WELL_REL_SE:.0%} (std_error from the "
-                         "Jacobian at the optimum, white sensor noise assumed) and sensitivity_1pct < "
-                         f"{_WELL_SENS:.0%}; summary: 'well' at >= 75 % of the currents, 'poor' at <= 25 %, "
-                         "else 'mixed'",
-            "sensitivity_1pct": "relative parameter change that, the other five re-fitted, changes the "
-                                "model force by 1 % of its peak-to-peak (noise-independent)",
-            "correlation_order": list(THETA_NAMES),
-        },
-        "laws": {k: {"equation": lf.equation, "coefficients": {c: _r(v) for c, v in lf.coefficients.items()},
-                     "rms": _r(lf.rms, 4), "rel_rms": _r(lf.rel_rms, 4), "max_abs": _r(lf.max_abs, 4),
-                     "r2": _r(lf.r2, 4)} for k, lf in result.laws.items()},
-        "laws_choice": result.laws_choice,
-        "per_current": per,
-        "warnings": list(result.warnings),
-        "time_s": _r(result.time_s, 3),
-    }
 
 
 def _compact_dumper():
@@ -187,74 +119,149 @@ def _compact_dumper():
     return Dumper
 
 
-def params_yaml_bytes(result: IdentificationResult, description: str | None = None) -> bytes:
-    """The parameters YAML: the 13 spec names at top level, ``fit:`` metadata below.
+def json_path(params_path: str | Path) -> Path:
+    """``PARAMS.yaml`` → ``PARAMS.json`` (beside it)."""
+    return Path(params_path).with_suffix(".json")
 
-    ``mrctl.config.load_params_file`` reads it (metadata keys are ignored there)."""
-    import yaml
 
+def _plain(x: Any) -> Any:
+    """``x`` for JSON: non-finite floats as null, numpy scalars and tuples as plain types."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    return x
+
+
+def summary_dict(res: IdentificationResult) -> dict[str, Any]:
     from mrctl import __version__
 
-    _CompactDumper = _compact_dumper()
-    p = result.params
-    currents = result.currents
+    p = res.params
+    return {
+        "mrctl_version": __version__,
+        "dataset": res.source,
+        "name": res.name,
+        "protocol": res.protocol,
+        "input": res.input,
+        "input_unit": res.unit,
+        "input_range": [_r(res.input_range[0]), _r(res.input_range[1])],
+        "nrmse_definition": "RMS(F_meas - F_model) / peak-to-peak(F_meas) over the record's held-out samples",
+        "holdout": [s.as_dict() for s in res.holdout],
+        "fit_scores": [s.as_dict() for s in res.train],
+        "tau_input_s": _r(p.tau_input),
+        "F_offset_N": _r(p.F_offset),
+        "k_x_N_per_m": _r(p.k_x),
+        "inertia_kg": _r(res.inertia_kg),
+        "parameters": {k: _r(getattr(p, k)) for k in p.all_names()},
+        "laws": p.laws,
+        "laws_choice": _plain(res.details.get("laws_choice")),
+        "settings": _plain(res.settings),
+        "details": _plain(res.details),
+        "warnings": list(res.warnings),
+        "time_s": _r(res.time_s, 4),
+    }
+
+
+def result_bytes(res: IdentificationResult, out: str | Path) -> list[tuple[Path, bytes]]:
+    """The parameters YAML for ``out`` and the JSON summary beside it, as
+    ``[(path, bytes), ...]`` for :func:`mrctl.runlog.files.write_outputs`."""
+    import yaml
+
+    summary = summary_dict(res)
+    p = res.params
+    levels = f"{res.input_range[0]:g}–{res.input_range[1]:g} {res.unit}"
     doc: dict[str, Any] = {
         "version": 1,
-        "description": description or (
-            f"LuGre parameters identified by mrctl {__version__} from {len(result.fits)} constant-current "
-            f"sine tests ({currents.min():g}–{currents.max():g} A, period {result.period_s:.4g} s)"),
-        "source": ", ".join(result.sources),
+        "description": f"LuGre parameters identified by mrctl from the dataset {res.name} ({res.protocol}, "
+                       f"{res.input} input {levels})",
+        "source": res.source,
+        "input": res.input,
+        "input_range": [float(res.input_range[0]), float(res.input_range[1])],
     }
     values = p.as_dict()
-    doc.update({k: float(values[k]) for k in p.names()})
-    doc.update({k: float(values[k]) for k in p.bench_names() if values[k] != 0.0})  # only the terms a fit set
-    if p.table is not None:  # the written laws: every current's Θ (the 13 constants stay, for the inverse laws)
+    doc.update({k: float(values[k]) for k in p.all_names()})
+    if p.table is not None:  # the written laws: the per-level table (the 13 constants stay, for the inverse laws)
         doc["laws"] = "table"
         doc["table"] = {k: [_r(x, 8) for x in col] for k, col in p.table.as_dict().items()}
-    doc["fit"] = result_metadata(result)
+    doc["fit"] = {
+        "summary": json_path(out).name,
+        "protocol": res.protocol,
+        "laws": summary["laws_choice"],
+        "holdout": summary["holdout"],
+        "tau_input_s": summary["tau_input_s"],
+        "inertia_kg": summary["inertia_kg"],
+        "warnings": summary["warnings"],
+    }
+    out = Path(out)
     text = io.StringIO()
-    text.write("# mrctl identify: LuGre parameters (SI units), " + (
-        "a table of per-current values (laws: table)\n" if p.table is not None
-        else "laws (6)-(11) of Palka & Maslanka 2013\n"))
-    yaml.dump(doc, text, Dumper=_CompactDumper, sort_keys=False, allow_unicode=True, width=120)
-    return text.getvalue().encode("utf-8")
+    laws = "a table of per-level values" if p.table is not None else "laws (6)-(11)"
+    text.write(f"# mrctl identify --dataset: LuGre parameters, {laws} in the input ({res.unit}); SI units\n")
+    yaml.dump(doc, text, Dumper=_compact_dumper(), sort_keys=False, allow_unicode=True, width=120)
+    return [(out, text.getvalue().encode("utf-8")),
+            (json_path(out), (json.dumps(summary, indent=2, allow_nan=False) + "\n").encode("utf-8"))]
 
 
-def write_params_yaml(result: IdentificationResult, path: str | Path, description: str | None = None,
-                      force: bool = False) -> None:
-    """Write :func:`params_yaml_bytes` to ``path``, whole or not at all; an
-    existing file is refused unless ``force``, a symlink never followed
-    (:func:`mrctl.runlog.files.write_outputs`)."""
+def write_result(res: IdentificationResult, out: str | Path, force: bool = False) -> Path:
+    """The parameters YAML at ``out`` and the JSON summary beside it, both or
+    neither (an existing file refused unless ``force``); returns the JSON path."""
     from mrctl.runlog.files import write_outputs
 
-    data = params_yaml_bytes(result, description)
+    items = result_bytes(res, out)
     try:
-        write_outputs([(path, data)], force, mkdir=True)
+        write_outputs(items, force, mkdir=True)
     except OSError as exc:
-        raise IdentificationError(f"{path}: cannot write: {exc.strerror or exc}") from None
+        raise IdentificationError(f"{exc.filename or out}: cannot write: {exc.strerror or exc}") from None
+    return items[1][0]
 
 
-def format_summary(result: IdentificationResult) -> str:
-    """The per-current table and the law residuals, as printed by the CLI."""
-    lines = [f"{'I (A)':>7} {'Fc (N)':>8} {'Fs (N)':>8} {'σ0 (N/m)':>10} {'σ1 (N·s/m)':>11} "
-             f"{'σ2 (N·s/m)':>11} {'vs (mm/s)':>10} {'NRMSE':>7} {'floor':>7} {'laws':>7}  poorly determined"]
-    for f in result.fits:
-        th = f.theta
-        poor = ",".join(k for k in THETA_NAMES if f.determined.get(k) == "poor") or "-"
-        lines.append(f"{f.current:7.3f} {th['Fc']:8.3f} {th['Fs']:8.3f} {th['sigma0']:10.4g} {th['sigma1']:11.4g} "
-                     f"{th['sigma2']:11.4g} {1e3 * th['vs']:10.3f} {100 * f.nrmse:6.2f}% {100 * f.noise_nrmse:6.2f}% "
-                     f"{100 * f.nrmse_laws:6.2f}%  {poor}")
-    lines.append("laws (6)-(11): " + "; ".join(
-        f"{k} rms {lf.rms:.4g} ({100 * lf.rel_rms:.1f} %)" for k, lf in result.laws.items()))
-    ch = result.laws_choice
-    if ch:
-        mean = ", ".join(f"{k} {100 * v:.2f} %" for k, v in ch["leave_level_out_mean"].items() if v is not None)
-        lines.append(f"written laws: {ch['laws']} (each interior current predicted from the others' fits: "
-                     f"{mean or 'no interior current'})")
-    lines.append("identifiability: " + ", ".join(f"{k} {v}" for k, v in result.summary_determined().items()))
-    p = result.params
+def format_summary(res: IdentificationResult) -> str:
+    """The held-out table and the fitted terms, as ``mrctl identify --dataset`` prints them."""
+    u = res.unit
+    lines = [f"{res.name}: {res.protocol}, {res.input} input, range {res.input_range[0]:.4g}–"
+             f"{res.input_range[1]:.4g} {u}"]
+    if res.protocol == "constant_input":
+        lines.append(f"{'level (' + u + ')':>11} {'Fc (N)':>9} {'Fs (N)':>9} {'σ2 (N·s/m)':>11} {'offset (N)':>10} "
+                     f"{'fit':>7} {'floor':>7}  poorly determined")
+        for lv in res.details.get("levels", []):
+            th = lv["theta"]
+            poor = ",".join(k for k, v in (lv.get("determined") or {}).items() if v == "poor") or "-"
+            floor = lv.get("nrmse_noise_floor")
+            floor_s = f"{100 * floor:6.2f}%" if floor is not None and math.isfinite(floor) else f"{'-':>7}"
+            lines.append(f"{lv['level']:11.4g} {th['Fc']:9.4g} {th['Fs']:9.4g} {th['sigma2']:11.4g} "
+                         f"{lv['offset_N']:10.4g} {100 * lv['nrmse_fit']:6.2f}% {floor_s}  {poor}")
+    if res.holdout:
+        lines.append("held-out force NRMSE (RMSE / peak-to-peak of the measured force, data the fit never saw):")
+        both = any(s.nrmse_paper is not None for s in res.holdout)
+        table = any(s.nrmse_table is not None for s in res.holdout)
+        lines.append(f"  {'record':<24} {'level':>9} {'NRMSE':>8}" + ("  with laws: paper" if both else "")
+                     + ("    table" if table else ""))
+        for s in res.holdout:
+            lv = "-" if s.level is None else f"{s.level:.4g}"
+            laws = f" {100 * s.nrmse_paper:16.2f}%" if s.nrmse_paper is not None else ""
+            laws += f" {100 * s.nrmse_table:7.2f}%" if s.nrmse_table is not None else ""
+            lines.append(f"  {s.record:<24} {lv:>9} {100 * s.nrmse:7.2f}%{laws}")
+        ch = res.details.get("laws_choice")
+        if ch:
+            mean = ", ".join(f"{k} {100 * v:.2f} %" for k, v in ch["leave_level_out_mean"].items() if v is not None)
+            lines.append(f"written laws: {ch['laws']} (fit.laws: {ch['asked']}; each interior level predicted from "
+                         f"the others' fits: {mean or 'no interior level'})")
+    else:
+        lines.append("no held-out data: the scores are on fitted data only (see warnings)")
+    p = res.params
+    if p.table is not None and p.table.has_bench():
+        lines.append(f"laws: table, with per-level F_offset {min(p.table.values[6]):.4g}–{max(p.table.values[6]):.4g} N "
+                     f"and k_x {min(p.table.values[7]):.4g}–{max(p.table.values[7]):.4g} N/m (the constants below "
+                     "are the paper-law set's)")
+    lines.append(f"bench terms: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input "
+                 f"{1e3 * p.tau_input:.3g} ms" + (f", inertia {res.inertia_kg:.3g} kg (measurement term, not in "
+                                                  "the set)" if res.inertia_kg else ""))
     lines.append("parameters: " + ", ".join(f"{k}={getattr(p, k):.5g}" for k in p.names()))
-    for w in result.warnings:
+    for w in res.warnings:
         lines.append(f"warning: {w}")
     return "\n".join(lines)
-

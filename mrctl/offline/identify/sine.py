@@ -31,10 +31,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrctl.offline.identify.errors import IdentificationError
-from mrctl.offline.identify.fit import _fit_one_current
+from mrctl.offline.identify.fit import _fit_one_current, _identifiability, _noise_N
 from mrctl.offline.identify.guards import Support
 from mrctl.offline.identify.model import THETA_NAMES, _model_batch, lugre_force
-from mrctl.offline.identify.prep import Span
+from mrctl.offline.identify.prep import _MIN_LEVEL_S, Span
 
 __all__ = ["Segment", "LevelFit", "find_segments", "fit_levels", "predict_segment"]
 
@@ -74,20 +74,19 @@ class LevelFit:
     nfev: int = 0
     time_s: float = 0.0
     segments: list[Segment] = field(default_factory=list)
+    noise_nrmse: float = math.nan  # the load cell's noise floor of the same ratio (from the measured force)
+    se: dict[str, float] = field(default_factory=dict)  # standard errors (white-noise assumption)
+    rel_se: dict[str, float] = field(default_factory=dict)  # se / |θ|
+    sensitivity: dict[str, float] = field(default_factory=dict)  # |Δθ|/|θ| moving F by 1 % of ptp
+    corr: list[list[float]] = field(default_factory=list)
+    determined: dict[str, str] = field(default_factory=dict)  # "well" / "poor" (fit._identifiability)
+    theta0: dict[str, float] = field(default_factory=dict)  # the data-derived start
 
 
 def _level_runs(sp: Span) -> list[tuple[int, int, float]]:
-    if sp.level is not None:
-        lv = sp.level
-    elif sp.u is not None:
-        u = sp.u
-        tol = max(1e-9, 0.02 * float(np.ptp(u)))
-        lv = np.empty_like(u)
-        start = 0
-        for k in np.concatenate((np.flatnonzero(np.abs(np.diff(u)) > tol) + 1, [u.size])).tolist():
-            lv[start:k] = float(np.median(u[start:k]))
-            start = k
-    else:  # pragma: no cover - the schema asks for levels or an input column
+    """(first, end, level) of each stretch of one level (:func:`~.prep.prepare` set them)."""
+    lv = sp.level
+    if lv is None:  # pragma: no cover - the schema asks for levels or an input column
         return []
     runs = []
     finite = np.isfinite(lv)
@@ -143,9 +142,13 @@ def find_segments(spans: list[Span], *, fraction: float, steady_tol: float, min_
                   warnings: list[str]) -> list[Segment]:
     """The steady, held-out and warm-up cycles of every span (see the module doc)."""
     segs: list[Segment] = []
+    transitions = 0
     for si, sp in enumerate(spans):
         h = sp.dt
         for a, b, level in _level_runs(sp):
+            if (b - a) * h < _MIN_LEVEL_S:  # a step's transition between two levels
+                transitions += 1
+                continue
             v = sp.v[a:b]
             c = _crossings(v) + a
             where = f"{sp.record} at {level:g} (t = {sp.t[a]:.4g}–{sp.t[b - 1]:.4g} s)"
@@ -188,6 +191,9 @@ def find_segments(spans: list[Span], *, fraction: float, steady_tol: float, min_
                 period = float(np.median(np.diff(c[i0:i1 + 1]))) * h
                 segs.append(Segment(si, sp.record, sp.role, level, w0, int(c[i0]), int(c[i1 - n_hold]),
                                     int(c[i1]), period, float(ref), n - n_hold, n_hold))
+    if transitions:
+        warnings.append(f"{transitions} stretch(es) of under {_MIN_LEVEL_S:g} s at one level (transitions between "
+                        "steps) left out")
     return segs
 
 
@@ -235,7 +241,7 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
             if sp.x is not None:
                 xall.append(sp.x[s.f0:s.f1])
         X = None if Xs[0] is None else np.vstack(Xs)
-        theta, prob, p, notes, nfev, theta0, starts = _fit_one_current(windows, method, starts_max=4, X=X)
+        theta, prob, p, _notes, nfev, theta0, _starts = _fit_one_current(windows, method, starts_max=4, X=X)
         rec = prob.rec
         Fm = _model_batch(theta[None, :], rec)[0]
         beta = rec.linear_terms(Fm)
@@ -247,10 +253,14 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
         kx = float(beta[j]) if (use["stiffness"] and X is not None and X.shape[1] > j) else 0.0
         F_lin = F - off - (kx * np.concatenate(xall) if xall and kx else 0.0)
         sup = Support.of(F_lin, np.concatenate(vall), np.concatenate(xall) if xall else None)
+        ptp = float(np.ptp(F))
+        se, rel_se, sens, corr, det = _identifiability(prob, p, theta, ptp)
+        noise = float(np.median([_noise_N(w[1][w[3]:]) for w in windows]))
         fits.append(LevelFit(level, {k: float(theta[i]) for i, k in enumerate(THETA_NAMES)}, off, kx,
-                             float(np.sqrt(np.mean(resid * resid)) / np.ptp(F)), int(F.size),
+                             float(np.sqrt(np.mean(resid * resid)) / ptp), int(F.size),
                              sum(s.cycles_fit for s in groups[level]), sup, nfev, time.perf_counter() - t0,
-                             groups[level]))
+                             groups[level], noise / ptp, se, rel_se, sens, corr, det,
+                             {k: float(theta0[i]) for i, k in enumerate(THETA_NAMES)}))
         if bar is not None:
             bar.update(1, level=f"{level:g}", nrmse=f"{100 * fits[-1].nrmse_fit:.2f}%")
     return fits
