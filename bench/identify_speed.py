@@ -1,20 +1,46 @@
 #!/usr/bin/env python3
 """Time the full twelve-current identification, and compare the optimisers.
 
-Data: ``config/experiments/identify.yaml`` simulated with ``mrctl.offline.simulate``
-(Table I plant, 2 Hz / 8 mm sine, 0–0.55 A in 0.05 A steps of 2 s, seeded
-load-cell and velocity noise). Target: < 60 s on the 2-core lab machine.
+Data: ``config/experiments/identify.yaml`` (Table I plant, 2 Hz / 8 mm sine,
+0–0.55 A in 0.05 A steps, seeded load-cell and velocity noise) simulated to a
+temporary run CSV and its sidecar, as ``mrctl simulate --out`` writes them
+(:func:`mrctl.offline.simulate_log.simulate_logged`: the sidecar says the load
+cell reads one tick late). Identified as ``mrctl identify RUN.csv`` does it:
+:func:`mrctl.offline.identify.identify_runs`, the one pipeline (the
+description of the run CSV, reading, preparing, steady cycles per level, a Θ
+fit per level, the laws, the leave-level-out choice of laws, held-out
+scores). Target: < 60 s on the 2-core lab machine.
 
 Parts:
-1. ``identify`` as the CLI runs it (default optimiser), per-current time and
-   total, median of ``--repeat`` runs;
-2. ``--compare``: the same identification with each optimiser (trf,
-   trf-bounds, lm, nelder-mead), from the same data-derived starts: model evaluations, time,
-   final residual, and the accuracy against Table I; then robustness: each
-   optimiser from ``--trials`` random starts (every parameter ×/÷ up to 3)
-   per current, counting fits that reach the best Q (within 0.1 %);
+1. ``identify_runs([csv])`` with the default optimiser: per-level fit time
+   (``details.levels[].time_s``, median over ``--repeat`` runs) and the
+   total (wall, median), split into the level fits and the rest of the
+   pipeline; per level the model evaluations, the fitted cycles, the fit
+   NRMSE, the load cell's noise floor and the held-out NRMSE;
+2. ``--compare``: the same identification with each optimiser in
+   ``METHODS`` (same data, same data-derived start grid): time, model
+   evaluations (the start grids included), Σ Q over the levels relative to
+   the best of the four, the worst held-out NRMSE (per-level Θ, and the
+   written set's laws), the written Fc law's worst relative error against
+   Table I over 0.05–0.55 A, and the median (over levels) relative errors of
+   σ0 and σ1 against Table I; then robustness: each optimiser from
+   ``--trials`` random starts per level (every Θ entry ×/÷ up to 3 from the
+   level's data-derived start, σ1 = ±3·Fc/max|v|), one optimiser run each, no
+   grid, no restarts, counting runs that reach the best Q (within 0.1 %).
+   The fit windows are the pipeline's own: records → ``prepare`` →
+   ``find_segments`` as ``pipeline._constant_input`` calls them, each
+   level's windows and linear terms (offset, stiffness) as
+   ``sine.fit_levels`` builds them, checked against the result (samples,
+   and the fit NRMSE recomputed from Q);
 3. cost of one model evaluation, vectorised scan vs a plain-float per-sample
    loop (the alternative the design rejected).
+
+Changed with the one-pipeline identification: the per-current "starts"
+column is gone (a level's fit no longer reports how many grid starts it
+ran); "Q" is recomputed on the rebuilt windows (the result keeps the fit
+NRMSE, not the RMS residual); the worst held-out NRMSE replaces the worst fit
+NRMSE in the comparison; the total now includes what the pipeline does
+besides the fits (reading, preparing, scoring, the leave-level-out choice).
 
 Usage: python bench/identify_speed.py [--repeat 3] [--compare] [--trials 5] [--json out.json]
 """
@@ -26,6 +52,7 @@ import json
 import math
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -36,100 +63,173 @@ sys.path.insert(0, str(ROOT))
 
 from mrctl.config import load_experiment  # noqa: E402
 from mrctl.experiment import build  # noqa: E402
-from mrctl.offline.identify import METHODS, THETA_NAMES, identify, theta_from_params  # noqa: E402
-from mrctl.offline.identify.fit import _LINEAR, _optimise, _Problem  # noqa: E402
-from mrctl.offline.identify.model import _model_batch, _window_record  # noqa: E402
 from mrctl.model.params import TABLE_I  # noqa: E402
-from mrctl.offline.simulate import run_duration, simulate  # noqa: E402
+from mrctl.offline.identify import METHODS, THETA_NAMES, identify_runs, theta_from_params  # noqa: E402
+from mrctl.offline.identify.fit import _LINEAR, _optimise, _Problem  # noqa: E402
+from mrctl.offline.identify.model import _model_batch, _Record, _window_record  # noqa: E402
+from mrctl.offline.identify.prep import prepare  # noqa: E402
+from mrctl.offline.identify.records import read_records  # noqa: E402
+from mrctl.offline.identify.runs import load_runs  # noqa: E402
+from mrctl.offline.identify.sine import _cluster_levels, _design, find_segments  # noqa: E402
+from mrctl.offline.simulate import run_duration  # noqa: E402
+from mrctl.offline.simulate_log import simulate_logged  # noqa: E402
 
 CONFIG = ROOT / "config" / "experiments" / "identify.yaml"
 
 
-def make_run() -> dict[str, np.ndarray]:
+def make_run(tmp: Path):
+    """Simulate the config to ``tmp/identify.csv`` and its sidecar; the SimResult (part 3 uses its v_meas)."""
     exp = build(load_experiment(CONFIG))
-    return simulate(exp, run_duration(exp)).columns
+    csv = tmp / "identify.csv"
+    res, _verdict, code = simulate_logged(exp, run_duration(exp), str(csv), str(CONFIG))
+    if code != 0:
+        raise SystemExit(f"simulate {CONFIG}: exit code {code}")
+    return csv, res
+
+
+def _key(level: float) -> float:
+    return round(float(level), 9)
 
 
 def accuracy(res) -> dict[str, float]:
-    """Worst relative error of Fc(I) of the fitted law vs Table I over 0.05–0.55 A,
-    and of each per-current Θ entry vs Table I (median over currents)."""
+    """Worst relative error of Fc(I) of the written set vs Table I over 0.05–0.55 A,
+    and of each per-level Θ entry vs Table I (median over levels)."""
     grid = np.linspace(0.05, 0.55, 51)
     fc = max(abs(res.params.Fc(i) - TABLE_I.Fc(i)) / TABLE_I.Fc(i) for i in grid)
     out = {"Fc_law_max_rel_err": fc}
     for j, k in enumerate(THETA_NAMES):
         errs = []
-        for f in res.fits:
-            tr = theta_from_params(TABLE_I, f.current)[j]
-            errs.append(abs(f.theta[k] - tr) / abs(tr))
+        for lv in res.details["levels"]:
+            tr = theta_from_params(TABLE_I, lv["level"])[j]
+            errs.append(abs(lv["theta"][k] - tr) / abs(tr))
         out[f"{k}_median_rel_err"] = float(np.median(errs))
     return out
 
 
-def part_timing(run, repeat: int) -> dict:
-    totals, last = [], None
+def held_out(res) -> dict[float, float]:
+    """Held-out NRMSE of each level's own Θ (the worst record at that level)."""
+    out: dict[float, float] = {}
+    for s in res.holdout:
+        out[_key(s.level)] = max(out.get(_key(s.level), 0.0), s.nrmse)
+    return out
+
+
+def fit_windows(csv: Path, res) -> dict[float, _Record]:
+    """Each level's fit record (warm-up + fit cycles of its segments, the linear terms), from the
+    pipeline's own pieces with the settings ``res`` was identified with; checked against ``res``."""
+    ds, _ = load_runs([csv])
+    use = dict(res.settings["model"])
+    warnings: list[str] = []
+    spans, _ = prepare(read_records(ds), band_hz=ds.motion_band_hz, resample_hz=ds.resample_hz,
+                       need_accel=use["inertia"], warnings=warnings, constant_input=True)
+    segs = find_segments(spans, fraction=res.settings["holdout_fraction"], steady_tol=ds.fit.steady_tolerance,
+                         min_cycles=ds.fit.min_cycles, warnings=warnings)
+    groups = _cluster_levels([s for s in segs if s.cycles_fit > 0])
+    recs: dict[float, _Record] = {}
+    for level in sorted(groups):  # sine.fit_levels' windows and design matrix
+        windows, Xs = [], []
+        for s in groups[level]:
+            sp = spans[s.span]
+            windows.append((sp.v[s.w0:s.f1], sp.F[s.w0:s.f1], np.full(s.f1 - s.w0, sp.dt), s.f0 - s.w0))
+            Xs.append(_design(sp, s.f0, s.f1, use))
+        recs[_key(level)] = _window_record(windows, None if Xs[0] is None else np.vstack(Xs))
+    levels = res.details["levels"]
+    if sorted(recs) != sorted(_key(lv["level"]) for lv in levels):
+        raise SystemExit(f"rebuilt windows: levels {sorted(recs)} differ from the result's")
+    for lv in levels:
+        rec = recs[_key(lv["level"])]
+        q = level_q(rec, lv["theta"])
+        nrmse = math.sqrt(q / rec.F.size) / float(np.ptp(rec.F))
+        if rec.F.size != lv["samples"] or abs(nrmse - lv["nrmse_fit"]) > 1e-6 * lv["nrmse_fit"]:
+            raise SystemExit(f"rebuilt windows at {lv['level']:g} A: {rec.F.size} samples, NRMSE {nrmse:.6g}; "
+                             f"the pipeline fitted {lv['samples']}, NRMSE {lv['nrmse_fit']:.6g}")
+    return recs
+
+
+def _vmax(rec: _Record) -> float:
+    return float(np.percentile(np.abs(rec.v[rec.fit]), 99.5))  # as fit._fit_one_current
+
+
+def level_q(rec: _Record, theta: dict[str, float]) -> float:
+    """Q (offset and stiffness projected out, as the fit) at a level's Θ."""
+    th = np.array([theta[k] for k in THETA_NAMES])
+    prob = _Problem(rec, th, _vmax(rec))
+    return prob.cost(prob.p_start())
+
+
+def part_timing(csv: Path, repeat: int) -> tuple[dict, object]:
+    totals, per_level, fits, last = [], [], [], None
     for _ in range(repeat):
         t0 = time.perf_counter()
-        last = identify([run])
+        last = identify_runs([csv])
         totals.append(time.perf_counter() - t0)
-    print(f"\n1. identify(), optimiser '{last.method}' (default), {len(last.fits)} currents, "
-          f"median of {repeat}: total {statistics.median(totals):.2f} s (target < 60 s)")
-    print(f"   {'I (A)':>6} {'time (s)':>9} {'nfev':>5} {'starts':>6} {'NRMSE':>7} {'floor':>7}")
-    for f in last.fits:
-        print(f"   {f.current:6.3f} {f.time_s:9.3f} {f.nfev:5d} {f.starts:6d} {100 * f.nrmse:6.2f}% "
-              f"{100 * f.noise_nrmse:6.2f}%")
+        per_level.append([lv["time_s"] for lv in last.details["levels"]])
+        fits.append(sum(per_level[-1]))
+    levels = last.details["levels"]
+    lv_med = [statistics.median(ts[i] for ts in per_level) for i in range(len(levels))]
+    total, fit_s = statistics.median(totals), statistics.median(fits)
+    hold = held_out(last)
+    col = last.settings["dataset"]["columns"]["force"]
+    delay = col.get("delay_samples", 0) if isinstance(col, dict) else 0
+    print(f"\n1. identify_runs([csv]), optimiser '{last.settings['method']}' (default), {len(levels)} levels, "
+          f"laws '{last.details['laws_choice']['laws']}' (auto), load-cell delay {delay} sample(s) from the "
+          f"sidecar, hold-out fraction {last.settings['holdout_fraction']:g}")
+    print(f"   median of {repeat}: total {total:.2f} s (target < 60 s): level fits {fit_s:.2f} s, the rest "
+          f"(read, prepare, laws, leave-level-out, scores) {total - fit_s:.2f} s")
+    print(f"   {'I (A)':>6} {'time (s)':>9} {'nfev':>5} {'cycles':>6} {'NRMSE':>7} {'floor':>7} {'held-out':>8}")
+    for lv, t in zip(levels, lv_med):
+        h = hold.get(_key(lv["level"]), math.nan)
+        print(f"   {lv['level']:6.3f} {t:9.3f} {lv['nfev']:5d} {lv['cycles']:6d} {100 * lv['nrmse_fit']:6.2f}% "
+              f"{100 * lv['nrmse_noise_floor']:6.2f}% {100 * h:7.2f}%")
     acc = accuracy(last)
-    print(f"   Fc law vs Table I over 0.05-0.55 A: max error {100 * acc['Fc_law_max_rel_err']:.2f} %")
-    return {"method": last.method, "total_s": totals, "per_current_s": [f.time_s for f in last.fits],
-            "nrmse": [f.nrmse for f in last.fits], "accuracy": acc}
+    print(f"   Fc ({last.params.laws} laws) vs Table I over 0.05-0.55 A: max error "
+          f"{100 * acc['Fc_law_max_rel_err']:.2f} %")
+    out = {"method": last.settings["method"], "laws": last.details["laws_choice"]["laws"], "total_s": totals,
+           "level_fits_s": fits, "per_level_s": lv_med, "levels": [lv["level"] for lv in levels],
+           "nfev": [lv["nfev"] for lv in levels], "nrmse_fit": [lv["nrmse_fit"] for lv in levels],
+           "nrmse_noise_floor": [lv["nrmse_noise_floor"] for lv in levels],
+           "nrmse_holdout": [hold.get(_key(lv["level"])) for lv in levels], "accuracy": acc}
+    return out, last
 
 
-def part_compare(run, trials: int) -> dict:
-    print("\n2a. optimisers on the same data and starts (all twelve currents)")
-    print(f"   {'method':<12} {'time (s)':>9} {'model evals':>12} {'sum Q / best':>13} {'max NRMSE':>10} "
-          f"{'Fc law err':>10} {'σ0 med err':>10} {'σ1 med err':>10}")
+def part_compare(csv: Path, trials: int, ref) -> dict:
+    recs = fit_windows(csv, ref)
+    print(f"\n2a. optimisers on the same data and starts (all {len(recs)} levels, identify_runs(method=...))")
+    print(f"   {'method':<12} {'time (s)':>9} {'model evals':>12} {'sum Q / best':>13} {'max hold Θ':>10} "
+          f"{'hold laws':>9} {'Fc law err':>10} {'σ0 med err':>10} {'σ1 med err':>10}")
     out: dict = {"same_start": {}, "random_starts": {}}
     results = {}
     for m in METHODS:
         t0 = time.perf_counter()
-        res = identify([run], method=m)
-        results[m] = (res, time.perf_counter() - t0)
-    qbest = min(sum(f.rms_N ** 2 * f.samples for f in r.fits) for r, _ in results.values())
-    for m, (res, wall) in results.items():
-        q = sum(f.rms_N ** 2 * f.samples for f in res.fits)
+        res = identify_runs([csv], method=m)
+        wall = time.perf_counter() - t0
+        qs = {_key(lv["level"]): level_q(recs[_key(lv["level"])], lv["theta"]) for lv in res.details["levels"]}
+        results[m] = (res, wall, qs)
+    qbest = min(sum(qs.values()) for _, _, qs in results.values())
+    for m, (res, wall, qs) in results.items():
+        q = sum(qs.values())
         acc = accuracy(res)
-        nfev = sum(f.nfev for f in res.fits)
-        print(f"   {m:<12} {wall:9.2f} {nfev:12d} {q / qbest:13.5f} {100 * max(f.nrmse for f in res.fits):9.2f}% "
+        nfev = sum(lv["nfev"] for lv in res.details["levels"])
+        hmax = max(s.nrmse for s in res.holdout)
+        hlaws = max(s.nrmse_laws for s in res.holdout)
+        print(f"   {m:<12} {wall:9.2f} {nfev:12d} {q / qbest:13.5f} {100 * hmax:9.2f}% {100 * hlaws:8.2f}% "
               f"{100 * acc['Fc_law_max_rel_err']:9.2f}% {100 * acc['sigma0_median_rel_err']:9.1f}% "
               f"{100 * acc['sigma1_median_rel_err']:9.1f}%")
-        out["same_start"][m] = {"time_s": wall, "nfev": nfev, "Q_over_best": q / qbest,
-                                "max_nrmse": max(f.nrmse for f in res.fits), **acc}
+        out["same_start"][m] = {"time_s": wall, "pipeline_time_s": res.time_s, "nfev": nfev, "Q_over_best": q / qbest,
+                                "max_holdout_nrmse": hmax, "max_holdout_nrmse_laws": hlaws,
+                                "laws": res.details["laws_choice"]["laws"], **acc}
 
-    # robustness from random starts, per current, on the fit windows identify used
-    print(f"\n2b. robustness: {trials} random starts per current (each Θ entry ×/÷ up to 3 from the "
+    # robustness from random starts, per level, on the fit windows the pipeline used
+    print(f"\n2b. robustness: {trials} random starts per level (each Θ entry ×/÷ up to 3 from the "
           "data-derived start, σ1 ± 3·Fc/max|v|), one optimiser run each, no grid, no restarts")
     rng = np.random.default_rng(1)
-    ref = results["trf"][0]
-    # rebuild the windows exactly as identify does: reuse its per-current data
-    from mrctl.offline.identify.runs import _check_run, _segments, estimate_period  # noqa: E402
-    c = _check_run(run, "run")
-    T = estimate_period(c["t"], c["v"])
-    dt = float(np.median(np.diff(c["t"])))
-    recs = []
-    for a, b in _segments(c["I"]):
-        if (b - a) * dt < 2 * T:
-            continue
-        f0 = a + int(round(T / dt))
-        w0 = a
-        nper = math.floor((b - f0 + 0.5) * dt / T)
-        f1 = min(f0 + int(round(nper * T / dt)), b)
-        h = np.full(f1 - w0, dt)
-        recs.append(_window_record([(c["v"][w0:f1], c["F"][w0:f1], h, f0 - w0)]))
     stats = {m: {"ok": 0, "n": 0, "nfev": [], "time": []} for m in METHODS}
-    for fit, rec in zip(ref.fits, recs):
-        best = fit.rms_N ** 2 * fit.samples
-        th_best = np.array([fit.theta[k] for k in THETA_NAMES])
-        vmax = float(np.percentile(np.abs(rec.v), 99.5))
-        start0 = np.array([fit.theta0[k] for k in THETA_NAMES])
+    for lv in ref.details["levels"]:
+        k = _key(lv["level"])
+        rec = recs[k]
+        best = min(qs[k] for _, _, qs in results.values())
+        vmax = _vmax(rec)
+        start0 = np.array([lv["start"][n] for n in THETA_NAMES])
         for _ in range(trials):
             th = start0 * np.exp(rng.uniform(-math.log(3), math.log(3), 6))
             th[1] = rng.uniform(-3, 3) * start0[3] / vmax
@@ -144,7 +244,6 @@ def part_compare(run, trials: int) -> dict:
                 s["ok"] += int(q <= best * 1.001)
                 s["nfev"].append(prob.nfev)
                 s["time"].append(wall)
-        _ = th_best
     print(f"   {'method':<12} {'reach best Q':>13} {'median evals':>13} {'median time (s)':>16}")
     for m, s in stats.items():
         print(f"   {m:<12} {s['ok']:>6d}/{s['n']:<6d} {statistics.median(s['nfev']):13.0f} "
@@ -184,7 +283,7 @@ def _loop_force(theta, v, dt):
 
 def part_model_cost(run) -> dict:
     dt = 1e-3
-    v = np.asarray(run["v_meas"][:2000], float)  # warm-up + three periods, as one current's fit
+    v = np.asarray(run["v_meas"][:2000], float)  # 4 periods of the 2 Hz stroke: a warm-up one + three
     th = theta_from_params(TABLE_I, 0.25)
     rec = _window_record([(v, np.zeros(v.size), np.full(v.size, dt), 500)])
     n = 200
@@ -211,20 +310,23 @@ def part_model_cost(run) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--compare", action="store_true", help="compare the optimisers (adds ~2 min)")
-    ap.add_argument("--trials", type=int, default=5, help="random starts per current in the comparison")
+    ap.add_argument("--compare", action="store_true", help="compare the optimisers (adds ~1 min)")
+    ap.add_argument("--trials", type=int, default=5, help="random starts per level in the comparison")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
-    t0 = time.perf_counter()
-    run = make_run()
-    print(f"data: {CONFIG.relative_to(ROOT)} simulated in {time.perf_counter() - t0:.2f} s "
-          f"({run['t'].size} samples)")
-    import scipy.optimize  # noqa: F401  (import cost is not identification time)
+    with tempfile.TemporaryDirectory(prefix="identify_speed-") as tmp:
+        t0 = time.perf_counter()
+        csv, run = make_run(Path(tmp))
+        print(f"data: {CONFIG.relative_to(ROOT)} simulated to a run CSV + sidecar in "
+              f"{time.perf_counter() - t0:.2f} s ({run.ticks} samples)")
+        import scipy.optimize  # noqa: F401  (import cost is not identification time)
+        import scipy.signal  # noqa: F401
 
-    out = {"timing": part_timing(run, args.repeat)}
-    if args.compare:
-        out["compare"] = part_compare(run, args.trials)
-    out["model_cost"] = part_model_cost(run)
+        timing, ref = part_timing(csv, args.repeat)
+        out = {"timing": timing}
+        if args.compare:
+            out["compare"] = part_compare(csv, args.trials, ref)
+        out["model_cost"] = part_model_cost(run.columns)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
     return 0
