@@ -35,12 +35,9 @@ Parts:
 3. cost of one model evaluation, vectorised scan vs a plain-float per-sample
    loop (the alternative the design rejected).
 
-Changed with the one-pipeline identification: the per-current "starts"
-column is gone (a level's fit no longer reports how many grid starts it
-ran); "Q" is recomputed on the rebuilt windows (the result keeps the fit
-NRMSE, not the RMS residual); the worst held-out NRMSE replaces the worst fit
-NRMSE in the comparison; the total now includes what the pipeline does
-besides the fits (reading, preparing, scoring, the leave-level-out choice).
+"Q" is recomputed on the rebuilt windows (the result keeps the fit NRMSE, not
+the RMS residual); the total includes what the pipeline does besides the
+fits (reading, preparing, scoring, the leave-level-out choice).
 
 Usage: python bench/identify_speed.py [--repeat 3] [--compare] [--trials 5] [--json out.json]
 """
