@@ -6,7 +6,7 @@ Data: ``config/experiments/identify.yaml`` (Table I plant, 2 Hz / 8 mm sine,
 temporary run CSV and its sidecar, as ``mrctl simulate --out`` writes them
 (:func:`mrctl.offline.simulate_log.simulate_logged`: the sidecar says the load
 cell reads one tick late). Identified as ``mrctl identify RUN.csv`` does it:
-:func:`mrctl.offline.identify.identify_runs`, the one pipeline (the
+:func:`mrctl.offline.identify.identify_runs`, the whole pipeline (the
 description of the run CSV, reading, preparing, steady cycles per level, a Θ
 fit per level, the laws, the leave-level-out choice of laws, held-out
 scores). Target: < 60 s on the 2-core lab machine.

@@ -385,7 +385,19 @@ def cmd_identify(args: argparse.Namespace) -> int:
         dataset, runs = runs[0], []  # one .yaml: the description (identify_command takes it from here)
     if dataset is None and not runs:
         raise BadInput("identify: give run CSVs or a dataset description (--dataset D.yaml)")
+    yamls = [r for r in runs if r.lower().endswith((".yaml", ".yml"))]
+    if yamls:
+        raise BadInput(f"identify: {yamls[0]} is a description among run CSVs; give one dataset description "
+                       "(--dataset D.yaml) or run CSVs, not both")
     args.dataset, args.runs = dataset, runs
+    if args.describe is not None:  # the description of the run CSVs, nothing fitted
+        given = [o for o, v in (("--out", args.out), ("--report", args.report), ("--holdout", args.holdout),
+                                ("--no-offset", args.no_offset), ("--method", args.method != "trf")) if v]
+        if given:
+            raise BadInput(f"identify: --describe writes the description and fits nothing; {given[0]} is for the "
+                           "fit (give it with --dataset D.yaml on the description)")
+        args.describe = out_path(argparse.Namespace(out=args.describe, mkdir=args.mkdir))
+        return identify_command(args)
     src = Path(dataset if dataset is not None else runs[0])
     args.out = out_path(args, str(src.with_name(src.stem + ".params.yaml")))
     if args.report:
@@ -547,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
     xp.set_defaults(func=cmd_exporter)
 
     ip = sub.add_parser("identify", help="fit the LuGre parameter set: from run CSVs of constant-current steps, "
-                                         "or from measured data described by a dataset YAML (one pipeline)")
+                                         "or from measured data described by a dataset YAML")
     ip.add_argument("runs", nargs="*", metavar="RUN.csv", help="run CSVs (simulate or run) with a constant-current "
                                                                "schedule, described as a dataset by mrctl itself; "
                                                                "or one dataset .yaml")

@@ -446,3 +446,16 @@ def test_demand_and_excitation_files_stay_under_the_config_unless_allowed(tmp_pa
         "excitation: {type: sine, amplitude_m: 0.010, frequency_hz: 1.0}", "excitation: {type: file, path: ../e.csv}"))
     assert main(["simulate", str(cfg_dir / "y.yaml"), "--duration", "0.1"]) == 2
     assert "excitation.path" in capsys.readouterr().err
+
+
+def test_a_file_a_manifest_lists_is_an_input_never_an_output(tmp_path, capsys):
+    (tmp_path / "r.csv").write_text("t,x,F\n0,0,0\n0.01,1,1\n0.02,0,2\n0.03,1,0\n")
+    (tmp_path / "m.csv").write_text("file,level\nr.csv,0.5\n")
+    (tmp_path / "ds.yaml").write_text("version: 1\nprotocol: constant_input\ncolumns: {time: t, displacement: x, "
+                                      "force: F}\nmodel: {stiffness: false}\n"
+                                      "manifest: {path: m.csv, file: file, level: level}\n")
+    before = (tmp_path / "r.csv").read_bytes()
+    assert main(["identify", "--dataset", str(tmp_path / "ds.yaml"), "--out", str(tmp_path / "r.csv"),
+                 "--force"]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+    assert (tmp_path / "r.csv").read_bytes() == before

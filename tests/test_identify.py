@@ -342,3 +342,116 @@ def test_cli_reads_csv_with_extra_columns(tmp_path, capsys):
     out = tmp_path / "p.yaml"
     assert cli_identify([str(path)], str(out)) == 0
     assert load_params_file(out).Fc(0.5) == pytest.approx(TABLE_I.Fc(0.5), rel=0.05)
+
+
+# -- what a real run log holds: bad input values, noise, gaps, sidecars ---------------
+def _level_values(res):
+    return [round(lv["level"], 3) for lv in _levels(res)]
+
+
+@pytest.mark.parametrize("bad", [math.inf, math.nan])
+def test_a_non_finite_current_sample_is_left_out_not_spread(tmp_path, bad):
+    run = staircase([0.0, 0.25, 0.5], step_s=3.0)
+    run["I"][4000] = bad  # one corrupt sample inside the 0.25 A step
+    res = identify_csvs(tmp_path, [run])
+    assert _level_values(res) == [0.0, 0.25, 0.5]
+    assert all(s.nrmse < 0.02 for s in res.holdout)
+
+
+@pytest.mark.parametrize("noise_A", [0.002, 0.004])
+def test_a_measured_noisy_lagging_current_gives_the_levels(tmp_path, noise_A):
+    from mrctl.config.dataset import validate_dataset
+    from mrctl.offline.identify import identify_dataset
+
+    run = staircase([0.0, 0.1, 0.2, 0.3, 0.4, 0.5], step_s=3.0, driver_tau_s=0.01)
+    run["I_meas"] = run["I_applied"] + np.random.default_rng(3).normal(0.0, noise_A, run["t"].size)
+    path = write_run_csv(tmp_path / "meas.csv", run)
+    ds = validate_dataset({"version": 1, "protocol": "constant_input", "files": [str(path)],
+                           "columns": {"time": "t", "velocity": "v_meas", "displacement": "x", "force": "F_meas",
+                                       "input": "I_meas"}}, tmp_path)
+    res = identify_dataset(ds)
+    assert [round(x, 2) for x in _level_values(res)] == [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    # a constant measured current with noise is one level, not a closed-loop run
+    const = staircase([0.3], step_s=6.0)
+    const["I_meas"] = 0.3 + np.random.default_rng(4).normal(0.0, noise_A, const["t"].size)
+    write_run_csv(tmp_path / "meas.csv", const)
+    assert [round(x, 2) for x in _level_values(identify_dataset(ds))] == [0.3]
+
+
+def test_gaps_are_filled_before_the_load_cell_is_moved_back(tmp_path):
+    """Skipped ticks at a reversal: the delayed force is paired with its own tick on the tick grid."""
+    from mrctl.config.dataset import validate_dataset
+    from mrctl.offline.identify.records import read_records
+
+    n = 400
+    k = np.arange(n)
+    f = (k / 100.0) ** 2  # the force of tick k; the load cell reports it one tick later
+    rows = {"t": k * 1e-3, "v": np.sin(k / 20.0), "F": np.concatenate(([0.0], f[:-1])), "I": np.zeros(n)}
+    keep = np.ones(n, bool)
+    keep[100:105] = False  # five skipped ticks
+    write_run_csv(tmp_path / "g.csv", {c: a[keep] for c, a in rows.items()})
+    ds = validate_dataset({"version": 1, "protocol": "constant_input", "files": ["g.csv"],
+                           "columns": {"time": "t", "velocity": "v", "force": {"name": "F", "delay_samples": 1},
+                                       "input": "I"}, "format": {"max_gap_samples": 10},
+                           "model": {"stiffness": False}}, tmp_path)
+    rec, = read_records(ds)
+    assert rec.t.size == n - 1
+    for j in (97, 98, 104, 105, 300):  # forces measured either side of the gap (ticks 99-103 read in it)
+        assert rec.F[j] == pytest.approx(f[j], abs=1e-9), j
+    assert rec.notes == ["5 missing sample(s) in 1 gap(s) filled by linear interpolation (format.max_gap_samples)"]
+
+
+def test_a_nan_beside_a_gap_is_excluded_and_the_gap_filled(tmp_path):
+    run = staircase([0.0, 0.25, 0.5], step_s=3.0)
+    run["F_meas"][1000] = np.nan
+    keep = np.ones(run["t"].size, bool)
+    keep[1001:1003] = False
+    res = identify_csvs(tmp_path, [{c: a[keep] for c, a in run.items()}])
+    assert _level_values(res) == [0.0, 0.25, 0.5]
+    assert any("2 missing sample(s) in 1 gap(s)" in w for w in res.warnings)
+
+
+def test_sidecars_that_cannot_be_used(tmp_path):
+    run = staircase([0.0, 0.25], step_s=3.0)
+    path = write_run_csv(tmp_path / "r.csv", run)
+    (tmp_path / "r.json").write_text('{"load_cell_delay_ticks": 200000}')
+    with pytest.raises(IdentificationError, match="load_cell_delay_ticks 200000 is longer than the run"):
+        identify_runs([path])
+    (tmp_path / "r.json").write_text('{"load_cell_delay_ticks": ')  # torn
+    res = identify_runs([path])
+    assert any("r.csv: its sidecar cannot be read" in w and "no delay" in w for w in res.warnings), res.warnings
+    (tmp_path / "r.json").write_text('{"load_cell_delay_ticks": "one"}')
+    assert any("is not a tick count" in w for w in identify_runs([path]).warnings)
+
+
+def test_an_empty_force_column_falls_back_or_is_named(tmp_path):
+    from mrctl.offline.identify import describe_runs
+
+    run = staircase([0.0, 0.25], step_s=3.0)
+    run["F_meas"] = np.full(run["t"].size, np.nan)  # no load cell reading in this column: F has it
+    path = write_run_csv(tmp_path / "r.csv", run)
+    assert describe_runs([path])["columns"]["force"] == "F"
+    del run["F"]
+    path = write_run_csv(tmp_path / "r.csv", run)
+    with pytest.raises(IdentificationError, match="column F_meas has no value in any row"):
+        describe_runs([path])
+
+
+def test_the_same_run_twice_is_refused(tmp_path):
+    path = write_run_csv(tmp_path / "r.csv", staircase([0.0, 0.25], step_s=3.0))
+    with pytest.raises(IdentificationError, match="given twice"):
+        identify_runs([path, tmp_path / "." / "r.csv"])
+
+
+def test_describe_refuses_what_is_for_the_fit(tmp_path, capsys):
+    from mrctl.cli import main
+
+    path = write_run_csv(tmp_path / "r.csv", staircase([0.0, 0.25], step_s=3.0))
+    for extra in (["--out", str(tmp_path / "p.yaml")], ["--holdout", "none"], ["--no-offset"], ["--method", "lm"]):
+        assert main(["identify", str(path), "--describe", str(tmp_path / "d.yaml"), *extra]) == 2
+        assert "--describe writes the description and fits nothing" in capsys.readouterr().err
+    assert main(["identify", str(path), "--describe", str(tmp_path / "no" / "d.yaml")]) == 2
+    assert "--mkdir" in capsys.readouterr().err
+    assert main(["identify", str(path), str(tmp_path / "d.yaml")]) == 2
+    assert "a description among run CSVs" in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.yaml"))

@@ -246,7 +246,7 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
             "input": Custom(_column, default=None,
                             doc="the drive input (A or V, see input); constant_input may give levels instead"),
         }, optional=False, doc="column (CSV header) or variable (.mat) of each signal: a name or {name, scale, "
-                               "offset, index}; SI value = raw · scale + offset"),
+                               "offset, index, delay_samples}; SI value = raw · scale + offset"),
         "format": Section({
             "type": Str(default=None, optional=True, choices=("csv", "mat"),
                         doc="file format; null = by extension (.mat is MATLAB, anything else CSV)"),

@@ -1,4 +1,4 @@
-"""``mrctl identify``: run CSVs or a dataset description to a parameters YAML (one pipeline).
+"""``mrctl identify``: run CSVs or a dataset description to a parameters YAML.
 
 Checks the command line, then every output before the fit, fits, and writes
 the parameters, the dataset's JSON summary and the figure together after
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 from typing import Sequence
 
@@ -29,7 +30,8 @@ def identify_command(args: argparse.Namespace) -> int:
     """Run CSVs (mrctl's own logs of constant-current steps, described by
     :func:`mrctl.offline.identify.runs.describe_runs`) or a dataset
     description (a lab's measured records, ``--dataset`` or a .yaml
-    argument): one pipeline either way. Prints progress, the summary table,
+    argument), through :func:`mrctl.offline.identify.identify_dataset`
+    either way. Prints progress, the summary table,
     what was written. Errors are raised (IdentificationError/ConfigError
     exit 2, DependencyMissing exit 2, FigureError exit 2) for :func:`main`'s
     handler. Outputs: checked before the fit, written after it, all or
@@ -50,7 +52,11 @@ def identify_command(args: argparse.Namespace) -> int:
         ds = load_dataset(dataset, data_dir=args.data_dir, allow_outside=args.allow_outside_paths)
         if overrides:
             ds = ds.replace(fit=ds.fit.replace(**overrides["fit"]))
-        inputs = [dataset, *(f.path for f in ds.files or [])] + ([ds.manifest.path] if ds.manifest is not None else [])
+        inputs = [dataset, *(f.path for f in ds.files or [])]
+        if ds.manifest is not None:  # the manifest and every file it lists
+            from mrctl.offline.identify.records import manifest_paths
+
+            inputs += [ds.manifest.path, *manifest_paths(ds.manifest)]
         source = str(dataset)
     else:
         if args.data_dir is not None:
@@ -58,8 +64,11 @@ def identify_command(args: argparse.Namespace) -> int:
         if args.allow_outside_paths:
             raise BadInput("identify: --allow-outside-paths is for --dataset (run CSVs are named on the command "
                            "line)")
-        ds, doc = load_runs(runs, overrides=overrides)
+        notes: list[str] = []
+        ds, doc = load_runs(runs, overrides=overrides, notes=notes)
         if args.describe is not None:
+            for note in notes:
+                print(f"warning: {note}", file=sys.stderr)
             return _describe(args, doc)
         inputs = [q for r in runs for q in (r, sidecar_path(r))]
         source = ", ".join(runs)
@@ -69,6 +78,7 @@ def identify_command(args: argparse.Namespace) -> int:
                            progress=not (args.no_progress or args.quiet))
     if dataset is None:
         res.settings["dataset"] = doc  # the description mrctl wrote: --describe writes it for --dataset
+        res.warnings[:0] = notes
     items = result_bytes(res, args.out)
     if args.report:
         from mrctl.offline.identify_figure import make_identification_figure

@@ -1,5 +1,5 @@
-"""Identification of the LuGre parameters: one pipeline, from a lab's
-measured records described by a dataset YAML or from mrctl's own runs.
+"""Identification of the LuGre parameters from a lab's measured records
+described by a dataset YAML, or from mrctl's own runs described as one.
 
 The paper's Section III, usable on a lab's own damper and on any bench's
 records. A *dataset description* (:mod:`mrctl.config.dataset`) says where

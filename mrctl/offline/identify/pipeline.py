@@ -1,13 +1,13 @@
-"""Identification, end to end: one pipeline for a dataset description and for mrctl's run CSVs.
+"""Identification, end to end: from a dataset description, or from mrctl's run CSVs described as one.
 
 :func:`identify_dataset` reads the records a description names
 (:mod:`.records`), prepares spans at the fit rate (:mod:`.prep`), splits off
 the held-out data, runs the protocol (constant-input sine tests,
 :mod:`.sine`; broadband or switched input, :mod:`.broadband`), checks the
 result (:mod:`.guards`: an absurd set is an error, never a file) and scores
-it on the held-out data. :func:`identify_dataset_file` is what
-``mrctl identify --dataset`` calls: it also writes the parameters YAML and
-the JSON summary beside it. :func:`identify_runs` is the same for mrctl's
+it on the held-out data. :func:`identify_dataset_file` also writes the
+parameters YAML and
+the JSON summary beside it. :func:`identify_runs` does the same for mrctl's
 own run CSVs, through the description :mod:`.runs` writes for them.
 """
 
@@ -392,9 +392,11 @@ def identify_runs(paths: Sequence[str | os.PathLike[str]], *, laws: str | None =
     :func:`identify_dataset` (``kwargs``: holdout, progress, method, model).
     ``laws``: "auto", "paper" or "table" (``fit.laws``). The description is
     in the result's ``settings["dataset"]``."""
-    ds, doc = load_runs(paths, name=name, overrides={"fit": {"laws": laws}} if laws else None)
+    notes: list[str] = []
+    ds, doc = load_runs(paths, name=name, overrides={"fit": {"laws": laws}} if laws else None, notes=notes)
     res = identify_dataset(ds, source=", ".join(str(p) for p in paths), **kwargs)
     res.settings["dataset"] = doc
+    res.warnings[:0] = notes
     return res
 
 

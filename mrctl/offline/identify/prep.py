@@ -135,30 +135,44 @@ _MIN_LEVEL_S = 0.1
 
 
 def levels_from_input(rec: Record, u: np.ndarray) -> np.ndarray:
-    """The constant levels of a staircase input at the record's own rate: each
-    stretch where the input stays within 2 % of its range of the stretch's
-    first sample (a drift starts another) holds its median; a
-    step's transition samples belong to a stretch of their own, too short to
-    hold a cycle. Refuses an input that never holds still (a closed-loop run)."""
-    tol = max(1e-9, 0.02 * float(np.ptp(u)))
+    """The constant levels of a staircase input at the record's own rate.
+
+    A stretch holds while the input (a 5-sample running median, so that one
+    noisy sample starts nothing) stays within a tolerance of its value at the
+    stretch's start: 2 % of the input's range, or 8 × its sample-to-sample
+    noise (a measured current), whichever is larger; a drift starts another.
+    Each stretch's level is its median; a step's transition samples form
+    stretches of their own, too short to hold a cycle. Non-finite samples
+    (outside the used windows) have no level. Refuses an input that never
+    holds still (a closed-loop run)."""
+    from scipy.signal import medfilt
+
+    lv = np.full(u.size, np.nan)
+    idx = np.flatnonzero(np.isfinite(u))
+    if idx.size == 0:
+        return lv
+    uf = u[idx]
+    d = np.diff(uf)
+    noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0) if d.size else 0.0
+    tol = max(0.02 * float(np.ptp(uf)), 8.0 * noise, 1e-9 * max(1.0, float(np.max(np.abs(uf)))))
+    sm = medfilt(uf, 5) if uf.size >= 5 else uf
     cuts = [0]
-    ref = float(u[0])
-    for k, x in enumerate(u.tolist()):  # a new stretch where the input leaves the first value of this one
+    ref = float(sm[0])
+    for k, x in enumerate(sm.tolist()):  # a new stretch where the input leaves this one's first value
         if abs(x - ref) > tol:
             cuts.append(k)
             ref = x
-    edges = np.asarray(cuts + [u.size])
+    edges = np.asarray(cuts + [uf.size])
     lengths = np.diff(edges)
     short = int(lengths[lengths < _MIN_LEVEL_S * rec.fs].sum())
-    if edges.size > 3 and short > 0.5 * u.size:
+    if edges.size > 3 and short > 0.5 * uf.size:
         raise IdentificationError(
             f"{rec.name}: the input changes {edges.size - 2} times and holds still for less than "
-            f"{_MIN_LEVEL_S:g} s over {100 * short / u.size:.0f} % of the record: constant_input identification needs "
-            "steps of constant input (mrctl: the inverse law 'schedule' or 'constant'), not a closed-loop run; "
-            "describe such a record as protocol: broadband")
-    lv = np.empty_like(u)
+            f"{_MIN_LEVEL_S:g} s over {100 * short / uf.size:.0f} % of the record: constant_input identification "
+            "needs steps of constant input (mrctl: the inverse law 'schedule' or 'constant'), not a closed-loop "
+            "run; describe such a record as protocol: broadband")
     for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
-        lv[a:b] = float(np.median(u[a:b]))
+        lv[idx[a:b]] = float(np.median(uf[a:b]))
     return lv
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from mrctl.offline.identify.errors import IdentificationError
 from mrctl.util.files import FileProblem, MiB, not_regular, read_regular_file
 
-__all__ = ["Record", "read_records", "read_signals", "MAX_DATA_BYTES", "MAX_MANIFEST_BYTES", "MAX_SI_MAGNITUDE"]
+__all__ = ["Record", "read_records", "read_signals", "manifest_paths", "MAX_DATA_BYTES", "MAX_MANIFEST_BYTES", "MAX_SI_MAGNITUDE"]
 
 #: the largest data file read (CSV or .mat): hours of a fast DAQ; read whole, so bounded
 MAX_DATA_BYTES = 1024 * MiB
@@ -187,8 +187,7 @@ def _read_mat(path: Path, specs: dict[str, Any]) -> dict[str, np.ndarray]:
 
 def read_signals(path: str, ds: Any, notes: list[str] | None = None) -> dict[str, np.ndarray]:
     """The described columns of one file, scaled to SI units (role → array),
-    each delayed column (``columns.<signal>.delay_samples``) moved back to the
-    sample it measured: the record loses that many samples at its end."""
+    as recorded (:func:`read_records` fills gaps, then undoes delays)."""
     p = Path(path)
     specs = {r: ds.columns.get(r) for r in _SIGNALS if ds.columns.get(r) is not None}
     kind = ds.format.type or ("mat" if p.suffix.lower() == ".mat" else "csv")
@@ -212,14 +211,6 @@ def read_signals(path: str, ds: Any, notes: list[str] | None = None) -> dict[str
                                       f"{'not finite' if not np.isfinite(si[big[0]]) else 'beyond 1e12'} at sample "
                                       f"{big[0]}: check the scale and offset (SI value = raw · scale + offset)")
         out[r] = si
-    delay = {r: int(specs[r].get("delay_samples", 0) or 0) for r in out}
-    most = max(delay.values(), default=0)
-    if most:
-        n0 = next(iter(out.values())).size
-        if n0 - most < 3:
-            raise IdentificationError(f"{p}: {n0} sample(s), too few for a delay of {most} sample(s) "
-                                      "(columns.<signal>.delay_samples)")
-        out = {r: a[delay[r]:n0 - most + delay[r]] for r, a in out.items()}
     return out
 
 
@@ -238,10 +229,32 @@ def _fill_gaps(sig: dict[str, np.ndarray], max_gap: int, notes: list[str]) -> No
         return
     k = np.concatenate(([0], np.cumsum(steps)))
     full = np.arange(int(k[-1]) + 1, dtype=float)
-    for r, a in sig.items():
-        sig[r] = np.interp(full, k, a)
+    missing = np.ones(full.size, bool)
+    missing[k] = False
+    for r, a in sig.items():  # each signal from its finite samples: a NaN row stays NaN, and fills nothing
+        out = np.full(full.size, np.nan)
+        out[k] = a
+        fin = np.isfinite(a)
+        if fin.any():
+            out[missing] = np.interp(full[missing], k[fin], a[fin])
+        sig[r] = out
     notes.append(f"{int((steps - 1).sum())} missing sample(s) in {int(np.count_nonzero(steps > 1))} gap(s) "
                  "filled by linear interpolation (format.max_gap_samples)")
+
+
+def _undo_delays(sig: dict[str, np.ndarray], ds: Any, p: str) -> dict[str, np.ndarray]:
+    """Each delayed signal (``columns.<signal>.delay_samples`` = n: sample k + n
+    measured the instant of sample k) moved back to the sample it measured, on
+    the gap-filled sample grid; the record loses the last n samples."""
+    delay = {r: int(ds.columns.get(r).get("delay_samples", 0) or 0) for r in sig}
+    most = max(delay.values(), default=0)
+    if not most:
+        return sig
+    n0 = next(iter(sig.values())).size
+    if n0 - most < 3:
+        raise IdentificationError(f"{p}: {n0} sample(s), too few for a delay of {most} sample(s) "
+                                  "(columns.<signal>.delay_samples)")
+    return {r: a[delay[r]:n0 - most + delay[r]] for r, a in sig.items()}
 
 
 def _time(sig: dict[str, np.ndarray], ds: Any, p: str) -> tuple[np.ndarray, float]:
@@ -284,6 +297,7 @@ def read_records(ds: Any) -> list[Record]:
         sig = read_signals(path, ds, notes)
         if max_gap and "time" in sig and ds.sample_rate_hz is None:
             _fill_gaps(sig, max_gap, notes)
+        sig = _undo_delays(sig, ds, path)
         t, fs = _time(sig, ds, path)
         rec = Record(name=name or Path(path).stem, path=path, role=role, t=t, F=sig["force"],
                      x=sig.get("displacement"), v=sig.get("velocity"), u=sig.get("input"),
@@ -306,6 +320,11 @@ def read_records(ds: Any) -> list[Record]:
     if dup:
         raise IdentificationError(f"record names must be unique; repeated: {', '.join(dup)} (set files[].name)")
     return records
+
+
+def manifest_paths(man: Any) -> list[str]:
+    """The data files a manifest lists (checked as :func:`read_records` does)."""
+    return [e[0] for e in _manifest_entries(man)]
 
 
 def _manifest_entries(man: Any) -> list:

@@ -1,7 +1,7 @@
 """What identification returns, and how it is written and shown.
 
-One result for every source (a dataset description, or mrctl's run CSVs
-described by :mod:`.runs`): :class:`IdentificationResult` holds the fitted set, the held-out scores and the
+Whatever the source (a dataset description, or mrctl's run CSVs described
+by :mod:`.runs`), :class:`IdentificationResult` holds the fitted set, the held-out scores and the
 plotting data; :func:`write_result` writes the parameters YAML
 (``mrctl.config.load_params_file`` reads it: the set, ``input``,
 ``input_range``, and a ``fit:`` block) and the JSON summary beside it
@@ -201,7 +201,7 @@ def result_bytes(res: IdentificationResult, out: str | Path) -> list[tuple[Path,
     out = Path(out)
     text = io.StringIO()
     laws = "a table of per-level values" if p.table is not None else "laws (6)-(11)"
-    text.write(f"# mrctl identify --dataset: LuGre parameters, {laws} in the input ({res.unit}); SI units\n")
+    text.write(f"# mrctl identify: LuGre parameters, {laws} in the input ({res.unit}); SI units\n")
     yaml.dump(doc, text, Dumper=_compact_dumper(), sort_keys=False, allow_unicode=True, width=120)
     return [(out, text.getvalue().encode("utf-8")),
             (json_path(out), (json.dumps(summary, indent=2, allow_nan=False) + "\n").encode("utf-8"))]
