@@ -37,7 +37,7 @@ from mrctl.offline.identify.errors import DependencyMissing, IdentificationError
 from mrctl.offline.identify.fit import DEFAULT_METHOD, METHODS, initial_guess
 from mrctl.offline.identify.laws import LawFit, fit_laws, theta_from_params
 from mrctl.offline.identify.model import THETA_NAMES, THETA_UNITS, lugre_force
-from mrctl.offline.identify.pipeline import identify_dataset, identify_dataset_file, identify_runs, parse_holdout
+from mrctl.offline.identify.pipeline import identify_dataset, identify_runs, parse_holdout
 from mrctl.offline.identify.result import IdentificationResult, Score, format_summary, json_path, write_result
 from mrctl.offline.identify.runs import describe_runs, load_runs
 
@@ -57,7 +57,6 @@ __all__ = [
     "load_runs",
     "identify_dataset",
     "identify_runs",
-    "identify_dataset_file",
     "IdentificationResult",
     "Score",
     "format_summary",

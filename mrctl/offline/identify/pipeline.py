@@ -5,10 +5,10 @@
 the held-out data, runs the protocol (constant-input sine tests,
 :mod:`.sine`; broadband or switched input, :mod:`.broadband`), checks the
 result (:mod:`.guards`: an absurd set is an error, never a file) and scores
-it on the held-out data. :func:`identify_dataset_file` also writes the
-parameters YAML and
-the JSON summary beside it. :func:`identify_runs` does the same for mrctl's
+it on the held-out data. :func:`identify_runs` does the same for mrctl's
 own run CSVs, through the description :mod:`.runs` writes for them.
+:func:`mrctl.offline.identify.result.write_result` writes either's
+parameters YAML and the JSON summary beside it.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from mrctl.config.params import INPUT_KINDS
 from mrctl.model.params import LuGreParams
 from mrctl.offline.identify.bbmodel import SpanData
 from mrctl.offline.identify.broadband import fit_broadband, predict, warmup_samples
-from mrctl.offline.identify.result import IdentificationResult, Score, Trace, write_result
+from mrctl.offline.identify.result import IdentificationResult, Score, Trace
 from mrctl.offline.identify.errors import IdentificationError, merge_warnings, require_scipy
 from mrctl.offline.identify.fit import _WELL_REL_SE, _WELL_SENS, METHODS
 from mrctl.offline.identify.guards import Support, check_laws, theta_problems
@@ -38,7 +38,7 @@ from mrctl.offline.identify.runs import load_runs
 from mrctl.offline.identify.sine import find_segments, fit_levels, predict_segment
 from mrctl.util.schema import Node
 
-__all__ = ["identify_dataset", "identify_runs", "identify_dataset_file", "parse_holdout"]
+__all__ = ["identify_dataset", "identify_runs", "parse_holdout"]
 
 _DEFAULT_FRACTION = {"broadband": 0.3, "constant_input": 0.5}
 
@@ -397,14 +397,4 @@ def identify_runs(paths: Sequence[str | os.PathLike[str]], *, laws: str | None =
     res = identify_dataset(ds, source=", ".join(str(p) for p in paths), **kwargs)
     res.settings["dataset"] = doc
     res.warnings[:0] = notes
-    return res
-
-
-def identify_dataset_file(dataset: str | os.PathLike[str] | Node, out: str | os.PathLike[str], *,
-                          force: bool = False, **kwargs: Any) -> IdentificationResult:
-    """``mrctl identify --dataset``'s work: identify, then write the YAML and ``PARAMS.json``.
-    Nothing is written unless identification succeeds (errors as :func:`identify_dataset`);
-    existing files are refused unless ``force``."""
-    res = identify_dataset(dataset, **kwargs)
-    write_result(res, out, force=force)
     return res
