@@ -19,6 +19,8 @@ from mrctl.daemon.status import query_status
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG5 = str(ROOT / "config" / "experiments" / "fig5.yaml")
+#: three 1 kHz loops beside a test suite on a shared machine skip deadlines: timing is not what is judged here
+OPEN_TIMING = "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n"
 
 
 @pytest.fixture
@@ -33,8 +35,17 @@ def user_dir(tmp_path, monkeypatch):
     return tmp / f"mrctl-{os.getuid()}"
 
 
-def _start(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "mrctl", "run", FIG5, "--duration", "120", "--no-progress", *args],
+@pytest.fixture
+def fig5(tmp_path) -> str:
+    """fig5.yaml with its timing bounds open (the verdict on a shared machine's clock is another test's)."""
+    cfg = tmp_path / "fig5.yaml"
+    cfg.write_text(Path(FIG5).read_text() + OPEN_TIMING)
+    return str(cfg)
+
+
+def _start(cfg: str, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "mrctl", "run", cfg, "--duration", "120", "--no-progress", "--no-log",
+                             *args],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
 
 
@@ -53,15 +64,15 @@ def _wait_for(path: Path, p: subprocess.Popen) -> None:
     raise AssertionError(f"daemon did not serve {path}: {p.communicate()}")
 
 
-def test_ls_lists_named_and_unnamed_daemons_and_a_second_run_is_not_blind(user_dir, capsys):
-    first = _start()
+def test_ls_lists_named_and_unnamed_daemons_and_a_second_run_is_not_blind(user_dir, fig5, capsys):
+    first = _start(fig5)
     procs = [first]
     try:
         _wait_for(user_dir / "status.sock", first)
-        second = _start()  # unnamed too: it must not run without a status socket
+        second = _start(fig5)  # unnamed too: it must not run without a status socket
         procs.append(second)
         _wait_for(user_dir / f"run-{second.pid}.sock", second)
-        named = _start("--instance", "left")
+        named = _start(fig5, "--instance", "left")
         procs.append(named)
         _wait_for(user_dir / "left.sock", named)
         # a socket left behind by a daemon that died is not a daemon
@@ -77,10 +88,10 @@ def test_ls_lists_named_and_unnamed_daemons_and_a_second_run_is_not_blind(user_d
         assert by_pid[second.pid]["instance"] == f"run-{second.pid}"
         assert by_pid[first.pid]["instance"] is None
         for d in found:
-            assert d["config"] == FIG5 and d["state"] == "OK" and d["uptime_s"] > 0 and d["answering"]
+            assert d["config"] == fig5 and d["state"] == "OK" and d["uptime_s"] > 0 and d["answering"]
         assert main(["ls"]) == 0
         table = capsys.readouterr().out
-        assert "left" in table and str(named.pid) in table and "dead" not in table and FIG5 in table
+        assert "left" in table and str(named.pid) in table and "dead" not in table and fig5 in table
 
         assert main(["status", "--instance", "left", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["pid"] == named.pid
@@ -106,8 +117,8 @@ def test_ls_with_nothing_running_and_bad_instance_names(user_dir, capsys):
     assert main(["run", FIG5, "--instance", "a/b", "--duration", "0.1"]) == 2
 
 
-def test_status_finds_the_one_daemon_of_this_user(user_dir, capsys):
-    p = _start("--instance", "only")
+def test_status_finds_the_one_daemon_of_this_user(user_dir, fig5, capsys):
+    p = _start(fig5, "--instance", "only")
     try:
         _wait_for(user_dir / "only.sock", p)
         assert main(["status", "--json"]) == 0  # not at status.sock, but the only one

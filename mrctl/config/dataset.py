@@ -296,7 +296,8 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
                               doc="constant_input: steady cycles a segment needs to be used"),
             "laws": Str(default="auto", choices=("auto", "paper", "table"),
                         doc="constant_input: the written laws: paper (6)-(11), table (per-level values "
-                            "interpolated piecewise linearly), auto = whichever predicts the held-out data better"),
+                            "interpolated piecewise linearly), auto = whichever predicts a level left out of the "
+                            "fit better (each interior level in turn); mrctl identify --fit-laws overrides it"),
         }, doc="fit settings"),
     }
 
