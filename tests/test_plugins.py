@@ -133,7 +133,8 @@ def test_sighup_swaps_in_a_plugin_law(on_path, tmp_path):
     from mrctl.daemon.service import RunOptions, Service
 
     cfg = tmp_path / "exp.yaml"
-    cfg.write_text(FIG5)
+    open_timing = "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n"  # the reload is judged, not the clock
+    cfg.write_text(FIG5 + open_timing)
     out = tmp_path / "run.csv"
     svc = Service(RunOptions(str(cfg), out=str(out), duration_s=2.5, live=False,
                              status_socket=str(tmp_path / "st.sock")))
@@ -143,7 +144,7 @@ def test_sighup_swaps_in_a_plugin_law(on_path, tmp_path):
         while svc.ctl is None or svc.ctl.ticks < 500:
             time.sleep(0.005)
         cfg.write_text(FIG5.replace("law: smooth", "law: force_pi").replace("  eps_N_per_A: 3.0", "  kp_A_per_N: 0.004")
-                       .replace("  max_slew_A_per_s: 50.0", "  ki_A_per_Ns: 0.5"))
+                       .replace("  max_slew_A_per_s: 50.0", "  ki_A_per_Ns: 0.5") + open_timing)
         os.kill(os.getpid(), signal.SIGHUP)
         while svc.reloads_ok + svc.reloads_rejected < 1:
             time.sleep(0.005)
