@@ -174,14 +174,12 @@ CURVED = replace(TRUTH, table=ThetaTable(
     ))))
 
 
-@pytest.fixture(scope="module")
-def curved(tmp_path_factory):
+def _levels_dataset(d, params, seed: int):
+    """A constant-input record through LEVELS of the damper ``params`` (no input lag), and its description
+    ``d/ds.yaml``."""
     from identify_synth import write_csv
 
-    from mrctl.offline.identify import identify_dataset
-
-    d = tmp_path_factory.mktemp("curved")
-    rec, segs = sine_levels_record(LEVELS, params=replace(CURVED, tau_input=0.0), seed=5)
+    rec, _ = sine_levels_record(LEVELS, params=replace(params, tau_input=0.0), seed=seed)
     write_csv(d / "r.csv", rec, {"t": "t", "x": "x", "F": "F", "u": "u"})
     (d / "ds.yaml").write_text("""version: 1
 protocol: constant_input
@@ -189,7 +187,15 @@ input: current
 columns: {time: t, displacement: x, force: F, input: u}
 files: [{path: r.csv}]
 """)
-    return d, identify_dataset(d / "ds.yaml")
+    return d / "ds.yaml"
+
+
+@pytest.fixture(scope="module")
+def curved(tmp_path_factory):
+    from mrctl.offline.identify import identify_dataset
+
+    d = tmp_path_factory.mktemp("curved")
+    return d, identify_dataset(_levels_dataset(d, CURVED, seed=5))
 
 
 def test_identification_writes_table_laws_that_beat_the_paper_laws(curved, tmp_path):
@@ -231,19 +237,9 @@ def test_fit_laws_paper_keeps_the_paper_laws_and_reports_both(curved):
 
 def test_auto_keeps_the_paper_laws_where_the_damper_follows_them(tmp_path):
     """The synthetic damper of the paper's laws: leaving a level out, the laws predict it at least as well."""
-    from identify_synth import write_csv
-
     from mrctl.offline.identify import identify_dataset
 
-    rec, _ = sine_levels_record(LEVELS, params=replace(TRUTH, tau_input=0.0), seed=6)
-    write_csv(tmp_path / "r.csv", rec, {"t": "t", "x": "x", "F": "F", "u": "u"})
-    (tmp_path / "ds.yaml").write_text("""version: 1
-protocol: constant_input
-input: current
-columns: {time: t, displacement: x, force: F, input: u}
-files: [{path: r.csv}]
-""")
-    res = identify_dataset(tmp_path / "ds.yaml")
+    res = identify_dataset(_levels_dataset(tmp_path, TRUTH, seed=6))
     assert res.details["laws_choice"]["laws"] == "paper", res.details["laws_choice"]
 
 

@@ -45,17 +45,11 @@ def rate_coefficient(p: LuGreParams, v: float, I: float, Fc: float | None = None
 def force(p: LuGreParams, z: float, v: float, I: float) -> float:
     """Damper force F (N), eq (1), with ż from eq (2) at the same (z, v, I)."""
     Fc = p.Fc(I)
-    if p.table is not None:  # laws: table
-        s0 = p.sigma0(I)
-        r = v / p.vs(I)
-        g = Fc + (p.Fs(I) - Fc) * math.exp(-r * r)
-        zdot = v - s0 * abs(v) * z / g
-        return s0 * z + p.sigma1(I) * zdot + p.sigma2(I) * v
-    s0 = p.sigma0A * I + p.sigma0B
-    r = v / (p.vsA * I + p.vsB)
-    g = Fc + (p.FsA * I + p.FsB - Fc) * math.exp(-r * r)
+    s0 = p.sigma0(I)  # each law, the paper's or the table's (LuGreParams)
+    r = v / p.vs(I)
+    g = Fc + (p.Fs(I) - Fc) * math.exp(-r * r)
     zdot = v - s0 * abs(v) * z / g
-    return s0 * z + (p.sigma1A * I + p.sigma1B) * zdot + (p.sigma2A * I + p.sigma2B) * v
+    return s0 * z + p.sigma1(I) * zdot + p.sigma2(I) * v
 
 
 class LuGreModel:

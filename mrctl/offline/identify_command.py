@@ -44,6 +44,8 @@ def identify_command(args: argparse.Namespace) -> int:
     runs = list(args.runs)
     dataset = args.dataset  # a single .yaml among the runs is already taken as it (mrctl.cli)
     overrides = {"fit": {"laws": args.fit_laws}} if args.fit_laws else {}
+    doc: dict | None = None  # the description mrctl writes for run CSVs (what --describe would write)
+    notes: list[str] = []  # what it could not say
     if dataset is not None:
         if runs:
             raise BadInput("identify: give run CSVs or --dataset, not both")
@@ -64,7 +66,6 @@ def identify_command(args: argparse.Namespace) -> int:
         if args.allow_outside_paths:
             raise BadInput("identify: --allow-outside-paths is for --dataset (run CSVs are named on the command "
                            "line)")
-        notes: list[str] = []
         ds, doc = load_runs(runs, overrides=overrides, notes=notes)
         if args.describe is not None:
             for note in notes:
@@ -72,13 +73,10 @@ def identify_command(args: argparse.Namespace) -> int:
             return _describe(args, doc)
         inputs = [q for r in runs for q in (r, sidecar_path(r))]
         source = ", ".join(runs)
-    check_outputs(args.out, args.report, inputs, force=args.force, summary=True)
+    check_outputs(args.out, args.report, inputs, force=args.force)
     model = {"offset": False, "stiffness": False} if args.no_offset else None
     res = identify_dataset(ds, holdout=args.holdout, model=model, source=source, method=args.method,
-                           progress=not (args.no_progress or args.quiet))
-    if dataset is None:
-        res.settings["dataset"] = doc  # the description mrctl wrote: --describe writes it for --dataset
-        res.warnings[:0] = notes
+                           progress=not (args.no_progress or args.quiet), described=doc, notes=notes)
     items = result_bytes(res, args.out)
     if args.report:
         from mrctl.offline.identify_figure import make_identification_figure
@@ -99,7 +97,7 @@ def _describe(args: argparse.Namespace, doc: dict) -> int:
     out = Path(args.describe)
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise BadInput(f"--describe {args.describe}: name the description .yaml")
-    check_output_path(out, args.force, inputs=[q for f in doc["files"] for q in (f["path"],)],
+    check_output_path(out, args.force, inputs=[f["path"] for f in doc["files"]],
                       what="the description (--describe)")
     base = out.resolve().parent
     files = []
@@ -124,19 +122,16 @@ def _say(args: argparse.Namespace, msg: str) -> None:
         print(msg, flush=True)
 
 
-def check_outputs(out: str, report: str | None, inputs: Sequence[PathLike], *, force: bool = False,
-                  summary: bool = False) -> None:
+def check_outputs(out: str, report: str | None, inputs: Sequence[PathLike], *, force: bool = False) -> None:
     """``BadInput`` for any output that would destroy something (see the
-    module doc); ``summary``: the JSON beside ``out`` is written too (a
-    dataset). Touches nothing."""
+    module doc): the parameters, the JSON summary beside them, the figure.
+    Touches nothing."""
     if not out:
         raise BadInput("--out '': an empty name; give the parameters file to write (.yaml)")
     if Path(out).suffix.lower() == ".json":
         raise BadInput(f"--out {out}: the parameters file is YAML; a .json name is the summary's, written beside "
                        "it (name it .yaml)")
-    outs = [(Path(out), "the parameters (--out)")]
-    if summary:
-        outs.append((json_path(out), f"the summary of {Path(out).name}"))
+    outs = [(Path(out), "the parameters (--out)"), (json_path(out), f"the summary of {Path(out).name}")]
     if report is not None:
         if Path(report).suffix.lower().lstrip(".") not in FORMATS:
             raise BadInput(f"--report {report!r}: cannot write a figure of that name; name it .png, .pdf or .svg")

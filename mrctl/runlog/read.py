@@ -17,8 +17,7 @@ from mrctl.runlog.files import sidecar_path
 from mrctl.util.csvtable import Table, read_table
 from mrctl.util.files import FileProblem, MiB, read_regular_file
 
-__all__ = ["read_run", "read_run_table", "read_sidecar", "try_sidecar", "sidecar_path", "align_load_cell",
-           "MAX_SIDECAR_BYTES"]
+__all__ = ["read_run", "read_run_table", "read_sidecar", "try_sidecar", "sidecar_path", "MAX_SIDECAR_BYTES"]
 
 #: the largest sidecar read back (mrctl writes ~10-64 KiB: the config, the summary)
 MAX_SIDECAR_BYTES = 16 * MiB
@@ -64,20 +63,3 @@ def try_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
     except (OSError, ValueError, FileProblem):
         return {}
     return side if isinstance(side, dict) else {}
-
-
-def align_load_cell(cols: dict[str, np.ndarray], side: dict[str, Any]) -> dict[str, np.ndarray]:
-    """The columns with ``F`` moved to the tick it measured, for analyses that
-    pair force with the same instant's x and v (identification).
-
-    ``F`` is the load cell as the controller received it; the sidecar's
-    ``load_cell_delay_ticks`` says how many ticks late that is (1 on the
-    simulated benches, whose load cell reads the previous tick's force; 0 on
-    hardware, where the DAQ samples x, v and F together). Every column loses
-    its last ``n`` rows. Unchanged when the sidecar says 0 or nothing."""
-    n = side.get("load_cell_delay_ticks")
-    if not isinstance(n, int) or isinstance(n, bool) or n <= 0 or "F" not in cols or len(cols["F"]) <= n:
-        return cols
-    out = {c: a[:-n] for c, a in cols.items()}
-    out["F"] = cols["F"][n:]
-    return out

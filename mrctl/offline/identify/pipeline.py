@@ -138,13 +138,6 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
                     warnings: list[str]) -> dict[str, Any]:
     segs = find_segments(spans, fraction=frac, steady_tol=ds.fit.steady_tolerance, min_cycles=ds.fit.min_cycles,
                          warnings=warnings)
-    if not any(s.cycles_fit > 0 for s in segs):
-        said = [w for w in warnings if "skipped" in w]
-        raise IdentificationError(
-            "no steady cycles to fit: each level needs a warm-up cycle and at least "
-            f"{ds.fit.min_cycles} steady whole cycles of the stroke (lengthen the steps: mrctl's inverse.step_s "
-            "≥ 4 periods), or lower fit.min_cycles / widen fit.steady_tolerance"
-            + ("".join(f"\n  {w}" for w in said[:5]) + (f"\n  … {len(said) - 5} more" if len(said) > 5 else "")))
     n_levels = len({round(s.level, 9) for s in segs if s.cycles_fit > 0})
     bar = make_bar(max(n_levels, 1), "identify (levels)", enabled=progress)
     fits = fit_levels(spans, segs, use=use, method=method, bar=bar)
@@ -316,8 +309,8 @@ def _choose_laws(candidates: dict[str, LuGreParams], loo: dict[str, dict[float, 
 
 def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | None = None, progress: bool = False,
                      method: str = "trf", model: dict[str, bool] | None = None, source: str | None = None,
-                     data_dir: str | os.PathLike[str] | None = None, allow_outside: bool = False
-                     ) -> IdentificationResult:
+                     data_dir: str | os.PathLike[str] | None = None, allow_outside: bool = False,
+                     described: dict[str, Any] | None = None, notes: Sequence[str] = ()) -> IdentificationResult:
     """Identify a parameter set from the records a dataset description names.
 
     Args:
@@ -329,6 +322,9 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
             stiffness, lag, inertia), e.g. ``{"lag": False}`` for a comparison.
         data_dir, allow_outside: where data files may lie (default: under the
             description's directory; :func:`mrctl.config.dataset.load_dataset`).
+        described, notes: the plain description mrctl wrote for run CSVs
+            (kept as ``settings["dataset"]``) and what it could not say
+            (:func:`~mrctl.offline.identify.runs.load_runs`), among the warnings.
     Raises:
         ConfigError: the description is invalid (every error with its key path).
         IdentificationError: the data cannot be identified from, or the fit is not physical.
@@ -364,7 +360,7 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
             raise IdentificationError("model.inertia: not identifiable from constant_input records (a steady "
                                       "sine's m·a is in phase with the stiffness k_x·x); fit broadband records")
         use["lag"] = False
-    warnings: list[str] = []
+    warnings = list(notes)
     spans, info = prepare(records, band_hz=ds.motion_band_hz, resample_hz=ds.resample_hz,
                           need_accel=use["inertia"], warnings=warnings,
                           constant_input=ds.protocol == "constant_input")
@@ -380,9 +376,11 @@ def identify_dataset(dataset: str | os.PathLike[str] | Node, *, holdout: str | N
     warnings = merge_warnings(warnings, [r.name for r in records])
     settings = {"holdout_fraction": frac, "holdout_records": sorted({r.name for r in records if r.role == "holdout"}),
                 "model": use, "records": info["records"], "method": method}
-    return IdentificationResult(ds.name or Path(src).stem, src, ds.protocol, ds.input, INPUT_KINDS[ds.input], out["params"],
-                         out["range"], out["holdout"], out["train"], settings, out["details"], out["traces"],
-                         warnings, time.perf_counter() - t0, out["inertia"])
+    if described is not None:
+        settings["dataset"] = described
+    return IdentificationResult(ds.name or Path(src).stem, src, ds.protocol, ds.input, INPUT_KINDS[ds.input],
+                                out["params"], out["range"], out["holdout"], out["train"], settings, out["details"],
+                                out["traces"], warnings, time.perf_counter() - t0, out["inertia"])
 
 
 def identify_runs(paths: Sequence[str | os.PathLike[str]], *, laws: str | None = None, name: str | None = None,
@@ -394,7 +392,4 @@ def identify_runs(paths: Sequence[str | os.PathLike[str]], *, laws: str | None =
     in the result's ``settings["dataset"]``."""
     notes: list[str] = []
     ds, doc = load_runs(paths, name=name, overrides={"fit": {"laws": laws}} if laws else None, notes=notes)
-    res = identify_dataset(ds, source=", ".join(str(p) for p in paths), **kwargs)
-    res.settings["dataset"] = doc
-    res.warnings[:0] = notes
-    return res
+    return identify_dataset(ds, source=", ".join(str(p) for p in paths), described=doc, notes=notes, **kwargs)

@@ -38,10 +38,6 @@ RUN_FIT_RATE_HZ = 1000.0
 RUN_MAX_GAP_SAMPLES = 50
 
 
-def _pick(header: Sequence[str], names: Sequence[str]) -> str | None:
-    return next((n for n in names if n in header), None)
-
-
 def _unique(name: str, taken: set[str]) -> str:
     out, k = name, 2
     while out in taken:
@@ -89,7 +85,8 @@ def describe_runs(paths: Sequence[str | os.PathLike[str]], *, name: str | None =
     of mrctl run CSVs: constant_input, ``input: current`` from the commanded
     current ``I``, force ``F_meas`` or ``F`` moved back by the sidecar's
     ``load_cell_delay_ticks``, velocity ``v_meas`` or ``v``, displacement
-    ``x_meas`` or ``x`` when logged (offset and stiffness fitted then). Rows
+    ``x_meas`` or ``x`` when logged; the force offset always fitted, the
+    stiffness when there is a displacement. Rows
     where a used column is NaN (a tick without a sample) are excluded.
     What the description cannot say (an unreadable sidecar) goes to ``notes``.
 

@@ -140,8 +140,11 @@ def _groups(c: np.ndarray) -> list[tuple[int, int]]:
 
 def find_segments(spans: list[Span], *, fraction: float, steady_tol: float, min_cycles: int,
                   warnings: list[str]) -> list[Segment]:
-    """The steady, held-out and warm-up cycles of every span (see the module doc)."""
+    """The steady, held-out and warm-up cycles of every span (see the module
+    doc). IdentificationError, listing the levels skipped and why, when no
+    segment has a cycle to fit."""
     segs: list[Segment] = []
+    skipped: list[str] = []
     transitions = 0
     for si, sp in enumerate(spans):
         h = sp.dt
@@ -153,7 +156,7 @@ def find_segments(spans: list[Span], *, fraction: float, steady_tol: float, min_
             c = _crossings(v) + a
             where = f"{sp.record} at {level:g} (t = {sp.t[a]:.4g}–{sp.t[b - 1]:.4g} s)"
             if c.size < min_cycles + 1:
-                warnings.append(f"{where}: {max(c.size - 1, 0)} whole cycle(s), fewer than {min_cycles}; skipped")
+                skipped.append(f"{where}: {max(c.size - 1, 0)} whole cycle(s), fewer than {min_cycles}; skipped")
                 continue
             x = sp.x if sp.x is not None else np.cumsum(sp.v) * h
             for g0, g1 in _groups(c):
@@ -182,7 +185,7 @@ def find_segments(spans: list[Span], *, fraction: float, steady_tol: float, min_
                 n = i1 - i0
                 if n < min_cycles:
                     if g1 - g0 >= min_cycles:
-                        warnings.append(f"{where}: only {n} steady cycle(s) in a group of {g1 - g0}; skipped")
+                        skipped.append(f"{where}: only {n} steady cycle(s) in a group of {g1 - g0}; skipped")
                     continue
                 if sp.role == "holdout":
                     n_hold = n
@@ -191,6 +194,13 @@ def find_segments(spans: list[Span], *, fraction: float, steady_tol: float, min_
                 period = float(np.median(np.diff(c[i0:i1 + 1]))) * h
                 segs.append(Segment(si, sp.record, sp.role, level, w0, int(c[i0]), int(c[i1 - n_hold]),
                                     int(c[i1]), period, float(ref), n - n_hold, n_hold))
+    warnings.extend(skipped)
+    if not any(s.cycles_fit > 0 for s in segs):
+        raise IdentificationError(
+            "no steady cycles to fit (every segment too short, unsteady or held out): each level needs a warm-up "
+            f"cycle and at least {min_cycles} steady whole cycles of the stroke (lengthen the steps: mrctl's "
+            "inverse.step_s ≥ 4 periods), or lower fit.min_cycles / widen fit.steady_tolerance"
+            + "".join(f"\n  {w}" for w in skipped[:5]) + (f"\n  … {len(skipped) - 5} more" if len(skipped) > 5 else ""))
     if transitions:
         warnings.append(f"{transitions} stretch(es) of under {_MIN_LEVEL_S:g} s at one level (transitions between "
                         "steps) left out")
@@ -222,11 +232,9 @@ def _design(sp: Span, a: int, b: int, use: dict[str, bool]) -> np.ndarray | None
 
 def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], method: str = "trf",
                bar=None) -> list[LevelFit]:
-    """One fit per input level over its segments' fit cycles."""
+    """One fit per input level over its segments' fit cycles (``segs`` from
+    :func:`find_segments`, which refuses a record with none)."""
     groups = _cluster_levels([s for s in segs if s.cycles_fit > 0])
-    if not groups:
-        raise IdentificationError("no steady cycles to fit: every segment is too short, unsteady or held out "
-                                  "(see the warnings; lower fit.min_cycles or widen fit.steady_tolerance)")
     fits = []
     for level in sorted(groups):
         t0 = time.perf_counter()
