@@ -59,6 +59,8 @@ _STALE = int(FaultBit.STALE_SEQ)
 _NAN = int(FaultBit.NAN)
 _OOR = int(FaultBit.OUT_OF_RANGE)
 _IGNORE_SP = int(FaultBit.IGNORE_SETPOINTS)
+_ESTOP_F = int(FaultBit.ESTOP)
+_ESTOP = int(Status.ESTOP)
 
 
 def clamp_setpoint(I: float, I_max: float) -> tuple[float, bool]:
@@ -91,6 +93,9 @@ class BenchDevice:
         self.default_watchdog_ns = cfg.watchdog_ms * 1_000_000
         self._base_status = 0 if cfg.load_cell else _NO_LOAD_CELL
         self._tripped = False  # WATCHDOG_TRIPPED latch
+        self._estop = False  # the device's E-stop latch (status ESTOP, 0 A) until CLEAR_FAULTS
+        #: ticks held at 0 A by the E-stop (the input open, or the device's latch)
+        self.estop_ticks = 0
         self._expired = False  # watchdog expired now (setpoints absent)
         self._clears_seen = 0
         self.k_last = -1
@@ -147,9 +152,14 @@ class BenchDevice:
             self._prev_sp = (I_req, enable)
         if len(state.starts) != self._starts_seen:
             self._tag_starts(k)
+        estop_in = bool(fbits & _ESTOP_F)
+        state.estop_input = estop_in
         if clears != self._clears_seen:
             self._clears_seen = clears
             self._tripped = False
+            self._estop = False
+        if estop_in and state.estop_latches:
+            self._estop = True
         status = self._base_status
         if sp_ns == 0:
             # Watchdog from power-up: 0 A until the first setpoint (not a trip).
@@ -179,6 +189,10 @@ class BenchDevice:
                 I = 0.0
         if self._tripped:
             status |= _WATCHDOG_TRIPPED
+        if estop_in or self._estop:  # the hard-wired chain (and a device's latch) hold the driver off
+            I = 0.0
+            status = (status & ~_OUTPUT_ENABLED) | _ESTOP
+            self.estop_ticks += 1
         b.command(I)
         t = b.t
         I_app = b.I_applied
@@ -231,7 +245,8 @@ class BenchDevice:
         b.begin_tick(k)
         x_m, v_m, F_m = b.sample()
         b.command(0.0)
-        status = self._base_status | (_WATCHDOG_TRIPPED if self._tripped else 0)
+        status = (self._base_status | (_WATCHDOG_TRIPPED if self._tripped else 0)
+                  | (_ESTOP if self._estop else 0))
         self.state.publish(Sample(k & _U32, b.t, x_m, v_m, F_m, status, b.I_applied))
         if self.truth is not None:
             self.truth.record((k, b.t, b.x, b.v, b.F, b.I_cmd, b.I_applied, x_m, v_m, F_m, status, 0))
@@ -261,6 +276,7 @@ class BenchDevice:
             "watchdog_trips": self.watchdog_trips,
             "first_watchdog_trip_k": self.first_trip_k,
             "clamped_ticks": self.clamped_ticks,
+            "estop_ticks": self.estop_ticks,
             "setpoints_received": self.state.setpoints_received,
             "requests_served": self.state.requests_served,
             "timing": timing,

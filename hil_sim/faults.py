@@ -60,6 +60,7 @@ class FaultBit(enum.IntFlag):
     DISCONNECT = 1 << 8
     IGNORE_WRITES = 1 << 9
     IGNORE_SETPOINTS = 1 << 10
+    ESTOP = 1 << 11
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,11 @@ FAULT_KINDS: dict[str, FaultKind] = {k.name: k for k in (
     FaultKind("ignore_setpoints", FaultBit.IGNORE_SETPOINTS,
               "replies as usual and the watchdog is fed, but the driver keeps the current it had when "
               "the fault began (truth I_cmd frozen)"),
+    FaultKind("estop", FaultBit.ESTOP,
+              "the E-stop circuit is open for for_s: the hard-wired chain removes the driver's power (0 A) "
+              "and the E-stop input reads active. A device with its own E-stop input (serial, Modbus) reports "
+              "ESTOP in its status and holds 0 A, latched until a CLEAR_FAULTS after the input closed; the "
+              "emulated T7 shows the input on its E-stop DIO (labjack_t7.estop), the latch is mrctl's"),
 )}
 
 #: faults the protocol servers apply (the rest are applied by the clock)

@@ -129,6 +129,7 @@ class T7Device:
     def __init__(self, state: DeviceState, wiring: Any, clock_ns: Callable[[], int] = time.monotonic_ns,
                  latency_s: float | None = None) -> None:
         self.state = state
+        state.estop_latches = False  # a T7 has no E-stop logic: the hard-wired chain and mrctl's latch
         self.clock_ns = clock_ns  #: the watchdog's and the monostable's clock (tests: a virtual one)
         self.w = wiring
         self.preset = p = load_preset("labjack_t7")

@@ -56,6 +56,12 @@ class DeviceState:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        #: the E-stop input is open this tick (the clock's ``estop`` fault window): what a device
+        #: that shows the raw input (the emulated T7's E-stop DIO) reads
+        self.estop_input = False
+        #: the device latches its E-stop (holds 0 A, reports ESTOP) until a CLEAR_FAULTS once the
+        #: input closed (firmware-like devices); False: the latch is the host's (the emulated T7)
+        self.estop_latches = True
         self._sample = Sample(seq=0, t_dev_s=0.0, x_m=0.0, v_mps=0.0, F_N=float("nan"), status=0)
         #: the bench's extra channels (names fixed at start) and their values,
         #: published with each sample (docs/protocol.md §2.5, docs/registers.md)

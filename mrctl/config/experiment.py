@@ -14,6 +14,7 @@ from typing import Any, Sequence
 from mrctl.config.acceptance import acceptance_section
 from mrctl.config.bench import bench_fields, road_excitations
 from mrctl.config.device import device_checks, device_fields
+from mrctl.config.estop import estop_checks, estop_section
 from mrctl.config.laws import LAW_GUARD_FIELDS, law_checks, law_unions
 from mrctl.config.observe import stream_section
 from mrctl.config.params import INPUT_KINDS, input_kind_errors, params_check
@@ -140,6 +141,7 @@ def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequenc
             "reconnect_interval_s": Num(default=0.05, min=0.001, max=60.0,
                                         doc="exchange links: reopen a disconnected link at most this often"),
             **LAW_GUARD_FIELDS,
+            "estop": estop_section(),
         }),
         "latency": Section({
             "lead_s": Custom(_lead_check, default=0.0,
@@ -263,6 +265,7 @@ def _cross_checks(cfg: Node, base_dir: Path) -> list[str]:
     if isinstance(plant_params, LuGreParams) and isinstance(I_max, float):
         errors += [f"plant.parameters: {e}" for e in plant_params.check_range(I_max)]
     errors += _plant_checks(cfg, I_max)
+    errors += estop_checks(cfg)
     errors += law_checks(cfg, base_dir)
     loop, backend = cfg.get("loop"), cfg.get("backend")
     if loop is not None and loop.get("pacing") == "device" and backend is not None and backend.get("type") == "sim":

@@ -64,6 +64,10 @@ class Status(enum.IntFlag):
     CURRENT_CLAMPED = 1 << 4  #: last setpoint was limited or non-finite and was clamped
     NO_LOAD_CELL = 1 << 5  #: no force channel; F_N is NaN
     RX_ERROR = 1 << 6  #: device discarded a corrupt/unknown frame since the last sample
+    #: the E-stop / interlock input is open (or was, and the device's latch is not yet cleared):
+    #: the device holds 0 A; a link that reads the input itself (a T7 DIO, a register) sets it
+    #: while the input is at its active level (``safety.estop``, docs/hardware.md)
+    ESTOP = 1 << 7
 
     #: bits that mean "do not trust this sample / the actuator".
     FAULTS = DRIVER_FAULT | SENSOR_FAULT
