@@ -110,7 +110,12 @@ def rx(frame: bytes) -> str:
 def states(lines: list[str]) -> list[tuple[float, int, int, int, int]]:
     """(applied A, output enabled, watchdog tripped, output counts, enable pin) per ``state``."""
     return [(float(a), int(b), int(c), int(d), int(e))
-            for a, b, c, d, e in (line.split()[1:] for line in lines if line.startswith("state "))]
+            for a, b, c, d, e, _ in (line.split()[1:] for line in lines if line.startswith("state "))]
+
+
+def estop_latched(lines: list[str]) -> list[int]:
+    """The E-stop latch (1: 0 A until CLEAR_FAULTS once the input closed) per ``state``."""
+    return [int(line.split()[6]) for line in lines if line.startswith("state ")]
 
 
 def _f32(x: float) -> float:
@@ -241,6 +246,42 @@ def test_watchdog_forces_zero_amps_after_watchdog_ms_without_a_setpoint(programs
     # the reply after the trip reports the measurement at 0 A with the latched bit
     assert replies[1].current_A == 0.0 and replies[1].status & Status.WATCHDOG_TRIPPED
     assert not replies[2].status & Status.WATCHDOG_TRIPPED and replies[2].current_A == pytest.approx(0.5)
+
+
+def test_estop_input_forces_zero_amps_at_once_and_stays_latched_until_cleared_once_closed(programs):
+    """The E-stop pin opens: 0 A and the driver disabled at that tick, ESTOP
+    in the status; closing the pin does not resume; a CLEAR_FAULTS while it
+    is still open does not clear it; one after it closed does."""
+    out = script(programs, [
+        "at 0", "tick", rx(encode_setpoint(1, 0.5, ENABLE, 50)), "state",   # running at 0.5 A
+        "estop 1", "at 1000", "tick", "state",                               # opened: 0 A at once
+        rx(encode_setpoint(2, 0.5, ENABLE, 50)), "state",                    # setpoints do not revive it
+        rx(encode_setpoint(3, 0.5, ENABLE | CLEAR, 50)), "state",            # cleared while open: no
+        "estop 0", "at 2000", "tick", rx(encode_setpoint(4, 0.5, ENABLE, 50)), "state",  # closed: still latched
+        rx(encode_setpoint(5, 0.5, ENABLE | CLEAR, 50)), "state",            # cleared once closed: runs
+    ])
+    st, latched = states(out), estop_latched(out)
+    assert st[0][:2] == (0.5, 1) and latched[0] == 0
+    assert all(s[0] == 0.0 and s[1] == 0 and s[3] == 0 and s[4] == 0 for s in st[1:5]), st
+    assert latched[1:5] == [1, 1, 1, 1]
+    assert st[5][:2] == (0.5, 1) and latched[5] == 0
+    replies = decoded(sent(out))
+    assert [r.echo_seq for r in replies] == [1, 2, 3, 4, 5]
+    assert [bool(r.status & Status.ESTOP) for r in replies] == [False, True, True, True, False]
+    assert not replies[1].status & Status.OUTPUT_ENABLED and replies[4].status & Status.OUTPUT_ENABLED
+
+
+def test_a_setpoint_received_after_the_ticks_latch_is_not_taken_for_a_stale_one(programs):
+    """The timer latches a tick at 1000 us; a setpoint arrives at 1000.4 ms,
+    before the main loop serves that tick with its latched (earlier) time:
+    the watchdog must not read the setpoint as 2^32 us old and trip."""
+    out = script(programs, [
+        "at 0", "tick", rx(encode_setpoint(1, 0.5, ENABLE, 50)),
+        "at 1400", rx(encode_setpoint(2, 0.5, ENABLE, 50)),
+        "at 1000", "tick", "state",          # the tick latched at 1000 us, served after the setpoint
+        "at 1500", "poll", "state",
+    ])
+    assert [s[:3] for s in states(out)] == [(0.5, 1, 0), (0.5, 1, 0)]
 
 
 def test_the_watchdog_also_trips_between_ticks_and_defaults_to_50_ms(programs):

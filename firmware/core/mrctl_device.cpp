@@ -64,6 +64,7 @@ void Device::setpoint(const SetpointFields& sp) {
     tripped_ = false;
     rx_error_ = false;
     if (!driver_fault_input_) driver_fault_ = false;
+    if (!estop_input_) estop_ = false;  // an E-stop still open stays latched
   }
   // the watchdog restarts on every valid SETPOINT, SYNC or not
   armed_ = true;
@@ -110,6 +111,9 @@ void Device::tick(const RawInputs& raw, uint32_t t_us) {
   ++counters_.ticks;
   driver_fault_input_ = raw.driver_fault;
   if (raw.driver_fault) driver_fault_ = true;
+  if (raw.estop_open && !estop_input_) ++counters_.estops;
+  estop_input_ = raw.estop_open;
+  if (raw.estop_open) estop_ = true;  // 0 A at this tick, before anything else is applied
   if (pending_) {
     pending_ = false;
     apply(pending_A_, pending_enable_);
@@ -161,10 +165,14 @@ void Device::poll(uint32_t now_us) {
 }
 
 void Device::watchdog(uint32_t now_us) {
-  // modulo-2^32 difference; once expired it stays so until a setpoint arrives
-  // (starved_), so the µs counter wrapping cannot revive an old setpoint
+  // modulo-2^32 difference, signed: a tick's time is the one its timer latched,
+  // which comes before a setpoint received after the latch but before the main
+  // loop served the tick; that setpoint is "in the future" (negative), not
+  // 71 minutes old. Once expired it stays so until a setpoint arrives
+  // (starved_), so the µs counter wrapping cannot revive an old setpoint.
   if (!armed_ || starved_) return;
-  if (static_cast<uint32_t>(now_us - last_sp_us_) >= watchdog_us_) {
+  const int32_t since = static_cast<int32_t>(now_us - last_sp_us_);
+  if (since >= 0 && static_cast<uint32_t>(since) >= watchdog_us_) {
     starved_ = true;
     pending_ = false;
     if (!tripped_) ++counters_.watchdog_trips;
@@ -181,7 +189,7 @@ void Device::apply(float current_A, bool enable) {
 
 // the one place the output is set: 0 A and disabled unless every condition holds
 void Device::drive() {
-  const bool on = armed_ && !starved_ && cmd_enable_ && !driver_fault_;
+  const bool on = armed_ && !starved_ && cmd_enable_ && !driver_fault_ && !estop_;
   const float I = on ? cmd_A_ : 0.0f;
   float counts = I * cfg_.output_counts_per_A + 0.5f;
   if (!(counts > 0.0f)) counts = 0.0f;
@@ -206,6 +214,7 @@ uint16_t Device::status(bool clamped) const {
   if (output_on_) st |= kStatusOutputEnabled;
   if (clamped) st |= kStatusCurrentClamped;
   if (rx_error_) st |= kStatusRxError;
+  if (estop_) st |= kStatusEstop;
   return st;
 }
 

@@ -41,6 +41,7 @@ struct RawInputs {
   int32_t x_counts;
   int32_t force_counts;
   bool driver_fault;          // the driver's fault output is active
+  bool estop_open;            // the E-stop / interlock input is open (the board applies its polarity)
   float current_monitor_A;    // the driver's measured current, A; NaN = not fitted
 };
 
@@ -62,6 +63,7 @@ struct DeviceCounters {
   uint32_t errors_sent;
   uint32_t watchdog_trips;
   uint32_t sync_overflows;  // SYNC replies dropped (the oldest): more than kMaxOwed within one tick
+  uint32_t estops;          // times the E-stop input opened
 };
 
 class Device : private FrameSink {
@@ -81,6 +83,7 @@ class Device : private FrameSink {
   float applied_A() const { return applied_A_; }
   bool output_enabled() const { return output_on_; }
   bool watchdog_tripped() const { return tripped_; }
+  bool estop_latched() const { return estop_; }
   const DeviceCounters& counters() const { return counters_; }
   const Receiver& receiver() const { return rx_; }
 
@@ -139,6 +142,8 @@ class Device : private FrameSink {
   bool rx_error_ = false;     // RX_ERROR
   bool driver_fault_ = false; // DRIVER_FAULT (latched)
   bool driver_fault_input_ = false;  // the driver's fault line at the last tick
+  bool estop_ = false;        // ESTOP (latched: 0 A until CLEAR_FAULTS once the input closed)
+  bool estop_input_ = false;  // the E-stop input at the last tick
   uint32_t last_good_seq_ = 0;
 };
 

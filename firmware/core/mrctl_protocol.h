@@ -49,6 +49,7 @@ constexpr uint16_t kStatusOutputEnabled = 1u << 3;
 constexpr uint16_t kStatusCurrentClamped = 1u << 4;
 constexpr uint16_t kStatusNoLoadCell = 1u << 5;
 constexpr uint16_t kStatusRxError = 1u << 6;
+constexpr uint16_t kStatusEstop = 1u << 7;
 
 // ERROR codes
 constexpr uint8_t kErrBadCrc = 0x01;

@@ -10,11 +10,12 @@
 //   at T_US                       set the device clock (µs)
 //   adc X_COUNTS F_COUNTS         the readings of the following ticks
 //   fault 0|1                     the driver's fault line
+//   estop 0|1                     the E-stop input (1 = open)
 //   monitor A|nan                 the driver's current monitor
 //   tick                          a sampling tick at the current time
 //   poll                          the watchdog check at the current time
 //   rx HEX                        bytes from the host (no spaces)
-//   state                         print "state applied_A enabled tripped out_counts out_enable"
+//   state                         print "state applied_A enabled tripped out_counts out_enable estop"
 //
 // Output: "tx HEX" per frame sent, "hex HEX" / "crc 0xXXXX" for the encoders.
 #include <math.h>
@@ -64,7 +65,7 @@ int main() {
   mrctl_fw::DeviceConfig cfg = board::kDeviceConfig;
   alignas(mrctl_fw::Device) static unsigned char storage[sizeof(mrctl_fw::Device)];
   mrctl_fw::Device* dev = new (storage) mrctl_fw::Device(cfg, io);
-  mrctl_fw::RawInputs raw = {2048, 2048, false, NAN};
+  mrctl_fw::RawInputs raw = {2048, 2048, false, false, NAN};
   uint32_t now = 0;
   char line[4096];
   while (fgets(line, sizeof line, stdin)) {
@@ -115,6 +116,8 @@ int main() {
       raw.force_counts = static_cast<int32_t>(f);
     } else if (c == "fault") {
       raw.driver_fault = atoi(rest) != 0;
+    } else if (c == "estop") {
+      raw.estop_open = atoi(rest) != 0;
     } else if (c == "monitor") {
       raw.current_monitor_A = strtof(rest, nullptr);
     } else if (c == "tick") {
@@ -126,8 +129,8 @@ int main() {
       const size_t n = from_hex(rest, bytes, sizeof bytes);
       dev->receive(bytes, n, now);
     } else if (c == "state") {
-      printf("state %.9g %d %d %u %d\n", static_cast<double>(dev->applied_A()), dev->output_enabled() ? 1 : 0,
-             dev->watchdog_tripped() ? 1 : 0, io.counts, io.enable ? 1 : 0);
+      printf("state %.9g %d %d %u %d %d\n", static_cast<double>(dev->applied_A()), dev->output_enabled() ? 1 : 0,
+             dev->watchdog_tripped() ? 1 : 0, io.counts, io.enable ? 1 : 0, dev->estop_latched() ? 1 : 0);
     } else {
       fprintf(stderr, "fw_script: unknown command %s\n", cmd);
       return 2;

@@ -73,13 +73,16 @@ struct Args {
   host::SimParams sim;
   bool load_cell = true;
   double velocity_cutoff_hz = -1;  // < 0: the board's
+  double estop_at_s = -1;  // the E-stop input opens at this device time (s); < 0: never
+  double estop_for_s = 0;  // ... for this long
 };
 
 [[noreturn]] void usage(const char* msg) {
   fprintf(stderr,
           "mrctl_fw_host: %s\n"
           "usage: mrctl_fw_host --link PATH [--rate-hz HZ] [--duration-s S] [--amplitude-m M]\n"
-          "       [--frequency-hz HZ] [--tau-s S] [--no-load-cell] [--velocity-cutoff-hz HZ]\n",
+          "       [--frequency-hz HZ] [--tau-s S] [--no-load-cell] [--velocity-cutoff-hz HZ]\n"
+          "       [--estop-at-s S --estop-for-s S]\n",
           msg);
   exit(2);
 }
@@ -111,6 +114,8 @@ Args parse(int argc, char** argv) {
     else if (k == "--frequency-hz") a.sim.frequency_hz = number("--frequency-hz", v, 0, 100);
     else if (k == "--tau-s") a.sim.tau_s = number("--tau-s", v, 0, 1);
     else if (k == "--velocity-cutoff-hz") a.velocity_cutoff_hz = number("--velocity-cutoff-hz", v, 0, 10000);
+    else if (k == "--estop-at-s") a.estop_at_s = number("--estop-at-s", v, 0, 1e7);
+    else if (k == "--estop-for-s") a.estop_for_s = number("--estop-for-s", v, 0, 1e7);
     else usage(("unknown option " + k).c_str());
   }
   if (a.link.empty()) usage("--link PATH is required");
@@ -187,7 +192,9 @@ int main(int argc, char** argv) {
       if (k_now > k) late_ticks += static_cast<uint64_t>(k_now - k);
       k = k_now;
       const int64_t t_tick = t0 + k * period_ns;
-      device.tick(source.sample(static_cast<double>(k * period_ns) * 1e-9, device.applied_A()), dev_us(t_tick));
+      const double t_s = static_cast<double>(k * period_ns) * 1e-9;
+      source.estop_open = args.estop_at_s >= 0 && t_s >= args.estop_at_s && t_s < args.estop_at_s + args.estop_for_s;
+      device.tick(source.sample(t_s, device.applied_A()), dev_us(t_tick));
       ++k;
     }
     now = mono_ns();
@@ -206,10 +213,10 @@ int main(int argc, char** argv) {
   const mrctl_fw::DeviceCounters& c = device.counters();
   const mrctl_fw::Receiver& rx = device.receiver();
   printf("mrctl_fw_host summary ticks=%u late_ticks=%llu setpoints=%u samples_sent=%u errors_sent=%u "
-         "watchdog_trips=%u sync_overflows=%u crc_errors=%u header_errors=%u bytes_discarded=%u tx_dropped=%u "
-         "applied_A=%g output_enabled=%d\n",
+         "watchdog_trips=%u sync_overflows=%u estops=%u crc_errors=%u header_errors=%u bytes_discarded=%u "
+         "tx_dropped=%u applied_A=%g output_enabled=%d\n",
          c.ticks, static_cast<unsigned long long>(late_ticks), c.setpoints, c.samples_sent, c.errors_sent,
-         c.watchdog_trips, c.sync_overflows, rx.crc_errors, rx.header_errors, rx.bytes_discarded, io.tx_dropped,
+         c.watchdog_trips, c.sync_overflows, c.estops, rx.crc_errors, rx.header_errors, rx.bytes_discarded, io.tx_dropped,
          static_cast<double>(device.applied_A()), device.output_enabled() ? 1 : 0);
   fflush(stdout);
   char target[512];

@@ -17,6 +17,10 @@ constexpr uint8_t kPinCurrentMon = 16;    // A2: driver current monitor (optiona
 constexpr uint8_t kPinDriverPwm = 2;      // PWM -> 2-pole RC -> x1.515 op-amp -> driver 0-5 V input
 constexpr uint8_t kPinDriverEnable = 3;   // driver enable input, active high
 constexpr uint8_t kPinDriverFault = 4;    // driver fault output, active low (pull-up)
+// E-stop / interlock: a normally-closed contact of the E-stop chain between this pin and GND,
+// with the pin's pull-up: closed (running) reads LOW, open (stop pressed, wire broken) reads HIGH
+constexpr uint8_t kPinEstop = 5;
+constexpr bool kEstopOpenHigh = true;     // the level that means "open": HIGH with the wiring above
 constexpr uint8_t kPinHeartbeat = 13;     // LED: toggles every 500 ticks
 
 constexpr bool kHasCurrentMonitor = false;  // true once A2 is wired to the driver's monitor

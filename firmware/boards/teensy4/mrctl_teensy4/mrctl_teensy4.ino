@@ -8,9 +8,12 @@
 // and flashing: firmware/README.md.
 //
 // Safety chain on the board: the core applies 0 A on its millisecond watchdog
-// (no SETPOINT for watchdog_ms), on a driver fault and on ENABLE clear; if the
-// main loop itself stops serving ticks (a hang), the timer ISR forces the
-// output to 0 and the driver off after kStallTicks ticks.
+// (no SETPOINT for watchdog_ms), on a driver fault, on ENABLE clear and while
+// the E-stop input is open (latched: ESTOP until a CLEAR_FAULTS once it has
+// closed); the timer ISR itself cuts the output at the tick the E-stop input
+// opens, and if the main loop stops serving ticks (a hang), after kStallTicks
+// ticks. The E-stop chain's hard-wired contacts remove the driver's power
+// whatever this board does (docs/hardware.md).
 #include <Arduino.h>
 
 #include "board_config.h"
@@ -25,6 +28,7 @@ struct Latch {
   int32_t force_counts;
   int32_t current_counts;
   bool driver_fault;
+  bool estop_open;
   uint32_t t_us;
 };
 
@@ -62,8 +66,10 @@ void on_sample_timer() {
   latch.force_counts = analogRead(board::kPinLoadCell);
   latch.current_counts = board::kHasCurrentMonitor ? analogRead(board::kPinCurrentMon) : -1;
   latch.driver_fault = digitalReadFast(board::kPinDriverFault) == LOW;
+  const bool estop_open = (digitalReadFast(board::kPinEstop) == HIGH) == board::kEstopOpenHigh;
+  latch.estop_open = estop_open;
   ticks_latched = ticks_latched + 1;
-  if (ticks_latched - ticks_served > kStallTicks) {  // the main loop hangs: 0 A here
+  if (estop_open || ticks_latched - ticks_served > kStallTicks) {  // E-stop, or the main loop hangs: 0 A here
     analogWrite(board::kPinDriverPwm, 0);
     digitalWriteFast(board::kPinDriverEnable, LOW);
   }
@@ -76,6 +82,7 @@ void setup() {
   pinMode(board::kPinDriverEnable, OUTPUT);
   digitalWriteFast(board::kPinDriverEnable, LOW);
   pinMode(board::kPinDriverFault, INPUT_PULLUP);
+  pinMode(board::kPinEstop, INPUT_PULLUP);
   pinMode(board::kPinHeartbeat, OUTPUT);
   analogWriteResolution(board::kPwmBits);
   analogWriteFrequency(board::kPinDriverPwm, board::kPwmFrequencyHz);
@@ -98,6 +105,7 @@ void loop() {
     raw.x_counts = latch.x_counts;
     raw.force_counts = latch.force_counts;
     raw.driver_fault = latch.driver_fault;
+    raw.estop_open = latch.estop_open;
     const int32_t current_counts = latch.current_counts;
     t_us = latch.t_us;
     ticks_served = ticks_latched;  // ticks the loop missed are dropped, never queued
