@@ -128,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="schedule a fault on the device clock (repeatable; added to the config's faults), "
                          "e.g. drop_replies@2.0+0.05 or delay_replies@3+0.3,delay_s=0.003; kinds: "
                          "drop_replies, delay_replies, corrupt_crc, garbage, stale_seq, nan, out_of_range, "
-                         "modbus_exception, disconnect, ignore_writes, ignore_setpoints (docs/hil_sim.md)")
+                         "modbus_exception, disconnect, ignore_writes, ignore_setpoints, estop (docs/hil_sim.md)")
     return ap
 
 

@@ -23,7 +23,7 @@ from typing import Any, Sequence
 
 from mrctl import __version__
 from mrctl.build import build_notice, tick_build
-from mrctl.errors import BadInput, ExitCode, MrctlError
+from mrctl.errors import BadInput, ExitCode, LinkFailure, MrctlError
 from mrctl.runlog.format import exit_codes_text
 
 EXIT_OK = ExitCode.OK
@@ -314,6 +314,17 @@ def cmd_status(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_arm(args: argparse.Namespace) -> int:
+    """Re-arm a daemon after a latched fault (docs/cli.md); exit 3 if it refuses."""
+    from mrctl.daemon.arm import ArmRefused, arm
+
+    try:
+        print(f"mrctl arm: {arm(_status_path(args))}")
+    except ArmRefused as exc:
+        raise LinkFailure(f"mrctl arm: {exc}") from None
+    return EXIT_OK
+
+
 def cmd_tap(args: argparse.Namespace) -> int:
     """CSV rows of a running daemon on stdout; Ctrl-C ends it cleanly (exit 0)."""
     import os
@@ -542,6 +553,11 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--json", action="store_true", help="a JSON list, one object per daemon")
     ls.set_defaults(func=cmd_ls)
 
+    am = sub.add_parser("arm", help="re-arm a running mrctl after a latched fault (E-stop, device watchdog, link "
+                                    "loss): refused while the cause is still there")
+    add_daemon_options(am)
+    am.set_defaults(func=cmd_arm)
+
     tp = sub.add_parser("tap", help="the next N rows of a running mrctl as CSV on stdout (like halsampler)")
     tp.add_argument("-n", "--rows", dest="n", type=int, metavar="N", help="rows to capture (default: until Ctrl-C)")
     tp.add_argument("-c", "--columns", metavar="COLS",
@@ -609,6 +625,9 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("--steps", type=int, default=8, metavar="N", help="steps up and down (0 = no lag fit; default 8)")
     ca.add_argument("--step-s", type=float, default=0.08, metavar="S", help="seconds per step (default 0.08)")
     ca.add_argument("--rate-hz", type=float, default=200.0, metavar="HZ", help="exchanges per second (default 200)")
+    ca.add_argument("--accept-dead-channels", action="store_true",
+                    help="write the calibration although an input read one constant value at rest (a disconnected "
+                         "or stuck input, or a sensor whose noise is below the converter's step)")
     _outside_option(ca)
     ca.set_defaults(func=cmd_calibrate)
 

@@ -385,12 +385,14 @@ def test_the_host_build_refuses_bad_arguments(programs):
     assert res.returncode == 3 and "cannot create a pty at /nonexistent/dir/tty" in res.stderr
 
 
-def _run_over_pty(programs, d: Path) -> tuple[subprocess.CompletedProcess, str, str, int, Path]:
-    """The host build on a pty at 200 Hz, `mrctl run` of firmware_host.yaml against it for 3 s."""
+def _run_over_pty(programs, d: Path, host_args: tuple[str, ...] = (), during=None,
+                  duration_s: float = 3.0) -> tuple[subprocess.CompletedProcess, str, str, int, Path]:
+    """The host build on a pty at 200 Hz, `mrctl run` of firmware_host.yaml against it for
+    ``duration_s`` (3 s); ``during(status_socket)`` runs beside the daemon if given."""
     from hil_sim.testing.harness import env
 
     link = d / "tty"
-    host = subprocess.Popen([str(programs["mrctl_fw_host"]), "--link", str(link), "--rate-hz", "200"],
+    host = subprocess.Popen([str(programs["mrctl_fw_host"]), "--link", str(link), "--rate-hz", "200", *host_args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         ready = host.stdout.readline()
@@ -400,9 +402,18 @@ def _run_over_pty(programs, d: Path) -> tuple[subprocess.CompletedProcess, str, 
                        .replace("/tmp/mrctl-fw-tty", str(link))
                        + "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n")  # a real clock, a shared machine
         out = d / "run.csv"
-        res = subprocess.run([sys.executable, "-m", "mrctl", "run", str(cfg), "--out", str(out), "--duration", "3",
-                              "--quiet", "--status-socket", str(d / "run.sock")],
-                             cwd=ROOT, env=env(), capture_output=True, text=True, timeout=60)
+        cmd = [sys.executable, "-m", "mrctl", "run", str(cfg), "--out", str(out), "--duration", str(duration_s),
+               "--quiet", "--status-socket", str(d / "run.sock")]
+        if during is None:
+            res = subprocess.run(cmd, cwd=ROOT, env=env(), capture_output=True, text=True, timeout=60)
+        else:
+            proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    text=True)
+            try:
+                during(str(d / "run.sock"))
+            finally:
+                o, e = proc.communicate(timeout=60)
+            res = subprocess.CompletedProcess(cmd, proc.returncode, o, e)
         time.sleep(0.1)  # the disabled 0 A setpoint sent on close is in
     finally:
         host.send_signal(signal.SIGTERM)
@@ -440,3 +451,60 @@ def test_mrctl_run_drives_the_firmware_on_a_pty(programs, tmp_path):
     assert np.nanmax(run["I"]) > 0.1  # the law commanded current through the firmware
     assert side["exit_current_A"] == 0.0
     assert s["applied_A"] == 0.0 and s["output_enabled"] == 0.0
+
+
+@pytest.mark.hil
+def test_estop_on_the_firmware_latches_the_run_until_mrctl_arm_then_ramps(programs, tmp_path):
+    """The host build's E-stop pin opens 1.5 s in for 0.5 s: the firmware holds 0 A and reports
+    ESTOP; the daemon latches at the first sample that says so (no hold), stays at 0 A after
+    the pin closed, refuses nothing it should not: `mrctl arm` once the pin closed clears the
+    firmware's latch (CLEAR_FAULTS) and the current ramps up at the slew limit (0.25 A a
+    tick at 200 Hz). The run ends degraded by its time latched (exit 5)."""
+    import numpy as np
+
+    from mrctl.daemon.arm import arm
+    from mrctl.daemon.status import query_status
+    from mrctl.runlog.read import read_run, read_sidecar
+
+    said: dict = {}
+
+    def during(sock: str) -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            try:
+                st = query_status(sock, timeout_s=1.0)
+            except OSError:
+                st = {}
+            if st.get("safety_state") == "LATCHED":
+                said["latched"] = st
+                break
+            time.sleep(0.02)
+        time.sleep(1.0)  # the pin has closed (0.5 s window), the daemon still latched
+        said["before_arm"] = query_status(sock, timeout_s=1.0)
+        said["arm"] = arm(sock)
+
+    for attempt in range(3):
+        d = tmp_path / f"a{attempt}"
+        d.mkdir()
+        res, stdout, stderr, code, out = _run_over_pty(programs, d, ("--estop-at-s", "1.5", "--estop-for-s", "0.5"),
+                                                       during=during, duration_s=5.0)
+        if not (res.returncode == 3 and "refusing to start" in res.stderr):
+            break
+    assert res.returncode == 5, res.stderr
+    assert said["latched"]["latch_cause"] == "estop"
+    assert said["before_arm"]["safety_state"] == "LATCHED" and said["before_arm"]["current_A"] == 0.0
+    assert "re-armed" in said["arm"]
+    assert _summary(stdout)["estops"] == 1
+    run = read_run(out)
+    side = read_sidecar(out)
+    fault = np.nan_to_num(run["fault"]).astype(int)
+    I = np.nan_to_num(run["I"])
+    first = int(np.argmax(fault & 256))  # Fault.ESTOP
+    assert fault[first] & 1024  # latched at once
+    back = first + int(np.argmax(I[first:] > 0))
+    assert back > first + 150 and (I[first:back] == 0).all()  # 0 A from the E-stop to the re-arm (> 0.75 s)
+    rises = np.diff(np.concatenate(([0.0], I)))
+    assert rises.max() <= 50.0 / 200 + 1e-9  # the slew limit at 200 Hz, the ramp after the re-arm included
+    assert I[back:].max() > 0.1
+    acc = side["summary"]["acceptance"]["figures"]
+    assert acc["latched_s"] > 0.75 and any("time latched" in r for r in side["verdict_reasons"])

@@ -21,6 +21,7 @@ DEFAULTS: dict[str, Any] = {
     "max_gap_s": 0.1,
     "max_zero_stretch_s": 0.1,
     "max_force_nrmse": None,
+    "max_latched_s": 0.0,
 }
 
 
@@ -39,6 +40,9 @@ def acceptance_section() -> Section:
                                   doc="longest stretch the supervisor forced 0 A (no usable sample or FAULT) (s)"),
         "max_force_nrmse": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=10.0,
                                doc="largest force NRMSE over the settled window (0.02 = 2 %); null = not judged"),
+        "max_latched_s": Num(default=DEFAULTS["max_latched_s"], min=0.0, max=1e7,
+                             doc="longest total time latched (an E-stop, the device's watchdog, a long link loss: "
+                                 "0 A until mrctl arm) (s); mrctl run only"),
     }, doc="bounds a finished run must meet, else it ends with exit 5 and verdict degraded "
            "(mrctl run and mrctl simulate)")
 

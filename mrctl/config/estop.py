@@ -3,11 +3,9 @@
 What each link can read (checked against ``backend`` once the file is valid):
 
 * ``input: device`` — the device's own E-stop input, reported in its status
-  (``Status.ESTOP``): the reference firmware's E-stop pin (docs/protocol.md),
-  a Modbus device's status register (the default register map);
-* ``input: register`` — the register map's ``estop`` quantity (a discrete
-  input, coil or register of a third-party device), with ``active: low|high``
-  saying which value means "stop";
+  (``Status.ESTOP``, bit 7): the reference firmware's E-stop pin
+  (docs/protocol.md), a Modbus device's ``status`` register (the default
+  register map, hil_sim; a register map names its status register);
 * ``input: DIO<n>`` (or the T7's names ``FIO<n>``, ``EIO<n>``, ``CIO<n>``,
   ``MIO<n>``) on a device preset such as the LabJack T7, with ``active``.
 
@@ -36,11 +34,11 @@ def estop_section() -> Section:
     return Section({
         "input": Str(default=None, optional=True,
                      doc="the E-stop / interlock input read every tick: 'device' (the device reports it in its "
-                         "status: reference firmware, default Modbus map), 'register' (the register map's estop "
-                         "quantity), or a device preset's digital input ('DIO4', 'FIO4', 'EIO0', ...); "
-                         "null = none (the hard-wired E-stop only; docs/hardware.md)"),
+                         "status, bit 7: the reference firmware, a Modbus status register), or a device preset's "
+                         "digital input ('DIO4', 'FIO4', 'EIO0', ...); null = none (the hard-wired E-stop only; "
+                         "docs/hardware.md)"),
         "active": Str(default=None, optional=True, choices=("low", "high"),
-                      doc="the level that means stop (register, DIO); wire a normally-closed contact to ground "
+                      doc="a digital input: the level that means stop; wire a normally-closed contact to ground "
                           "with the input's pull-up and say high: a broken wire then stops too"),
     }, doc="E-stop / interlock input: open -> 0 A, enable low, latched until mrctl arm (docs/hardware.md)")
 
@@ -74,21 +72,13 @@ def estop_checks(cfg: Node) -> list[str]:
         if active is not None:
             return ["safety.estop.active: the device reports its E-stop in its status (it knows the level); "
                     "remove active"]
-        return []
-    if inp == "register":
-        if kind == "serial" or preset is not None:
-            return ["safety.estop.input: 'register' needs a Modbus register map with an estop quantity "
+        rmap = backend.get("register_map") if kind != "serial" else None
+        if rmap is not None and not rmap.has("status"):
+            return ["safety.estop.input: 'device', but backend.register_map has no status register to report it "
                     "(docs/registers.md)"]
-        rmap = backend.get("register_map")
-        errors = []
-        if rmap is not None and not rmap.has("estop"):
-            errors.append("safety.estop.input: 'register', but backend.register_map has no estop quantity "
-                          "(docs/registers.md)")
-        if active is None:
-            errors.append("safety.estop.active: required with input 'register' (low or high)")
-        return errors
+        return []
     if parse_dio(inp) is None:
-        return [f"safety.estop.input: {inp!r} not allowed (device, register, or a digital input such as DIO4)"]
+        return [f"safety.estop.input: {inp!r} not allowed (device, or a device preset's digital input such as DIO4)"]
     errors = []
     if preset is None:
         errors.append(f"safety.estop.input: {inp!r} is a device preset's digital input: needs backend.device "

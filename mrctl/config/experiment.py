@@ -57,6 +57,12 @@ def _cpu_list(value: Any, path: str) -> tuple[Any, list[str]]:
     return (frozenset(cpus) if not errors else None), errors
 
 
+def _slew_check(value: Any, path: str) -> tuple[Any, list[str]]:
+    if value == "auto":
+        return "auto", []
+    return check_num(Num(optional=True, min=0.0, min_exclusive=True, max=1e6), value, path)
+
+
 def _lead_check(value: Any, path: str) -> tuple[Any, list[str]]:
     if value == "auto":
         return "auto", []
@@ -121,8 +127,12 @@ def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequenc
         **law_unions(base_dir, root),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
-            "max_slew_A_per_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
-                                    doc="slew limit of the command (A/s); none = off"),
+            "max_slew_A_per_s": Custom(_slew_check, default="auto",
+                                       doc="slew limit of the command (A/s) on every path: the law's output, the "
+                                           "first tick, recovery after a fault or a re-arm (a ramp from 0 A); "
+                                           "a fault's 0 A is immediate. auto = 50 A/s on a real link (serial, "
+                                           "Modbus), off on the in-process sim (the paper's law steps); "
+                                           "null = off"),
             "hold_ticks": Num(default=5, integer=True, min=0, max=1000,
                               doc="bad samples bridged with the last good one before 0 A"),
             "max_age_s": Num(default=None, optional=True, min=0.0, min_exclusive=True,
@@ -132,7 +142,12 @@ def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequenc
             "F_range_N": Custom(range_check, default=None, doc="[lo, hi] valid load-cell force (N)"),
             "require_force": Bool(default=False, doc="a non-finite load-cell force is a bad sample"),
             "fault_on_device_status": Bool(default=True, doc="device fault bits make a sample bad"),
-            "auto_resume": Bool(default=False, doc="leave the fault by itself after good samples"),
+            "auto_resume": Bool(default=False, doc="leave the fault by itself after good samples (never an "
+                                                   "E-stop, a device watchdog trip or a link loss longer than "
+                                                   "latch_after_s on a real link: those wait for mrctl arm)"),
+            "latch_after_s": Num(default=0.05, optional=True, min=0.0, min_exclusive=True, max=60.0,
+                                 doc="real links: a link loss (no reply) longer than this latches the fault even "
+                                     "with auto_resume: 0 A until mrctl arm; null = never"),
             "resume_good_ticks": Num(default=10, integer=True, min=1, max=100000, doc="good samples needed to resume"),
             "driver_retries": Num(default=2, integer=True, min=0, max=10,
                                   doc="extra write attempts within a tick before the driver is lost"),

@@ -113,6 +113,10 @@ class Controller:
         #: the loop (its ``t_start_ns`` and ``period_ns`` give each row's lateness); None offline
         self.loop: Any = None
         self.pending: tuple[CurrentLaw, DemandLaw | None] | None = None  # (law, demand) from a reload
+        #: ``mrctl arm`` (the status thread sets it): taken at the next tick boundary
+        self.arm_request = False
+        #: the link's output enable as last set: off while the supervisor is in FAULT
+        self._enabled = True
         # live values for the status socket (plain attribute stores per tick)
         self.last_x = self.last_v = self.last_F_des = NAN
         # this tick's sample (None: none), set by _acquire
@@ -158,10 +162,24 @@ class Controller:
                 self.law = law  # the new law failed: it is the one to blame, 0 A follows
                 self._law_failed("raised", law.name, self.ticks, NAN, f"in reset(): {type(exc).__name__}: {exc}")
 
+    def _take_arm(self) -> None:
+        """``mrctl arm`` at the tick boundary: the device is asked to clear its
+        latched status (an E-stop once closed, its watchdog's trip) and the
+        supervisor waits for a good sample without the cause (SIGHUP never
+        re-arms)."""
+        self.arm_request = False
+        try:
+            self.backend.request_clear_faults()
+        except Exception:  # noqa: BLE001 - a link that cannot: the supervisor still judges the samples
+            pass
+        self.sup.request_arm()
+
     def tick(self, k: int, now_ns: int) -> bool:
         """One control period; returns False to end the run (driver lost)."""
         if self.pending is not None:
             self._take_reload()
+        if self.arm_request:
+            self._take_arm()
         if self._host_clocked:
             self.backend.begin_tick(k)
         t0 = self.clock_ns()
@@ -179,6 +197,8 @@ class Controller:
         and comes no sooner than one period after the previous tick."""
         if self.pending is not None:
             self._take_reload()
+        if self.arm_request:
+            self._take_arm()
         self._acquire()
         if self._sample is None and self._prev_now and self.loop is not None:
             # No reply, so no device clock: a link that fails at once (closed,
@@ -254,6 +274,9 @@ class Controller:
             ok = sup.check_missing(k)
             seq = -1
             t_dev = F = I_app = NAN
+        if sup.in_fault == self._enabled:  # FAULT: the output disabled too (driver enable low), until it ends
+            self._enabled = not self._enabled
+            self.backend.enabled = self._enabled
         if ok:
             x = sup.x
             v = sup.v

@@ -12,8 +12,18 @@ Whatever a law computes, the driver only ever sees a finite current in
 * the next bad tick after that enters FAULT: the output is 0 A immediately
   (not slew-limited — safety wins over smoothness) until the supervisor
   resumes by itself (``auto_resume``) or ``reset()`` is called;
-* commanded currents are clamped and, optionally, slew-limited relative to the
-  last current the supervisor let through.
+* some faults **latch**: they wait for an explicit re-arm (:meth:`request_arm`,
+  ``mrctl arm``) whatever ``auto_resume`` says: a sample whose device status
+  has a latching bit (``latch_status_mask``: the E-stop input open, the
+  device's watchdog tripped) latches at once, with no hold; a run of bad
+  samples with missing ones (no reply: a link loss) longer than
+  ``latch_after_ticks`` latches; without
+  ``auto_resume`` every fault does. A re-arm takes only on a good sample
+  without those bits, within ``arm_wait_ticks``, else it is refused naming
+  the cause;
+* commanded currents are clamped and slew-limited relative to the last
+  current the supervisor let through, so the first tick, a resume and a
+  re-arm ramp up from 0 A.
 
 Pure logic: no I/O, logging or clock reads. The loop passes in everything
 (the sample, its age) so the rules are deterministic and unit-testable, and
@@ -36,6 +46,7 @@ import math
 from typing import Any, Final, Protocol
 
 from mrctl.core.safety_config import Fault, SafetyConfig, SafetyCounters, SafetyState, _range
+from mrctl.io.base import Status
 from mrctl.laws.base import clamp_current
 
 __all__ = [
@@ -79,7 +90,15 @@ _KIND_LABELS = (
     (Fault.NON_FINITE, "non-finite"),
     (Fault.OUT_OF_RANGE, "out of range"),
     (Fault.DEVICE_STATUS, "device status"),
+    (Fault.ESTOP, "E-stop"),
+    (Fault.DEVICE_WATCHDOG, "device watchdog"),
 )
+
+#: arm_state: what the last re-arm request came to (read by the status thread)
+ARM_NONE: Final = 0
+ARM_PENDING: Final = 1
+ARM_DONE: Final = 2
+ARM_REFUSED: Final = 3
 
 _MISSING: Final = int(Fault.MISSING)
 _LATE: Final = int(Fault.LATE)
@@ -89,6 +108,11 @@ _OUT_OF_RANGE: Final = int(Fault.OUT_OF_RANGE)
 _DEVICE_STATUS: Final = int(Fault.DEVICE_STATUS)
 _DRIVER: Final = int(Fault.DRIVER)
 _LAW: Final = int(Fault.LAW)
+_ESTOP: Final = int(Fault.ESTOP)
+_DEV_WD: Final = int(Fault.DEVICE_WATCHDOG)
+_LATCHED: Final = int(Fault.LATCHED)
+_LATCH_KINDS: Final = _ESTOP | _DEV_WD
+_ST_ESTOP: Final = int(Status.ESTOP)
 
 # plain ints on the per-tick path (an IntEnum compares as an object); ``state`` gives the enum
 _STARTING: Final = int(SafetyState.STARTING)
@@ -113,15 +137,19 @@ class SafetySupervisor:
         "config",
         # precomputed config
         "_I_max", "_step", "_hold", "_max_age", "_xlo", "_xhi", "_vlo", "_vhi",
-        "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n",
+        "_Flo", "_Fhi", "_req_F", "_status_mask", "_auto", "_resume_n", "_latch_mask", "_latch_after",
+        "_arm_wait",
         # state, and the sample the law runs on
         "_state", "_have_good", "_have_seq", "_last_seq", "_bad_run", "_bad_bits", "_good_run",
         "_fault", "_latched", "_reason", "_last_fault", "_last_reason", "_out_ok", "_last_out", "_law_reason",
         "_k", "_fault_tick", "_held", "x", "v", "F", "I_applied", "status",
+        # re-arm (mrctl arm): the request's deadline tick, and what it came to
+        "_arm_until", "arm_state", "arm_message",
         # counters
         "_n_good", "_n_missing", "_n_late", "_n_stale", "_n_non_finite",
         "_n_out_of_range", "_n_status", "_n_holds", "_longest_bad",
         "_n_faults", "_n_fault_ticks", "_n_resumes", "_n_resets", "_n_cmd_nonfinite",
+        "_n_estop", "_n_dev_wd", "_n_latches", "_n_latched_ticks", "_n_arms", "_n_arms_refused",
     )
 
     def __init__(self, config: SafetyConfig) -> None:
@@ -139,10 +167,18 @@ class SafetySupervisor:
         self._status_mask = int(config.status_fault_mask)
         self._auto = bool(config.auto_resume)
         self._resume_n: int = config.resume_good_ticks
+        self._latch_mask = int(config.latch_status_mask)
+        self._latch_after: int = -1 if config.latch_after_ticks is None else config.latch_after_ticks
+        self._arm_wait: int = config.arm_wait_ticks
         self._n_good = self._n_missing = self._n_late = self._n_stale = 0
         self._n_non_finite = self._n_out_of_range = self._n_status = 0
         self._n_holds = self._longest_bad = self._n_faults = self._n_fault_ticks = 0
         self._n_resumes = self._n_resets = self._n_cmd_nonfinite = 0
+        self._n_estop = self._n_dev_wd = self._n_latches = self._n_latched_ticks = 0
+        self._n_arms = self._n_arms_refused = 0
+        self._arm_until = -1
+        self.arm_state = ARM_NONE
+        self.arm_message = ""
         self._last_fault = 0  # the last fault and its reason, kept after it clears (for reports)
         self._last_reason = ""
         self._k = -1  # the tick being checked (the fault's tick in every message)
@@ -170,11 +206,15 @@ class SafetySupervisor:
         self._law_reason = ""
         self._out_ok = False
         self._last_out = 0.0
+        self._arm_until = -1
 
     # ------------------------------------------------------------------ per tick
 
     def _classify(self, seq: int, x: float, v: float, F: float, status: int, age_s: float) -> int:
-        """0 if good, else the first bad kind found (one kind per sample)."""
+        """0 if good, else the first bad kind found (one kind per sample);
+        a latching status bit comes first: it says what the device did."""
+        if status & self._latch_mask:
+            return _ESTOP if status & _ST_ESTOP else _DEV_WD
         if not age_s <= self._max_age:  # NaN age counts as late
             return _LATE
         if self._have_seq:
@@ -213,11 +253,16 @@ class SafetySupervisor:
             self._bad_bits = 0
             if self._state == _FAULT:
                 self._good_run += 1
-                if self._latched or self._good_run < self._resume_n:
-                    self._n_fault_ticks += 1
-                    self._out_ok = False
+                if self._latched:
+                    if not 0 <= k <= self._arm_until:  # no re-arm asked for (or too late): stay at 0 A
+                        self._fault_ticked()
+                        return False
+                    self._rearm()
+                elif self._good_run < self._resume_n:
+                    self._fault_ticked()
                     return False
-                self._resume()
+                else:
+                    self._resume()
             self._state = _OK
             self._out_ok = True
             return True
@@ -243,12 +288,20 @@ class SafetySupervisor:
             self._good_run = 0
         self._out_ok = False
 
+        if kind & _LATCH_KINDS:  # the E-stop, the device's watchdog: 0 A at once, latched, no hold
+            if not (self._latched and self._fault & kind):
+                self._enter_fault(kind, True)
+            self._fault_ticked()
+            return False
+        lost = 0 < self._latch_after < self._bad_run and self._bad_bits & _MISSING != 0  # a link loss, that long
         if self._state == _FAULT:
-            self._n_fault_ticks += 1
+            if lost and not self._latched:
+                self._enter_fault(self._bad_bits, True)
+            self._fault_ticked()
             return False
         if self._bad_run > self._hold:
-            self._enter_fault(self._bad_bits, False)
-            self._n_fault_ticks += 1
+            self._enter_fault(self._bad_bits, lost)
+            self._fault_ticked()
             return False
         self._n_holds += 1
         if not self._have_good:  # nothing to hold yet (STARTING): 0 A, not yet a fault
@@ -275,6 +328,10 @@ class SafetySupervisor:
         """Count a bad sample by its kind (the bad path only)."""
         if kind == _MISSING:
             self._n_missing += 1
+        elif kind == _ESTOP:
+            self._n_estop += 1
+        elif kind == _DEV_WD:
+            self._n_dev_wd += 1
         elif kind == _LATE:
             self._n_late += 1
         elif kind == _STALE:
@@ -321,12 +378,24 @@ class SafetySupervisor:
             self._fault_tick = self._k
         self._state = _FAULT
         self._fault |= bits
-        self._latched = self._latched or latch or not self._auto
+        was = self._latched
+        self._latched = was or latch or not self._auto
+        if self._latched and not was:
+            self._n_latches += 1
         self._good_run = 0
         self._out_ok = False
         self._last_out = 0.0
         self._reason = self._describe()
         self._last_fault, self._last_reason = self._fault, self._reason
+
+    def _fault_ticked(self) -> None:
+        """One more tick at 0 A in FAULT (and latched); an unanswered re-arm
+        request runs out here."""
+        self._n_fault_ticks += 1
+        if self._latched:
+            self._n_latched_ticks += 1
+            if 0 <= self._arm_until < self._k:
+                self._refuse_arm()
 
     def _resume(self) -> None:
         self._n_resumes += 1
@@ -335,9 +404,49 @@ class SafetySupervisor:
         self._good_run = 0
         self._reason = ""
 
+    def _rearm(self) -> None:
+        """A re-arm asked for, on a good sample without a latching bit: the
+        fault ends; the output ramps up from 0 A at the slew limit."""
+        self._n_arms += 1
+        self._arm_until = -1
+        self.arm_state = ARM_DONE
+        self.arm_message = f"re-armed at tick {self._k} (was: {self._reason})"
+        self._resume()
+
+    def _refuse_arm(self) -> None:
+        self._n_arms_refused += 1
+        self._arm_until = -1
+        self.arm_state = ARM_REFUSED
+        self.arm_message = f"refused: the cause is still there after {self._arm_wait} ticks ({self.cause_now()})"
+
+    def request_arm(self) -> None:
+        """``mrctl arm``, taken at a tick boundary: leave a latched fault on
+        the next good sample without a latching bit within ``arm_wait_ticks``;
+        else refuse (``arm_state``, ``arm_message``). Not latched: nothing to
+        do (said in ``arm_message``)."""
+        if self._state != _FAULT or not self._latched:
+            self.arm_state = ARM_DONE
+            self.arm_message = f"nothing to re-arm (state {self.state.name})"
+            return
+        self._arm_until = self._k + self._arm_wait
+        self.arm_state = ARM_PENDING
+        self.arm_message = "waiting for a good sample without the cause"
+
+    def cause_now(self) -> str:
+        """What keeps a latched fault now: the kinds of the current bad run,
+        or "none" once samples are good again (then a re-arm takes)."""
+        if self._bad_run == 0:
+            return "samples good again"
+        parts = [label for bit, label in _KIND_LABELS if self._bad_bits & bit]
+        return f"{'/'.join(parts)} for {self._bad_run} tick(s)"
+
     def _describe(self) -> str:
-        parts = [label for bit, label in _KIND_LABELS if self._fault & bit]
+        parts = [label for bit, label in _KIND_LABELS if self._fault & bit & ~_LATCH_KINDS]
         msgs = []
+        if self._fault & _ESTOP:
+            msgs.append("E-stop input open")
+        if self._fault & _DEV_WD:
+            msgs.append("the device's watchdog tripped (it applied its safe state)")
         if self._fault & _DRIVER:
             msgs.append("current driver failed")
         if self._fault & _LAW:
@@ -347,7 +456,7 @@ class SafetySupervisor:
                 f"{'/'.join(parts)} sample(s) for {self._bad_run} consecutive tick(s)"
                 f" (hold_ticks={self._hold})"
             )
-        how = "latched until reset()" if self._latched else (
+        how = "latched until mrctl arm" if self._latched else (
             f"auto-resume after {self._resume_n} good samples")
         return f"{'; '.join(msgs)}; 0 A, {how}"
 
@@ -383,6 +492,38 @@ class SafetySupervisor:
         return SafetyState(self._state)
 
     @property
+    def shown_state(self) -> SafetyState:
+        """:attr:`state` as status, the live line and Prometheus show it:
+        LATCHED for a FAULT that waits for ``mrctl arm``."""
+        if self._state == _FAULT and self._latched:
+            return SafetyState.LATCHED
+        return SafetyState(self._state)
+
+    @property
+    def latched(self) -> bool:
+        """In a FAULT that waits for a re-arm (``mrctl arm``)."""
+        return self._state == _FAULT and self._latched
+
+    @property
+    def latch_cause(self) -> str:
+        """Why the supervisor is latched, in a word or two ("estop", "device
+        watchdog", "link loss", "law", ...); "" when not latched."""
+        if not self.latched:
+            return ""
+        f = self._fault
+        if f & _ESTOP:
+            return "estop"
+        if f & _DEV_WD:
+            return "device watchdog"
+        if f & _LAW:
+            return "law"
+        if f & _DRIVER:
+            return "driver"
+        if f & _MISSING:
+            return "link loss"
+        return "bad samples"
+
+    @property
     def in_fault(self) -> bool:
         return self._state == _FAULT
 
@@ -399,9 +540,9 @@ class SafetySupervisor:
 
     @property
     def fault_bits(self) -> int:
-        """The same bits as a plain int: for the per-tick log (building the
-        IntFlag costs ~1 us)."""
-        return self._fault
+        """The same bits as a plain int, with ``LATCHED`` while latched: for
+        the per-tick log (building the IntFlag costs ~1 us)."""
+        return self._fault | _LATCHED if self._latched else self._fault
 
     @property
     def last_fault(self) -> Fault:
@@ -438,4 +579,10 @@ class SafetySupervisor:
             resumes=self._n_resumes,
             resets=self._n_resets,
             cmd_non_finite=self._n_cmd_nonfinite,
+            estop=self._n_estop,
+            device_watchdog=self._n_dev_wd,
+            latches=self._n_latches,
+            ticks_latched=self._n_latched_ticks,
+            arms=self._n_arms,
+            arms_refused=self._n_arms_refused,
         )

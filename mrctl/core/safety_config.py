@@ -21,6 +21,7 @@ class SafetyState(enum.IntEnum):
     OK = 1  #: last sample was good; the law runs on it
     HOLDING = 2  #: bad sample(s) absorbed; the law runs on the last good one
     FAULT = 3  #: 0 A until auto-resume or ``reset()``
+    LATCHED = 4  #: shown for a FAULT that waits for an explicit re-arm (``mrctl arm``): 0 A, output disabled
 
 
 class Fault(enum.IntFlag):
@@ -35,9 +36,12 @@ class Fault(enum.IntFlag):
     DEVICE_STATUS = 1 << 5  #: sample.status has a bit of ``status_fault_mask``
     DRIVER = 1 << 6  #: the loop reported a current-driver failure (latched)
     LAW = 1 << 7  #: a control law raised, returned NaN/inf or was too slow (latched; docs/laws.md)
+    ESTOP = 1 << 8  #: the E-stop / interlock input is open (``Status.ESTOP``): latched at once
+    DEVICE_WATCHDOG = 1 << 9  #: the device's own watchdog acted (``Status.WATCHDOG_TRIPPED``): latched at once
+    LATCHED = 1 << 10  #: the fault is latched: 0 A until ``mrctl arm`` (set beside its causes)
 
-    #: the bad-sample kinds (everything but DRIVER and LAW)
-    SAMPLE = MISSING | LATE | STALE | NON_FINITE | OUT_OF_RANGE | DEVICE_STATUS
+    #: the bad-sample kinds (everything but DRIVER, LAW and LATCHED)
+    SAMPLE = MISSING | LATE | STALE | NON_FINITE | OUT_OF_RANGE | DEVICE_STATUS | ESTOP | DEVICE_WATCHDOG
 
 
 def _range(r: tuple[float, float] | None, name: str) -> tuple[float, float]:
@@ -72,6 +76,15 @@ class SafetyConfig:
     resume_good_ticks: int = 10
     #: tick period (s); the slew step is max_slew_A_per_s * dt_s per call
     dt_s: float = 1e-3
+    #: sample.status bits that latch at once, with no hold (real links: ``Status.ESTOP |
+    #: Status.WATCHDOG_TRIPPED``); 0 = none (the in-process bench)
+    latch_status_mask: int = 0
+    #: a run of bad samples with missing ones (no reply: a link loss) longer than this (ticks)
+    #: latches even with ``auto_resume``; None = never (the in-process bench)
+    latch_after_ticks: int | None = None
+    #: an ``mrctl arm`` waits this many ticks for the cause to clear (a device's latch to take a
+    #: CLEAR_FAULTS, a link to come back), then is refused naming the cause
+    arm_wait_ticks: int = 500
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.I_max) and self.I_max > 0.0):
@@ -95,17 +108,48 @@ class SafetyConfig:
             raise ValueError(f"resume_good_ticks: must be an int >= 1, got {self.resume_good_ticks!r}")
         if not (math.isfinite(self.dt_s) and self.dt_s > 0.0):
             raise ValueError(f"dt_s: must be finite and > 0, got {self.dt_s!r}")
+        if self.latch_after_ticks is not None and (isinstance(self.latch_after_ticks, bool) or not isinstance(
+                self.latch_after_ticks, int) or self.latch_after_ticks < 1):
+            raise ValueError(f"latch_after_ticks: must be an int >= 1 or None, got {self.latch_after_ticks!r}")
+        if isinstance(self.arm_wait_ticks, bool) or not isinstance(self.arm_wait_ticks, int) or self.arm_wait_ticks < 1:
+            raise ValueError(f"arm_wait_ticks: must be an int >= 1, got {self.arm_wait_ticks!r}")
 
     @classmethod
-    def from_config(cls, s: Any, dt: float) -> "SafetyConfig":
-        """From the validated ``safety`` section, at tick period ``dt`` (s)."""
+    def from_config(cls, s: Any, dt: float, real_link: bool = True) -> "SafetyConfig":
+        """From the validated ``safety`` section, at tick period ``dt`` (s).
+        ``real_link``: a device outside this process (serial, Modbus), where
+        an E-stop, a device watchdog trip and a long link loss latch, and
+        ``max_slew_A_per_s: auto`` is :data:`AUTO_SLEW_A_PER_S`; the
+        in-process bench has none of these and no slew limit by default."""
         return cls(
-            I_max=s.I_max, max_slew_A_per_s=s.max_slew_A_per_s, hold_ticks=s.hold_ticks, max_age_s=s.max_age_s,
-            x_range_m=s.x_range_m, v_range_mps=s.v_range_mps, F_range_N=s.F_range_N,
+            I_max=s.I_max, max_slew_A_per_s=resolve_slew(s.max_slew_A_per_s, real_link), hold_ticks=s.hold_ticks,
+            max_age_s=s.max_age_s, x_range_m=s.x_range_m, v_range_mps=s.v_range_mps, F_range_N=s.F_range_N,
             require_force=s.require_force,
             status_fault_mask=int(Status.FAULTS) if s.fault_on_device_status else 0,
             auto_resume=s.auto_resume, resume_good_ticks=s.resume_good_ticks, dt_s=dt,
+            latch_status_mask=LATCH_STATUS if real_link else 0,
+            latch_after_ticks=max(1, round(s.latch_after_s / dt)) if real_link and s.latch_after_s is not None
+            else None,
+            arm_wait_ticks=max(1, round(ARM_WAIT_S / dt)),
         )
+
+
+#: ``safety.max_slew_A_per_s: auto`` on a real link (A/s): what the inverse laws advertise
+#: (0.05 A per tick at 1 kHz), full scale of a 0.6 A I_max in 12 ms, about the coil's own time constant
+AUTO_SLEW_A_PER_S = 50.0
+#: the device status bits that latch at once on a real link
+LATCH_STATUS = int(Status.ESTOP | Status.WATCHDOG_TRIPPED)
+#: how long ``mrctl arm`` waits for the cause of a latch to clear (s)
+ARM_WAIT_S = 0.5
+
+
+def resolve_slew(value: Any, real_link: bool) -> float | None:
+    """``safety.max_slew_A_per_s`` as the supervisor takes it: a number, None
+    (off: only by an explicit ``null``), or ``auto`` (:data:`AUTO_SLEW_A_PER_S`
+    on a real link, off on the in-process bench, whose paper scenario steps)."""
+    if value == "auto":
+        return AUTO_SLEW_A_PER_S if real_link else None
+    return None if value is None else float(value)
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,11 +170,17 @@ class SafetyCounters:
     resumes: int  #: automatic recoveries (auto_resume)
     resets: int  #: reset() calls
     cmd_non_finite: int  #: NaN/inf currents handed to limit() (clamped)
+    estop: int = 0  #: samples with the E-stop input open
+    device_watchdog: int = 0  #: samples with the device's watchdog tripped
+    latches: int = 0  #: faults that latched (waiting for mrctl arm)
+    ticks_latched: int = 0  #: ticks spent latched
+    arms: int = 0  #: re-arms (mrctl arm) that took
+    arms_refused: int = 0  #: re-arms refused (the cause was still there)
 
     @property
     def bad(self) -> int:
         return (self.missing + self.late + self.stale + self.non_finite
-                + self.out_of_range + self.device_status)
+                + self.out_of_range + self.device_status + self.estop + self.device_watchdog)
 
     def as_dict(self) -> dict[str, int]:
         d = asdict(self)

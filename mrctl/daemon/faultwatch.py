@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from mrctl.util.journal import ERR, NOTICE
+from mrctl.util.journal import CRIT, ERR, NOTICE
 
 
 class FaultWatch:
@@ -25,6 +25,7 @@ class FaultWatch:
         self.ticks = ticks
         self.entered = 0
         self.resumes = 0
+        self.latches = 0
 
     def check(self) -> None:
         c = self.sup.counters()
@@ -38,6 +39,11 @@ class FaultWatch:
             self.report(f"safety: FAULT {fault} at tick {k if k >= 0 else self.ticks()}: "
                         f"{self.sup.last_reason or 'no reason given'}; "
                         f"0 A commanded{more}; faults so far {self.entered}", ERR)
+        if c.latches > self.latches:
+            self.latches = c.latches
+            cause = self.sup.latch_cause or "cleared already"
+            self.report(f"safety: LATCHED ({cause}) at tick {self.sup.last_fault_tick}: 0 A, output disabled, until "
+                        f"mrctl arm (latches so far {self.latches})", CRIT)
         if c.resumes > self.resumes:
             self.resumes = c.resumes
             self.report(f"safety: fault cleared, control resumed (resumes so far {self.resumes})", NOTICE)

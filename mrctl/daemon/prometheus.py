@@ -21,8 +21,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-SAFETY_STATES = ("STARTING", "OK", "HOLDING", "FAULT")
-BAD_SAMPLE_KINDS = ("missing", "late", "stale", "non_finite", "out_of_range", "device_status")
+SAFETY_STATES = ("STARTING", "OK", "HOLDING", "FAULT", "LATCHED")
+BAD_SAMPLE_KINDS = ("missing", "late", "stale", "non_finite", "out_of_range", "device_status", "estop",
+                    "device_watchdog")
 
 
 @dataclass
@@ -98,6 +99,9 @@ def families(st: dict[str, Any] | None, damper: str | None = None) -> list[Famil
     add("mrctl_safety_holds_total", "counter", "bad ticks bridged with the last good sample", sc.get("holds_used"))
     add("mrctl_safety_fault_ticks_total", "counter", "ticks spent in FAULT", sc.get("ticks_in_fault"))
     add("mrctl_safety_resumes_total", "counter", "automatic recoveries from FAULT", sc.get("resumes"))
+    add("mrctl_safety_latches_total", "counter", "faults that latched (0 A until mrctl arm)", sc.get("latches"))
+    add("mrctl_safety_latched_ticks_total", "counter", "ticks spent latched", sc.get("ticks_latched"))
+    add("mrctl_safety_arms_total", "counter", "re-arms (mrctl arm) that took", sc.get("arms"))
     rec = g("recorder") if isinstance(g("recorder"), dict) else None
     if rec is not None:
         add("mrctl_recorder_rows_written_total", "counter", "run-log rows written", rec.get("rows_written"))

@@ -50,6 +50,7 @@ from mrctl.build import tick_build
 from mrctl.config import ConfigError, Node, load_experiment
 from mrctl.core.controller import Controller, safe_zero
 from mrctl.daemon import ownership
+from mrctl.daemon.arm import ArmServer
 from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
@@ -67,7 +68,7 @@ from mrctl.daemon.status import StatusServer
 from mrctl.daemon.timing import format_summary as format_timing
 from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlError
 from mrctl.experiment import Experiment, build, check_channels, link_channels
-from mrctl.io.base import Link, LinkError
+from mrctl.io.base import Link, LinkError, Status
 from mrctl.runlog import files
 from mrctl.runlog.acceptance import format_verdict, judge, row_figures
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
@@ -225,12 +226,14 @@ class Service:
             self.link = link
             stack.callback(link.close)
             stack.callback(self._zero_on_exit)  # runs before close, also after a refusal below
+        _clear_faults(link)  # a new run starts clean: what is still tripped is refused below
         err = safe_zero(link)
         if err:
             raise LinkFailure(f"could not command 0 A at start: {err}")
         self._zero_error = None
         if not link.split or ownership.device_key_of(link) is not None:  # every link but the in-process bench
             exp = self.exp = self._check_link(exp, link)
+            self._check_interlocks(exp, link)
         if exp.config.loop.pacing == "device":
             self._set_device_pacing(exp, link)
         link_channels(exp, link)  # the laws' extra channels: asked for, checked (exit 2)
@@ -240,6 +243,9 @@ class Service:
         ctl, loop = self.ctl, self.loop
         assert ctl is not None and loop is not None
         stack.callback(self._zero_on_exit)  # the first thing on the way out of the loop
+        # the device was at 0 A through start-up; its watchdog may have expired meanwhile (no
+        # setpoint since the probe): the first tick clears that, any later trip latches
+        _clear_faults(link)
         self.notifier.send("READY=1", f"STATUS=running {exp.name}")
         if exp.config.loop.pacing == "device":
             loop.run_device_paced(ctl.acquire, ctl.tick_paced, duration_s=duration)
@@ -297,6 +303,31 @@ class Service:
             raise LinkFailure(f"refusing to start: {f.message}; or set link.on_infeasible: reduce_rate")
         raise LinkFailure(f"refusing to start: {f.message}")
 
+    def _check_interlocks(self, exp: Experiment, link: Link) -> None:
+        """A real link's E-stop and device watchdog before the first tick: an
+        open E-stop refuses the start (exit 3: the run would begin latched);
+        a bench without a software E-stop input is said once."""
+        estop = exp.config.safety.estop
+        if estop.input is None:
+            self.warn("safety.estop: no E-stop input configured: only the hard-wired E-stop protects this bench "
+                      "(docs/hardware.md)", NOTICE)
+        deadline, n = time.monotonic() + 0.5, 0
+        while True:  # a reply lost on a busy host is tried again, as the start-up 0 A is
+            n += 1
+            try:
+                sample = link.read() if link.split else link.exchange(0.0)
+                break
+            except LinkError as exc:
+                if time.monotonic() > deadline:
+                    raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {exc}") from None
+        status = int(sample.status)
+        if status & int(Status.ESTOP):
+            raise LinkFailure(f"refusing to start: the E-stop input is open (safety.estop.input: {estop.input}); "
+                              "close it (reset the E-stop) and start again")
+        if status & int(Status.WATCHDOG_TRIPPED):
+            raise LinkFailure("refusing to start: the device reports its watchdog tripped and did not clear it "
+                              "on request (CLEAR_FAULTS)")
+
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
         try:
             link.set_device_paced(True, exp.dt, exp.config.loop.spin_margin_s)
@@ -311,7 +342,7 @@ class Service:
         """The supervisor, controller and loop, once, at the final rate."""
         cfg = exp.config
         self._total_ticks = int(round(duration * cfg.rate_hz)) if duration else None
-        self.sup = SafetySupervisor(SafetyConfig.from_config(cfg.safety, exp.dt))
+        self.sup = SafetySupervisor(SafetyConfig.from_config(cfg.safety, exp.dt, real_link=cfg.backend.type != "sim"))
         ctl = self.ctl = Controller(
             link, exp.law, exp.demand, self.sup, exp.dt, clock_ns=self.opts.clock_ns,
             driver_retries=cfg.safety.driver_retries,
@@ -353,7 +384,8 @@ class Service:
                 loop.background = self.rec.format_pending
         obs = self.obs = Observe.for_run(cfg, ctl, loop, self.rec, self._stream, o.clock_ns, exp.name, self.warn)
         where, notice = server_socket(o.status_socket or cfg.service.status_socket, o.instance)
-        status = StatusServer(where, self.snapshot, obs.handle_request)
+        arm = ArmServer(ctl, self.sup, self.warn)
+        status = StatusServer(where, self.snapshot, lambda c, r: arm.handle(c, r) or obs.handle_request(c, r))
         try:
             status.start()
             if notice:
@@ -420,6 +452,7 @@ class Service:
             bad = max(0, c.longest_bad_run - cfg.hold_ticks)
             figs["longest_zero_stretch_s"] = (bad + (cfg.resume_good_ticks if c.faults_entered else 0)) * dt
             figs["zero_stretch_estimated"] = True
+        figs["latched_s"] = c.ticks_latched * dt
         figs["force_nrmse"] = track.get("force_nrmse") if track else None
         v = judge({k: v for k, v in figs.items() if k not in ("ticks", "zero_stretch_estimated")},
                   acceptance_bounds(self.exp.config), dt)
@@ -455,7 +488,8 @@ class Service:
             d.update(current_A=ctl.I_last, x_m=ctl.last_x, v_mps=ctl.last_v, F_des_N=ctl.last_F_des,
                      link_errors=ctl.link_errors, law=ctl.law.name)
         if sup is not None:
-            d.update(safety_state=sup.state.name, fault=sup.fault.name if sup.fault else "NONE",
+            d.update(safety_state=sup.shown_state.name, latch_cause=sup.latch_cause or None,
+                     fault=sup.fault.name if sup.fault else "NONE",
                      fault_reason=sup.reason, safety_counters=sup.counters().as_dict())
         if loop is not None:
             d["timing"] = loop.stats.summary(last_n=5000)
@@ -481,7 +515,7 @@ class Service:
         # run that ends on time ends at 100 %
         done = (ctl.ticks if ctl else 0) + (loop.stats.skipped_deadlines if loop else 0)
         return live_line(done, self._total_ticks, loop.rate_hz if loop else 0.0,
-                         ctl.I_last if ctl else 0.0, self.sup.state.name if self.sup else "?",
+                         ctl.I_last if ctl else 0.0, _state_text(self.sup) if self.sup else "?",
                          ctl.link_errors if ctl else 0, self.log_watch.warned,
                          loop.stats.live_line() if loop else "")
 
@@ -553,9 +587,23 @@ class Service:
         if self.faults is not None:
             self.faults.check()  # a fault in the last 50 ms, after the monitor's last look
         s = self.sup
-        self.say(f"safety: {s.state.name}, faults entered {s.counters().faults_entered}, "
+        self.say(f"safety: {_state_text(s)}, faults entered {s.counters().faults_entered}, "
                  f"link errors {self.ctl.link_errors}")
         return exit_code
+
+
+def _clear_faults(link: Any) -> None:
+    """The device's latched status cleared with the next exchange (a stand-in
+    link of a test may not have the method: every Link has)."""
+    clear = getattr(link, "request_clear_faults", None)
+    if clear is not None:
+        clear()
+
+
+def _state_text(sup: SafetySupervisor) -> str:
+    """The supervisor's state as people read it: ``LATCHED (estop)``, ``OK``."""
+    cause = sup.latch_cause
+    return f"{sup.shown_state.name} ({cause})" if cause else sup.shown_state.name
 
 
 def _as_plain(v: Any) -> Any:

@@ -271,13 +271,16 @@ def format_status(st: dict[str, Any]) -> str:
     """``mrctl status``'s text: rounded to what the figures are worth, with units."""
     g = st.get
     t = g("timing") if isinstance(g("timing"), dict) else {}
+    latch = f" ({g('latch_cause')})" if g("latch_cause") else ""
     lines = [
         f"{g('experiment')} (pid {g('pid')}): up {_num(g('uptime_s'), '.1f', unit='s')}, "
         f"{_num(g('rate_hz'), 'g', unit='Hz')}, {g('ticks')} ticks, law {g('law')}",
         f"current {_num(g('current_A'), '.4f', unit='A')}, F_des {_num(g('F_des_N'), '.1f', unit='N')}, "
         f"x {_num(g('x_m'), '.2f', 1e3, 'mm')}, v {_num(g('v_mps'), '.1f', 1e3, 'mm/s')}",
-        f"safety {g('safety_state')} (fault {g('fault')}), link errors {g('link_errors')}",
+        f"safety {g('safety_state')}{latch} (fault {g('fault')}), link errors {g('link_errors')}",
     ]
+    if g("latch_cause"):
+        lines.append(f"  0 A, output disabled until `mrctl arm`: {g('fault_reason')}")
     if t:
         late = "/".join(_num(t.get(k), ".0f") for k in ("lateness_p50_us", "lateness_p99_us", "lateness_max_us"))
         lines.append(f"lateness p50/p99/max {late} µs, compute p99 {_num(t.get('compute_p99_us'), '.0f', unit='µs')}, "

@@ -358,6 +358,13 @@ class Link(abc.ABC):
     def begin_tick(self, k: int) -> None:
         """Host-clocked links: the loop's tick index. Others ignore it."""
 
+    def request_clear_faults(self) -> bool:
+        """Ask the device to clear its latched status bits (``WATCHDOG_TRIPPED``,
+        ``ESTOP`` once its input closed) with the next exchange: a new run's
+        start and ``mrctl arm``. False if this link has no way to (the bits,
+        if any, clear by themselves)."""
+        return False
+
     def request_channels(self) -> tuple[str, ...]:
         """Find out which extra channels the device provides and fill
         :attr:`channels` (start-up, only when a law reads channels; links

@@ -70,6 +70,7 @@ _U32 = 0xFFFFFFFF
 _ENABLE = int(SetpointFlag.ENABLE)
 _SYNC = int(SetpointFlag.SYNC)
 _CHANNELS = int(SetpointFlag.CHANNELS)
+_CLEAR = int(SetpointFlag.CLEAR_FAULTS)
 
 
 def default_reply_timeout_s(baud: float) -> float:
@@ -149,6 +150,7 @@ class SerialLink(Link):
         self.spin_wait = spin_wait
         self._sync_flag = 0  # SYNC while device-paced
         self._chan_flag = 0  # CHANNELS once the device has listed its channels
+        self._clear_flag = 0  # CLEAR_FAULTS until an exchange carrying it is answered
         self._chan_names: tuple[str, ...] = ()
         self._port: Any = None
         self._seq = 0
@@ -224,14 +226,21 @@ class SerialLink(Link):
     def _set_sync(self, on: bool) -> None:
         self._sync_flag = _SYNC if on else 0
 
+    def request_clear_faults(self) -> bool:
+        """CLEAR_FAULTS in the next SETPOINT (until one carrying it is answered):
+        the device clears its latched status bits (WATCHDOG_TRIPPED, ESTOP once
+        its input closed, RX_ERROR; docs/protocol.md)."""
+        self._clear_flag = _CLEAR
+        return True
+
     # -- the tick ---------------------------------------------------------
     def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
         """Send ``current_A`` (A) as a SETPOINT, return the matching SAMPLE."""
         port = self._port
         seq = self._seq = (self._seq + 1) & _U32
         frame = self._enc.encode(
-            seq, current_A, (_ENABLE if self.enabled else 0) | self._sync_flag | self._chan_flag, self.watchdog_ms
-        )
+            seq, current_A, (_ENABLE if self.enabled else 0) | self._sync_flag | self._chan_flag | self._clear_flag,
+            self.watchdog_ms)
         dec = self._dec
         crc0 = dec.crc_errors
         disc0 = dec.bytes_discarded
@@ -245,6 +254,7 @@ class SerialLink(Link):
         except (serial.SerialException, OSError) as e:
             raise Disconnected(f"{self.url}: {e}") from e
         if reply is not None:
+            self._clear_flag = 0
             if reply.channels:  # SAMPLE_X: the extra channels, into the laws' dict in place
                 ch = self.channels
                 for name, value in zip(self._chan_names, reply.channels):

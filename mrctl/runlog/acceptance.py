@@ -28,6 +28,7 @@ _CHECKS: tuple[tuple[str, str, str, str], ...] = (
     ("longest_gap_s", "max_gap_s", "longest gap between tick starts", "s"),
     ("longest_zero_stretch_s", "max_zero_stretch_s", "longest stretch at forced 0 A", "s"),
     ("force_nrmse", "max_force_nrmse", "force NRMSE", "%"),
+    ("latched_s", "max_latched_s", "time latched (0 A until mrctl arm)", "s"),
 )
 
 

@@ -70,6 +70,9 @@ FAULT_BITS: tuple[tuple[str, int, str], ...] = (
     ("DEVICE_STATUS", 1 << 5, "the device reported a driver or sensor fault in its status"),
     ("DRIVER", 1 << 6, "the current driver could not be commanded (latched; the run ends)"),
     ("LAW", 1 << 7, "a control law raised, returned NaN/inf or overran its budget (latched; the run ends, docs/laws.md)"),
+    ("ESTOP", 1 << 8, "the E-stop / interlock input is open (safety.estop): 0 A at once, latched"),
+    ("DEVICE_WATCHDOG", 1 << 9, "the device's own watchdog tripped (it applied its safe state): latched"),
+    ("LATCHED", 1 << 10, "the fault is latched: 0 A, output disabled, until mrctl arm (beside its cause's bits)"),
 )
 
 #: ``mrctl`` exit codes (README, mrctl/errors.py).
