@@ -35,6 +35,7 @@ conversion time (the latency is one figure), LabJack's own error codes
 from __future__ import annotations
 
 import math
+import random
 import struct
 import threading
 import time
@@ -159,6 +160,8 @@ class T7Device:
         self._enabled = self.en_dio is None
         self._last_comm_ns = clock_ns()
         self._tripped = False
+        #: the converter's noise (seeded: runs are reproducible); see ain_volts
+        self._noise = random.Random(0x7)
         self._regs = self._build()
         # counters and events (monotonic ns: tests compare them with their own clock)
         self.requests = self.exceptions = self.setpoints = self.frames_dropped = 0
@@ -194,15 +197,23 @@ class T7Device:
         return {r.address: r for r in regs}
 
     def ain_volts(self, n: int) -> float:
-        """What AIN n reads now: the wired sensor in volts, clipped to the range."""
-        wired = self._wiring_ain.get(n)
-        if wired is None:
-            return 0.0
-        role, per, off = wired
-        s = self.state.latest_sample()
-        val = s.x_m if role == "x" else s.F_N if role == "F" else s.current_A
-        v = off if not val - val == 0.0 else val / per + off
+        """What AIN n reads now: the wired sensor in volts (an unwired input: 0 V),
+        with the converter's noise, quantised to its 16 bits over the range and
+        clipped to it. LabJack's T-series datasheet, A-3-1 "Noise and
+        Resolution": a 16-bit ADC over +/-10 V has an LSB of 0.305 mV, and the
+        effective resolution (from the RMS noise) is below the converter's 16
+        bits, so the noise is at least an LSB RMS: modelled as exactly that, the
+        kindest the device can be (a constant reading is a dead input's)."""
         rng = self.ain_range[n] or 10.0
+        lsb = 2.0 * rng / 65536.0
+        wired = self._wiring_ain.get(n)
+        v = 0.0
+        if wired is not None:
+            role, per, off = wired
+            s = self.state.latest_sample()
+            val = s.x_m if role == "x" else s.F_N if role == "F" else s.current_A
+            v = off if not val - val == 0.0 else val / per + off
+        v = round((v + self._noise.gauss(0.0, lsb)) / lsb) * lsb
         return max(-rng, min(rng, v))
 
     def _set_range(self, n: int, v: float) -> int | None:

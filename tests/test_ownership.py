@@ -88,7 +88,7 @@ def test_lock_is_released_on_every_exit(tmp_path, monkeypatch):
     code = Service(RunOptions(str(cfg), out=None, duration_s=1.0, live=False, err=err, stream=io.StringIO(),
                               status_socket=str(tmp_path / "s.sock"))).run()
     assert code == 3 and "cannot open" in err.getvalue()
-    acquire(f"tcp 127.0.0.1:{port}", "test").release()  # free again
+    acquire(f"tcp local:{port}", "test").release()  # free again
 
 
 def test_owner_pid_is_in_the_lock_and_a_dead_owner_does_not_block(tmp_path):
@@ -143,10 +143,11 @@ def test_links_give_stable_device_keys(tmp_path):
     alias = tmp_path / "by-id"
     alias.symlink_to(real)
     assert SerialLink(str(alias)).device_key() == SerialLink(str(real)).device_key() == f"serial {real}"
-    assert SerialLink("socket://localhost:7000").device_key() == "tcp 127.0.0.1:7000"
+    assert SerialLink("socket://localhost:7000").device_key() == "tcp local:7000"
     assert SerialLink("loop://").device_key() is None
-    assert ModbusLink("tcp", host="localhost", port=502, unit_id=3, gateway=True).device_key() == "tcp 127.0.0.1:502 unit 3"
-    assert ModbusLink("tcp", host="127.0.0.1", port=502, unit_id=4, gateway=True).device_key() == "tcp 127.0.0.1:502 unit 4"
+    assert ModbusLink("tcp", host="localhost", port=502, unit_id=3, gateway=True).device_key() == "tcp local:502 unit 3"
+    assert ModbusLink("tcp", host="127.0.0.1", port=502, unit_id=4, gateway=True).device_key() == "tcp local:502 unit 4"
+    assert ModbusLink("tcp", host="192.0.2.7", port=502).device_key() == "tcp 192.0.2.7:502"
     assert ModbusLink("rtu", url=str(alias)).device_key() == f"serial {real}"
 
 
@@ -162,11 +163,27 @@ def test_a_tcp_device_is_its_endpoint_whatever_the_unit_id_or_spelling():
             for h in ("127.0.0.1", "localhost", "::ffff:127.0.0.1", "[::ffff:127.0.0.1]", "::FFFF:7f00:1")
             for u in (0, 1, 17, 247)}
     keys.add(SerialLink("socket://127.0.0.1:5020").device_key())
-    assert keys == {"tcp 127.0.0.1:5020"}
-    assert ModbusLink("tcp", host="::1", port=502).device_key() == "tcp [::1]:502"
-    assert ModbusLink("tcp", host="0:0:0:0:0:0:0:1", port=502).device_key() == "tcp [::1]:502"
+    assert keys == {"tcp local:5020"}
+    assert ModbusLink("tcp", host="::1", port=502).device_key() == "tcp local:502"
+    assert ModbusLink("tcp", host="0:0:0:0:0:0:0:1", port=502).device_key() == "tcp local:502"
     gw = {ModbusLink("tcp", host="::ffff:127.0.0.1", port=502, unit_id=u, gateway=True).device_key() for u in (0, 1)}
-    assert gw == {"tcp 127.0.0.1:502 unit 0", "tcp 127.0.0.1:502 unit 1"}
+    assert gw == {"tcp local:502 unit 0", "tcp local:502 unit 1"}
+    assert ModbusLink("tcp", host="2001:db8::5", port=502).device_key() == "tcp [2001:db8::5]:502"
+
+
+def test_every_local_spelling_of_a_device_served_on_this_host_is_one_key():
+    """A daemon on 0.0.0.0:P was not refused while another owned 127.0.0.1:P (both wrote
+    DAC0 for 3 s): the unspecified, loopback and this host's own interface addresses, and
+    its name, all reach one device served here."""
+    import socket
+
+    from mrctl.io.device_keys import _local_addresses, network_device_key
+
+    spellings = ["0.0.0.0", "::", "[::]", "localhost", "127.0.0.1", "127.3.2.1", "::1", "::ffff:127.0.0.1",
+                 socket.gethostname(), *sorted(_local_addresses())]
+    assert {network_device_key("modbus-tcp", h, 5021) for h in spellings} == {"tcp local:5021"}
+    assert network_device_key("modbus-tcp", "0.0.0.0", 5021, unit=2) == "tcp local:5021 unit 2"
+    assert network_device_key("modbus-tcp", "0.0.0.0", 5022) != network_device_key("modbus-tcp", "::", 5021)
 
 
 def test_the_config_says_gateway(tmp_path):
@@ -176,9 +193,9 @@ def test_the_config_says_gateway(tmp_path):
 
     cfg = tmp_path / "exp.yaml"
     cfg.write_text(TCP_EXP.replace("unit_id: 1", "unit_id: 0"))
-    assert build(load_experiment(cfg)).make_link().device_key() == "tcp 127.0.0.1:5020"
+    assert build(load_experiment(cfg)).make_link().device_key() == "tcp local:5020"
     cfg.write_text(TCP_EXP.replace("unit_id: 1", "unit_id: 0, gateway: true"))
-    assert build(load_experiment(cfg)).make_link().device_key() == "tcp 127.0.0.1:5020 unit 0"
+    assert build(load_experiment(cfg)).make_link().device_key() == "tcp local:5020 unit 0"
 
 
 def test_serial_ports_are_opened_exclusively():
@@ -325,7 +342,7 @@ def test_a_fifo_planted_at_the_lock_path_is_refused_not_waited_on(tmp_path, monk
 
     d = tmp_path / "locks"
     d.mkdir()
-    key = "tcp 127.0.0.1:5020"
+    key = "tcp local:5020"
     fifo = d / ownership._file_name(key)
     os.mkfifo(fifo, 0o444)
     real_open = os.open

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from mrctl.daemon import ownership
 from mrctl.errors import BadInput, LinkFailure
 from mrctl.io.base import LinkError
 
@@ -44,6 +45,16 @@ class CalibrationOptions:
     steps: int = 8
     step_s: float = 0.08
     rate_hz: float = 200.0
+    #: write the calibration although an input read one constant value at rest (else exit 2)
+    accept_dead_channels: bool = False
+    #: what the device lock records as the owner (``mrctl ls``, the busy message)
+    note: str = "mrctl calibrate"
+
+
+class DeadChannels(BadInput):
+    """An analog input read exactly one value at rest: zero noise on a 16-bit
+    converter is a disconnected or stuck input, not a calibration (exit 2
+    unless ``--accept-dead-channels``)."""
 
 
 def _step_response(t: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, tau: float, delay: float) -> np.ndarray:
@@ -181,6 +192,19 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
         raise BadInput(f"--step-A: {step_A:g} A must be > 0 and <= safety.I_max ({I_max:g} A)")
     period = 1.0 / opts.rate_hz
     link = exp.make_link()
+    # the same lock as mrctl run: calibrating under a running loop would rewrite the device's set-up
+    # and step its current under the loop's feet (refused here, exit 3, before a byte goes out)
+    lock = ownership.own(link, opts.note, lambda msg: say(f"calibrate: {msg}"))
+    try:
+        return _calibrate_open(link, setup, opts, step_A, period, say)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _calibrate_open(link: Any, setup: Any, opts: CalibrationOptions, step_A: float, period: float,
+                    say: Any) -> dict[str, Any]:
+    """The measurement itself, on the locked device's link (opened here, closed at the end)."""
     try:
         link.open()
     except LinkError as e:
@@ -197,6 +221,7 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
         field = {"x": "x_m", "v": "v_mps", "F": "F_N", "current_monitor": "current_A"}
         channels: dict[str, Any] = {}
         noise: dict[str, float] = {}
+        dead: list[str] = []
         for role, ch in setup.channels.items():
             if ch.kind != "ain":
                 continue
@@ -206,10 +231,19 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
                 continue
             volts = phys / ch.per_V + ch.offset_V
             channels[role] = {"offset_V": float(np.mean(volts)), "noise_V": float(np.std(volts, ddof=1))}
+            if np.ptp(phys) == 0.0:
+                dead.append(f"{role} ({ch.kind.upper()}{ch.n}) read {volts[0]:.6g} V on all {len(phys)} samples")
             if role == "x":
                 noise["x_m"] = max(float(np.std(phys, ddof=1)), 1e-9)
             elif role == "F":
                 noise["F_N"] = float(np.std(phys, ddof=1))
+        if dead:
+            what = "; ".join(dead)
+            if not opts.accept_dead_channels:
+                raise DeadChannels(f"calibrate: an input read one constant value at rest: {what}. Zero noise on a "
+                                   "16-bit converter is a disconnected or stuck input (check its wiring and the "
+                                   "sensor's supply); --accept-dead-channels writes the calibration anyway")
+            say(f"calibrate: warning: constant at rest (accepted): {what}")
         out: dict[str, Any] = {
             "version": 1,
             "written_by": f"mrctl calibrate on {datetime.date.today().isoformat()}",
@@ -261,7 +295,9 @@ def run_from_args(args: Any, load: Any) -> int:
     if os.path.lexists(args.out) and not args.force:
         raise BadInput(f"{args.out}: exists; refusing to replace it (pass --force)")
     cal = calibrate(exp, CalibrationOptions(rest_s=args.rest_s, step_A=args.step_A, steps=args.steps,
-                                            step_s=args.step_s, rate_hz=args.rate_hz))
+                                            step_s=args.step_s, rate_hz=args.rate_hz,
+                                            accept_dead_channels=args.accept_dead_channels,
+                                            note=f"mrctl calibrate {Path(args.config).resolve()}"))
     p = write_calibration(args.out, cal, force=args.force)
     for role, ch in cal.get("channels", {}).items():
         print(f"  {role}: offset {ch['offset_V']:.5f} V, noise {ch['noise_V'] * 1e3:.3f} mV rms")
