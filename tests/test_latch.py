@@ -17,7 +17,7 @@ import pytest
 
 from mrctl.core.safety import ARM_DONE, ARM_REFUSED, Fault, SafetyConfig, SafetyState, SafetySupervisor
 from mrctl.core.safety_config import AUTO_SLEW_A_PER_S, LATCH_STATUS, resolve_slew
-from mrctl.io.base import Status
+from mrctl.io.base import Sample, Status
 
 DT = 1e-3
 ESTOP = int(Status.ESTOP)
@@ -225,3 +225,62 @@ def test_estop_input_is_checked_against_the_backend(tmp_path, name, estop, backe
         assert errors == []
     else:
         assert any(error in e for e in errors), errors
+
+
+# -- the controller: the link's enable, a reload, mrctl arm -----------------------------------------
+class _EstopLink:
+    """An exchange device whose status says ESTOP on the ticks in ``estop``; it records what
+    it was sent (current, the output enable) and whether a CLEAR_FAULTS was asked for."""
+
+    split = False
+    host_clocked = False
+    true_force_N = math.nan
+
+    def __init__(self, estop=()):
+        self.k = 0
+        self.estop = set(estop)
+        self.sent: list[tuple[float, bool]] = []
+        self.enabled = True
+        self.clears = 0
+
+    def exchange(self, I):
+        self.sent.append((I, self.enabled))
+        k, self.k = self.k, self.k + 1
+        v = 0.0628 * math.cos(2 * math.pi * k * 1e-3)
+        return Sample(k, k * 1e-3, 0.0, v, math.nan, ESTOP if k in self.estop else 0)
+
+    def request_clear_faults(self):
+        self.clears += 1
+        return True
+
+
+def _controller(link):
+    from mrctl.core.controller import Controller
+    from mrctl.laws.demand import Viscous
+    from mrctl.laws.inverse import SmoothInverse
+    from mrctl.model.params import TABLE_I
+
+    sup = sup_for(I_max=0.6)
+    law = lambda: SmoothInverse(TABLE_I, 0.6, 1e-3)  # noqa: E731
+    return Controller(link, law(), Viscous(500.0), sup, 1e-3), sup, law
+
+
+def test_the_controller_disables_the_output_while_latched_a_reload_does_not_rearm_arm_does():
+    link = _EstopLink(estop=range(200, 220))
+    ctl, sup, law = _controller(link)
+    for k in range(400):
+        ctl.tick(k, 0)
+        if k == 300:  # a SIGHUP reload while latched: new laws at the tick boundary, still latched
+            from mrctl.laws.demand import Viscous
+
+            ctl.pending = (law(), Viscous(500.0))
+    assert sup.latched and sup.latch_cause == "estop"
+    assert all(I == 0.0 and not en for I, en in link.sent[202:401]), "0 A and the output disabled while latched"
+    assert link.clears == 0
+    ctl.arm_request = True  # mrctl arm, taken at the next tick boundary
+    for k in range(400, 500):
+        ctl.tick(k, 0)
+    assert link.clears == 1 and not sup.in_fault and sup.arm_state == ARM_DONE
+    sent = [I for I, _ in link.sent[401:]]
+    assert link.sent[-1][1] and max(sent) > 0.1
+    assert max(b - a for a, b in zip(sent, sent[1:])) <= 0.05 + 1e-12  # the slew limit, from 0 A
