@@ -421,7 +421,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if is_sweep_file(load_yaml(args.config)):
         from mrctl.sweep.check import check_sweep
 
-        return check_sweep(args.config)
+        return check_sweep(args.config, allow_outside=args.allow_outside_paths)
     exp = _load(args)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
@@ -445,8 +445,9 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def _outside_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--allow-outside-paths", action="store_true", help="read data files (a demand or excitation "
-                   "series, a dataset's records) outside the config's or description's directory")
+    p.add_argument("--allow-outside-paths", action="store_true", help="read files the config names (parameter "
+                   "sets, a calibration, series, a sweep's bases, a dataset's records) outside its folder (its "
+                   "config/ tree)")
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -493,6 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                    "(pip install 'mrctl[sweep]')")
     sw.add_argument("--workers", type=int, metavar="N", help="local processes (default: all cores)")
     add_quiet_options(sw)
+    _outside_option(sw)
     sw.set_defaults(func=cmd_sweep)
 
     rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "
