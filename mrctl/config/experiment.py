@@ -337,13 +337,13 @@ def apply_calibration(data: dict[str, Any], base_dir: Path, fence: Fence | None 
     return merge_calibration(data, base_dir, fence)
 
 
-def load_experiment(path: str | Path, *, allow_outside: bool = False) -> Node:
+def load_experiment(path: str | Path, *, allow_outside: bool = False, fence: Fence | None = None) -> Node:
     """Load and validate an experiment YAML file (files it names as
     :func:`validate_experiment`; a key that is not a name called by its line)."""
     p = Path(path)
     data, lines = load_yaml_lines(p)
     with quoting(lines=lines):
-        return validate_experiment(data, p.parent, str(p), allow_outside=allow_outside)
+        return validate_experiment(data, p.parent, str(p), allow_outside=allow_outside, fence=fence)
 
 
 

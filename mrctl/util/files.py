@@ -26,14 +26,14 @@ import errno
 import os
 import stat
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
 from mrctl.errors import BadInput
 
 __all__ = ["FileProblem", "read_regular_file", "open_regular", "flock_holder", "not_regular", "per_user_dir", "private_dir", "MiB", "DEFAULT_OUT_DIR",
-           "check_out_parent", "ensure_out_parent", "Fence", "fence_root", "CONFIG_TREE"]
+           "check_out_parent", "ensure_out_parent", "Fence", "fence_root", "CONFIG_TREE", "same_file", "refuse_inputs"]
 
 MiB = 1 << 20
 
@@ -172,6 +172,8 @@ class Fence:
     allowed: frozenset[Path] = frozenset()
     where: str = "the config's folder"
     hint: str = "move it there or pass --allow-outside-paths"
+    #: every file it admitted (the command's inputs, which no output may replace: :func:`refuse_inputs`)
+    admitted: list[Path] = field(default_factory=list, compare=False, repr=False)
 
     @classmethod
     def around(cls, folder: str | os.PathLike[str], allow_outside: bool = False,
@@ -219,6 +221,7 @@ class Fence:
             return None, f"{key}: no such file: {full}"
         if kind is not None:
             return None, f"{key}: {full}: not a regular file ({kind})"
+        self.admitted.append(full)
         return full, None
 
 
@@ -256,6 +259,30 @@ def private_dir(path: Path | None = None) -> Path:
         pass
     check_private_dir(p)
     return p
+
+
+def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
+    """``a`` and ``b`` name one file: the same path once resolved, or the
+    same inode (a hard link, a symlink)."""
+    try:
+        if Path(a).resolve() == Path(b).resolve():
+            return True
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except (OSError, RuntimeError):
+        return False
+
+
+def refuse_inputs(outputs: Iterable[str | os.PathLike[str]], inputs: Iterable[str | os.PathLike[str]],
+                  what: str = "--out") -> None:
+    """The one check that an output never replaces an input of its command,
+    ``--force`` or not (by name, through a symlink or a hard link):
+    ``BadInput`` naming both. Touches nothing."""
+    ins = [Path(i) for i in inputs]
+    for o in outputs:
+        for i in ins:
+            if same_file(o, i):
+                raise BadInput(f"{o}: {what} would overwrite {i}, an input of this command; refusing, --force or "
+                               "not (choose another name)")
 
 
 #: the one output directory created without ``--mkdir``: ``runs/`` in the current directory
