@@ -72,13 +72,28 @@ def add_out_options(p: argparse.ArgumentParser, what: str, default: str | None =
                         "always created)")
 
 
-def out_path(args: argparse.Namespace, default: str | None = None) -> str | None:
+#: what a command writes beside ``--out`` (a run log's sidecar, identify's JSON summary)
+OUT_COMPANIONS = {"run": (".json",), "simulate": (".json",), "identify": (".json",), "sweep": (".partial.csv",)}
+
+
+def command_inputs(args: argparse.Namespace) -> list[str]:
+    """The files a command reads that its command line names (a run's sidecar with it)."""
+    from mrctl.runlog.files import sidecar_path
+
+    named = [v for v in (getattr(args, "config", None), getattr(args, "dataset", None)) if isinstance(v, str) and v]
+    runs = [*(getattr(args, "runs", None) or []), *([args.replay] if getattr(args, "replay", None) else [])]
+    return named + [str(q) for r in runs for q in (r, sidecar_path(r))]
+
+
+def out_path(args: argparse.Namespace, default: str | None = None, inputs: list[str] | None = None) -> str | None:
     """``--out`` with its strftime patterns expanded, or ``default``; its
     directory checked (a missing one is exit 2 naming it, unless --mkdir or
-    runs/: :func:`mrctl.util.files.check_out_parent`)."""
+    runs/: :func:`mrctl.util.files.check_out_parent`); neither it nor what
+    the command writes beside it one of the command's ``inputs`` (default
+    :func:`command_inputs`), ``--force`` or not."""
     import time
 
-    from mrctl.util.files import check_out_parent
+    from mrctl.util.files import check_out_parent, refuse_inputs
 
     if args.out is not None and not args.out.strip():  # not a silent "no file" or "the default"
         raise BadInput("--out '': an empty value names no file; give a file name, or leave --out out")
@@ -88,6 +103,9 @@ def out_path(args: argparse.Namespace, default: str | None = None) -> str | None
     if "%" in out:
         out = time.strftime(out)
     check_out_parent(out, getattr(args, "mkdir", False))
+    companions = OUT_COMPANIONS.get(getattr(args, "command", ""), ())
+    outputs = [out, *(str(Path(out).with_suffix(c)) if c == ".json" else out + c for c in companions)]
+    refuse_inputs(outputs, command_inputs(args) if inputs is None else inputs)
     return out
 
 
@@ -103,13 +121,17 @@ def _err(msg: str) -> None:
     Journal(sys.stderr).log(ERR, msg)  # <3> first when stderr is the journal (a unit's ExecStartPre=)
 
 
-def _load(args: argparse.Namespace):
-    """The experiment of ``args.config``, built (data files under its folder
-    unless ``--allow-outside-paths``)."""
+def _load(args: argparse.Namespace, outputs: tuple[str, ...] = ()):
+    """The experiment of ``args.config``, built (the files it names under its
+    folder unless ``--allow-outside-paths``); none of them is one of ``outputs``."""
     from mrctl.config import load_experiment
     from mrctl.experiment import build
+    from mrctl.util.files import Fence, refuse_inputs
 
-    return build(load_experiment(args.config, allow_outside=args.allow_outside_paths))
+    fence = Fence.around(Path(args.config).parent, args.allow_outside_paths)
+    node = load_experiment(args.config, fence=fence)
+    refuse_inputs(outputs, fence.admitted)
+    return build(node)
 
 
 def _load_simulated(args: argparse.Namespace):
@@ -128,7 +150,8 @@ def _load_simulated(args: argparse.Namespace):
         from mrctl.offline.replay import load_with_law
 
         return build(load_with_law(args.config, args.law, allow_outside=args.allow_outside_paths))
-    return _load(args)
+    outputs = () if args.out is None else (args.out, str(Path(args.out).with_suffix(".json")))
+    return _load(args, outputs)  # a series the config names is no place for the run log
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -407,12 +430,12 @@ def cmd_identify(args: argparse.Namespace) -> int:
         if given:
             raise BadInput(f"identify: --describe writes the description and fits nothing; {given[0]} is for the "
                            "fit (give it with --dataset D.yaml on the description)")
-        args.describe = out_path(argparse.Namespace(out=args.describe, mkdir=args.mkdir))
+        args.describe = out_path(argparse.Namespace(out=args.describe, mkdir=args.mkdir), inputs=command_inputs(args))
         return identify_command(args)
     src = Path(dataset if dataset is not None else runs[0])
     args.out = out_path(args, str(src.with_name(src.stem + ".params.yaml")))
     if args.report:
-        args.report = out_path(argparse.Namespace(out=args.report, mkdir=args.mkdir))
+        args.report = out_path(argparse.Namespace(out=args.report, mkdir=args.mkdir), inputs=command_inputs(args))
     return identify_command(args)
 
 
@@ -432,7 +455,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if is_sweep_file(load_yaml(args.config)):
         from mrctl.sweep.check import check_sweep
 
-        return check_sweep(args.config)
+        return check_sweep(args.config, allow_outside=args.allow_outside_paths)
     exp = _load(args)
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
@@ -456,8 +479,9 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def _outside_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--allow-outside-paths", action="store_true", help="read data files (a demand or excitation "
-                   "series, a dataset's records) outside the config's or description's directory")
+    p.add_argument("--allow-outside-paths", action="store_true", help="read files the config names (parameter "
+                   "sets, a calibration, series, a sweep's bases, a dataset's records) outside its folder (its "
+                   "config/ tree)")
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -504,6 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                    "(pip install 'mrctl[sweep]')")
     sw.add_argument("--workers", type=int, metavar="N", help="local processes (default: all cores)")
     add_quiet_options(sw)
+    _outside_option(sw)
     sw.set_defaults(func=cmd_sweep)
 
     rp = sub.add_parser("report", help="figure of runs: force, error and current over time, F-v and F-x loops; "

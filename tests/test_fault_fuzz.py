@@ -119,6 +119,10 @@ def names_a_known_path(msg: str, data: Any) -> bool:
     if msg.startswith("config: "):
         return True
     candidates = SCHEMA_KEY_PATHS | set(_input_paths(data))
+    head = msg.split(": ", 1)[0]
+    if head.endswith(">") and "<" in head:  # a key that is not a name, described (never echoed): its parent's path
+        parent = head[:head.index("<")].rstrip(".")
+        return parent == "" or parent in candidates
     return any(msg.startswith(c + ": ") or msg.startswith(c + " (") for c in candidates)
 
 

@@ -296,9 +296,9 @@ def test_identify_yaml_simulated_and_identified(tmp_path, capsys):
     # the chain closes: fig5 with the law on the fitted set, the damper still Table I
     fig5 = load_yaml(ROOT / "config" / "experiments" / "fig5.yaml")
     base = simulate(build(validate_experiment(fig5, ROOT / "config" / "experiments")), 4.0)
-    fig5["parameters"] = {"file": str(out)}
+    fig5["parameters"] = {"file": out.name}
     fig5["plant"] = {"parameters": "table1"}
-    exp2 = build(validate_experiment(fig5, ROOT / "config" / "experiments"))
+    exp2 = build(validate_experiment(fig5, tmp_path))  # the fitted set beside the experiment
     assert exp2.params != exp2.plant_params  # really a different set in the law
     fitted = simulate(exp2, 4.0)
     assert fitted.summary["force_nrmse"] <= 1.5 * base.summary["force_nrmse"]

@@ -228,7 +228,7 @@ def test_manifest_lists_files_and_levels(tmp_path, data_dir):
     recs = read_records(validate_dataset(d, data_dir))
     assert [(r.name, r.level) for r in recs] == [("rec", 0.5), ("rec2", 1.5)]
     (data_dir / "manifest.csv").write_text("file,input_V\nrec.csv,half\n")
-    with pytest.raises(IdentificationError, match="line 2: level 'half' is not a number"):
+    with pytest.raises(IdentificationError, match=r"line 2: the level \(column 'input_V'\) is not a number"):
         read_records(validate_dataset(d, data_dir))
     (data_dir / "manifest.csv").write_text("file,input_V\nother.csv,1\n")
     with pytest.raises(IdentificationError, match="line 2: no such file"):

@@ -62,10 +62,10 @@ def test_plant_errors_name_their_key(plant, expect):
 def test_a_bad_bouc_wen_file_is_a_config_error(tmp_path):
     p = tmp_path / "bw.yaml"
     p.write_text("c0a: 1.0\nbogus: 2\n")
-    errors = _errors(_fig5(plant={"model": {"type": "bouc-wen", "parameters": str(p)}}))
+    errors = _errors(_fig5(plant={"model": {"type": "bouc-wen", "parameters": str(p)}}), tmp_path)
     assert any("plant.model.parameters" in e and "unknown parameter" in e for e in errors), errors
     p.write_text(Path(BW).read_text().replace("beta: -", "beta: 9"))
-    errors = _errors(_fig5(plant={"model": {"type": "bouc-wen", "parameters": str(p)}}))
+    errors = _errors(_fig5(plant={"model": {"type": "bouc-wen", "parameters": str(p)}}), tmp_path)
     assert any("gamma must be >= |beta|" in e for e in errors), errors
 
 

@@ -287,7 +287,7 @@ def test_a_bouc_wen_base_ships_its_constants_not_its_file(tmp_path):
     p = tmp_path / "s.yaml"
     p.write_text(yaml.safe_dump({"base": str(EXP / "robust" / "bouc_wen_c500.yaml"),
                                  "grid": {"plant.model.parameters.n": [1.0, 2.0]}}))
-    pts = list(expand(load_sweep(p)))
+    pts = list(expand(load_sweep(p, allow_outside=True)))  # a base outside the sweep's folder: allowed here
     for q, n in zip(pts, (1.0, 2.0)):
         bw = q.config["plant"]["model"]["parameters"]
         assert isinstance(bw, dict) and bw["n"] == n

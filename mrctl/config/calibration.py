@@ -19,7 +19,9 @@ import copy
 from pathlib import Path
 from typing import Any
 
-from mrctl.util.schema import ConfigError, Custom, Num, Section, Str, load_yaml, validate_fields
+from mrctl.util.files import Fence
+from mrctl.util.schema import ConfigError, Custom, Node, Num, Section, Str, key_repr, read_named_yaml, short_repr, \
+    validate_fields
 
 __all__ = ["CALIBRATION_VERSION", "calibration_schema", "merge_calibration"]
 
@@ -37,7 +39,7 @@ def _channels(value: Any, path: str) -> tuple[Any, list[str]]:
     out, errors = {}, []
     for role, sub in value.items():
         if role not in _ROLES:
-            errors.append(f"{path}.{role}: unknown channel (allowed here: {', '.join(_ROLES)})")
+            errors.append(f"{path}.{key_repr(role)}: unknown channel (allowed here: {', '.join(_ROLES)})")
             continue
         node, errs = validate_fields(fields, sub, f"{path}.{role}")
         errors += errs
@@ -68,21 +70,28 @@ def calibration_schema() -> dict[str, Any]:
     }
 
 
-def merge_calibration(data: dict[str, Any], base_dir: Path) -> tuple[dict[str, Any], list[str]]:
-    """``data`` with its ``calibration`` file merged in (a copy), and the errors."""
+def _read(path: Path, raw: Any) -> Node:
+    cal, errors = validate_fields(calibration_schema(), raw, "")
+    if errors:
+        raise ConfigError(errors)
+    return cal
+
+
+def merge_calibration(data: dict[str, Any], base_dir: Path, fence: Fence | None = None
+                      ) -> tuple[dict[str, Any], list[str]]:
+    """``data`` with its ``calibration`` file merged in (a copy), and the
+    errors; the file admitted by ``fence`` (default: under ``base_dir``'s
+    folder) and read without quoting it."""
     ref = data.get("calibration")
     if ref is None:
         return data, []
     if not isinstance(ref, str):
-        return data, [f"calibration: must be a path to a file written by mrctl calibrate, got {ref!r}"]
+        return data, [f"calibration: must be a path to a file written by mrctl calibrate, got {short_repr(ref)}"]
+    fence = fence if fence is not None else Fence.around(base_dir)
+    cal, errors = read_named_yaml(ref, base_dir, fence, "calibration", _read)
+    if cal is None:
+        return data, errors
     path = Path(ref) if Path(ref).is_absolute() else base_dir / ref
-    try:
-        raw = load_yaml(path)
-    except ConfigError as e:
-        return data, [f"calibration ({path}): {err}" for err in e.errors]
-    cal, errors = validate_fields(calibration_schema(), raw, "")
-    if errors:
-        return data, [f"calibration ({path}): {e}" for e in errors]
     out = copy.deepcopy(data)
     backend = out.get("backend")
     if cal.channels:

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from mrctl.config.params import INPUT_KINDS
-from mrctl.util.files import not_regular
+from mrctl.util.files import Fence, fence_root
 from mrctl.util.schema import (
     Bool,
     ConfigError,
@@ -39,7 +39,7 @@ from mrctl.util.schema import (
 )
 
 __all__ = ["DATASET_VERSION", "PROTOCOLS", "COLUMN_ROLES", "MAX_RATE_HZ", "dataset_schema", "validate_dataset",
-           "load_dataset", "outside_message", "dataset_markdown"]
+           "load_dataset", "data_fence", "dataset_markdown"]
 
 DATASET_VERSION = 1
 PROTOCOLS = ("constant_input", "broadband")
@@ -131,7 +131,7 @@ def _file_entry_fields() -> dict[str, Any]:
     }
 
 
-def _files_check(base_dir: Path, root: Path | None):
+def _files_check(base_dir: Path, fence: Fence):
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if value is None:
             return [], []
@@ -144,7 +144,7 @@ def _files_check(base_dir: Path, root: Path | None):
                 entry = {"path": entry}
             node, errs = validate_fields(_file_entry_fields(), entry, p)
             if not errs:
-                full, errs = _resolve(node.path, base_dir, p, root)
+                full, errs = _resolve(node.path, base_dir, p, fence)
                 node = node.replace(path=full) if full else node
                 if node.level is not None and node.levels:
                     errs.append(f"{p}: give level (whole file) or levels (per segment), not both")
@@ -156,46 +156,27 @@ def _files_check(base_dir: Path, root: Path | None):
     return check
 
 
-def _outside(full: Path, root: Path | None) -> bool:
-    if root is None:
-        return False
-    try:
-        full.resolve().relative_to(root.resolve())
-    except ValueError:
-        return True
-    return False
+def data_fence(root: str | Path | None) -> Fence:
+    """Where a description's records must lie: under ``root`` (resolved;
+    None: anywhere, ``--allow-outside-paths``). Files and manifest rows are
+    held to it by the one check, :meth:`Fence.admit`."""
+    return Fence(None if root is None else Path(root).expanduser().resolve(),
+                 where="the directory data must stay in",
+                 hint="give --data-dir DIR (its directory) or --allow-outside-paths if you trust this description")
 
 
-def outside_message(key: str, full: Path, root: Path) -> str:
-    """The error for a data path that leaves ``root`` (the same for files and manifest rows)."""
-    return (f"{key}: {full.resolve()} is outside {root.resolve()}, the directory data must stay in; give "
-            "--data-dir DIR (its directory) or --allow-outside-paths if you trust this description")
-
-
-def _resolve(value: str, base_dir: Path, path: str, root: Path | None = None) -> tuple[str | None, list[str]]:
+def _resolve(value: str, base_dir: Path, path: str, fence: Fence) -> tuple[str | None, list[str]]:
     """``value`` resolved against base_dir, or an error naming the missing
-    file or directory, or one outside ``root`` (checked first: nothing is
-    said about a file outside)."""
-    raw = Path(value)
-    full = raw if raw.is_absolute() else (base_dir / raw)
-    if _outside(full, root):
-        assert root is not None
-        return None, [outside_message(f"{path}.path", full, root)]
-    kind = not_regular(full)
-    if kind == "missing":
-        parent = full.parent
-        if not parent.is_dir():
-            return None, [f"{path}.path: no such directory {parent.resolve()} (for {raw}): the data is not part "
-                          "of mrctl; check the path relative to the dataset file, or where the data is stored"]
-        return None, [f"{path}.path: no such file: {full.resolve()}"]
-    if kind == "a directory":
-        return None, [f"{path}.path: {full.resolve()} is a directory, not a data file"]
-    if kind is not None:
-        return None, [f"{path}.path: {full.resolve()} is not a regular file ({kind}); a data file is"]
+    file, one that is not a regular file, or one outside the fence (checked
+    first: nothing is said about a file outside)."""
+    full, err = fence.admit(value, base_dir, f"{path}.path")
+    if full is None:
+        return None, [str(err) + (": the data is not part of mrctl; check the path relative to the dataset file, "
+                                  "or where the data is stored" if "no such directory" in str(err) else "")]
     return str(full.resolve()), []
 
 
-def _manifest_check(base_dir: Path, root: Path | None):
+def _manifest_check(base_dir: Path, fence: Fence):
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if value is None:
             return None, []
@@ -205,9 +186,9 @@ def _manifest_check(base_dir: Path, root: Path | None):
             "level": Str(doc="its column with each file's constant input level"),
         }, value, path)
         if not errors:
-            full, errors = _resolve(node.path, base_dir, path, root)
-            if full:  # its rows are held to the same root (mrctl.offline.identify.records)
-                node = Node({**node.to_dict(), "path": full, "root": str(root.resolve()) if root else None})
+            full, errors = _resolve(node.path, base_dir, path, fence)
+            if full:  # its rows are held to the same fence (mrctl.offline.identify.records)
+                node = Node({**node.to_dict(), "path": full, "root": fence.to_text()})
         return (node if not errors else None), errors
 
     return check
@@ -224,6 +205,7 @@ def _delimiter(value: Any, path: str) -> tuple[Any, list[str]]:
 def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
     """The dataset schema; relative paths resolve against ``base_dir`` and
     must stay under ``root`` (None: anywhere)."""
+    fence = data_fence(root)
     return {
         "version": Num(integer=True, min=DATASET_VERSION, max=DATASET_VERSION, doc="format version (1)"),
         "name": Str(default=None, optional=True, doc="dataset name (tables, figure titles)"),
@@ -266,9 +248,9 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
         "motion_band_hz": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=MAX_RATE_HZ,
                               doc="highest frequency of the motion; sets the resample rate and the velocity "
                                   "differentiator's window; null = estimated from the displacement or velocity"),
-        "files": Custom(_files_check(base_dir, root), default=None,
+        "files": Custom(_files_check(base_dir, fence), default=None,
                         doc="records: [{path, name, role, use, exclude, level, levels}] (see below)"),
-        "manifest": Custom(_manifest_check(base_dir, root), default=None,
+        "manifest": Custom(_manifest_check(base_dir, fence), default=None,
                            doc="constant_input: {path, file, level}: a CSV listing files and their levels"),
         "holdout": Section({
             "fraction": Num(default=None, optional=True, min=0.0, max=0.9,
@@ -347,10 +329,11 @@ def _cross_checks(node: Node) -> list[str]:
 def validate_dataset(data: Any, base_dir: Path, source: str | None = None, *, data_dir: str | Path | None = None,
                      allow_outside: bool = False) -> Node:
     """Validate a parsed dataset description; raises ConfigError listing every problem.
-    Data paths must lie under ``data_dir`` (default ``base_dir``) unless ``allow_outside``."""
+    Data paths must lie under ``data_dir`` (default ``base_dir``'s folder,
+    :func:`mrctl.util.files.fence_root`) unless ``allow_outside``."""
     if not isinstance(data, dict):
         raise ConfigError([f"dataset: must be a mapping, got {type(data).__name__}"], source)
-    root = None if allow_outside else Path(data_dir if data_dir is not None else base_dir)
+    root = None if allow_outside else (Path(data_dir) if data_dir is not None else fence_root(base_dir))
     node, errors = validate_fields(dataset_schema(base_dir, root), data, "")
     if not errors:
         errors = _cross_checks(node)
@@ -383,7 +366,7 @@ def load_dataset(path: str | Path, data_dir: str | Path | None = None, *, allow_
     p = Path(path)
     data = load_yaml(p)
     base = data_base_dir(p, data, data_dir)
-    root = Path(data_dir).expanduser() if data_dir is not None else p.parent
+    root = Path(data_dir).expanduser() if data_dir is not None else fence_root(p.parent)
     return validate_dataset(data, base, str(p), data_dir=root, allow_outside=allow_outside)
 
 

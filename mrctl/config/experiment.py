@@ -20,6 +20,7 @@ from mrctl.config.observe import stream_section
 from mrctl.config.params import INPUT_KINDS, input_kind_errors, params_check
 from mrctl.config.plants import plant_model_schema
 from mrctl.model.params import LuGreParams
+from mrctl.util.files import Fence
 from mrctl.util.schema import (
     Bool,
     ConfigError,
@@ -31,8 +32,9 @@ from mrctl.util.schema import (
     Union,
     check_num,
     file_check,
-    load_yaml,
+    load_yaml_lines,
     optional_bool,
+    quoting,
     range_check,
     schema_markdown as _markdown,
     validate_fields,
@@ -83,9 +85,11 @@ def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
     return rmap, errors
 
 
-def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequence[Path] = ()) -> dict[str, Any]:
+def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, Any]:
     """The experiment schema; relative file paths resolve against ``base_dir``,
-    data files (excitation, demand) must lie under ``root`` (None: anywhere)."""
+    every file it names (parameters, series, plant constants) admitted by
+    ``fence`` (default: under ``base_dir``'s folder; :meth:`Fence.admit`)."""
+    fence = fence if fence is not None else Fence.around(base_dir)
     driver_input = Str(default="current", choices=tuple(INPUT_KINDS),
                        doc="what the driver takes: a coil current (A) or a command voltage (V); the parameter "
                            "sets' input (docs/identification.md) must match")
@@ -106,7 +110,7 @@ def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequenc
         "duration_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=7 * 86400.0,
                           doc="run length (s); none = until stopped (excitation files: their length)"),
         "rate_hz": Num(default=1000.0, min=1.0, max=20000.0, doc="control rate (Hz)"),
-        "parameters": Custom(params_check(base_dir), default="table1",
+        "parameters": Custom(params_check(base_dir, fence), default="table1",
                              doc="'table1', a parameters YAML path, or {file: ..., <name>: value} overrides"),
         "calibration": Custom(lambda v, path: (v, []), default=None,
                               doc="a CAL.yaml written by mrctl calibrate: channel offsets, noise, driver lag "
@@ -119,12 +123,12 @@ def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequenc
                       "f0_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="start frequency (Hz)"),
                       "f1_hz": Num(min=0.0, min_exclusive=True, max=500.0, doc="end frequency (Hz)"),
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
-            "file": {"path": Custom(file_check(base_dir, root, allowed),
+            "file": {"path": Custom(file_check(base_dir, fence),
                                     doc="CSV with columns t,x (s, m) and optionally v (m/s); other columns are "
                                         "ignored, so a run log replays (rows with NaN x or v are skipped)")},
             **road_excitations(),
         }, doc="shaker motion on the simulated bench (plant.bench: quarter_car: the road)"),
-        **law_unions(base_dir, root),
+        **law_unions(base_dir, fence),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
             "max_slew_A_per_s": Custom(_slew_check, default="auto",
@@ -202,8 +206,8 @@ def experiment_schema(base_dir: Path, root: Path | None = None, allowed: Sequenc
                                    "null = displacement only"),
         }, doc="where the controller's velocity comes from (applied before the safety checks and the laws)"),
         "plant": Section({
-            "model": plant_model_schema(base_dir),
-            "parameters": Custom(params_check(base_dir), default=None,
+            "model": plant_model_schema(base_dir, fence),
+            "parameters": Custom(params_check(base_dir, fence), default=None,
                                  doc="the simulated damper's own parameter set (same forms as parameters); "
                                      "null = the law's set. Set it to test a law with identified parameters "
                                      "against a known damper"),
@@ -317,17 +321,19 @@ def _plant_checks(cfg: Node, I_max: Any) -> list[str]:
 
 
 def validate_experiment(data: Any, base_dir: Path, source: str | None = None, *, allow_outside: bool = False,
-                        allowed: Sequence[Path] = ()) -> Node:
+                        allowed: Sequence[Path] = (), fence: Fence | None = None) -> Node:
     """Validate a parsed experiment; raises ConfigError listing every problem.
-    Data files (excitation, demand) must lie under ``base_dir`` unless
-    ``allow_outside``; an excitation file in ``allowed`` (named on the
-    command line) may lie anywhere."""
+    Every file it names is admitted by ``fence``, by default
+    ``Fence.around(base_dir, allow_outside, allowed)``: under ``base_dir``'s
+    folder (its ``config/`` tree) unless ``allow_outside``, files in
+    ``allowed`` (named on the command line) anywhere."""
     if not isinstance(data, dict):
         raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
+    fence = fence if fence is not None else Fence.around(base_dir, allow_outside, allowed)
     # the safety section is required: a daemon must never guess a current limit
-    schema = experiment_schema(base_dir, None if allow_outside else base_dir, allowed)
+    schema = experiment_schema(base_dir, fence)
     schema["safety"] = Section(schema["safety"].fields, optional=False)
-    data, errors = apply_calibration(data, base_dir)
+    data, errors = apply_calibration(data, base_dir, fence)
     if errors:
         raise ConfigError(errors, source)
     node, errors = validate_fields(schema, data, "")
@@ -335,23 +341,27 @@ def validate_experiment(data: Any, base_dir: Path, source: str | None = None, *,
         node, errors = device_checks(node, data)
     if not errors:
         errors = _cross_checks(node, base_dir)
-        errors += input_kind_errors(data, base_dir, node.backend.get("input"))
+        errors += input_kind_errors(data, base_dir, node.backend.get("input"), fence)
     if errors:
         raise ConfigError(errors, source)
     return node
 
 
-def apply_calibration(data: dict[str, Any], base_dir: Path) -> tuple[dict[str, Any], list[str]]:
+def apply_calibration(data: dict[str, Any], base_dir: Path, fence: Fence | None = None
+                      ) -> tuple[dict[str, Any], list[str]]:
     """``calibration: CAL.yaml`` merged into the experiment (mrctl/config/calibration.py)."""
     from mrctl.config.calibration import merge_calibration
 
-    return merge_calibration(data, base_dir)
+    return merge_calibration(data, base_dir, fence)
 
 
-def load_experiment(path: str | Path, *, allow_outside: bool = False) -> Node:
-    """Load and validate an experiment YAML file (data files as :func:`validate_experiment`)."""
+def load_experiment(path: str | Path, *, allow_outside: bool = False, fence: Fence | None = None) -> Node:
+    """Load and validate an experiment YAML file (files it names as
+    :func:`validate_experiment`; a key that is not a name called by its line)."""
     p = Path(path)
-    return validate_experiment(load_yaml(p), p.parent, str(p), allow_outside=allow_outside)
+    data, lines = load_yaml_lines(p)
+    with quoting(lines=lines):
+        return validate_experiment(data, p.parent, str(p), allow_outside=allow_outside, fence=fence)
 
 
 

@@ -17,6 +17,7 @@ from mrctl.config.bench import BENCH_CHANNELS, quarter_car_params
 from mrctl.laws.base import LawContext
 from mrctl.laws.registry import BUILTIN, all_laws, find_law
 from mrctl.model.params import LuGreParams
+from mrctl.util.files import Fence
 from mrctl.util.schema import Node, Num, Section, Union, bind_paths, schema_markdown
 
 SECTIONS = (("demand", "demand", "type"), ("inverse", "current", "law"))  # (section, kind, key)
@@ -30,27 +31,27 @@ LAW_GUARD_FIELDS = {
 }
 
 
-def _resolver(kind: str, base_dir: Path, root: Path | None
+def _resolver(kind: str, base_dir: Path, fence: Fence | None
               ) -> Callable[[str], tuple[Mapping[str, Any] | None, str | None]]:
     def resolve(name: str) -> tuple[Mapping[str, Any] | None, str | None]:
         info = find_law(kind, name)
         if info.cls is None:
             return None, info.error
-        return bind_paths(info.cls.params, base_dir, root), None
+        return bind_paths(info.cls.params, base_dir, fence), None
 
     return resolve
 
 
-def law_unions(base_dir: Path, root: Path | None = None) -> dict[str, Union]:
-    """The ``demand`` and ``inverse`` unions; file paths under ``root`` (None: anywhere)."""
+def law_unions(base_dir: Path, fence: Fence | None = None) -> dict[str, Union]:
+    """The ``demand`` and ``inverse`` unions; file paths admitted by ``fence`` (default: under ``base_dir``'s folder)."""
     def variants(kind: str) -> dict[str, Any]:
-        return {name: bind_paths(cls.params, base_dir, root) for name, cls in BUILTIN[kind].items()}
+        return {name: bind_paths(cls.params, base_dir, fence) for name, cls in BUILTIN[kind].items()}
 
     return {
-        "demand": Union("type", variants("demand"), optional=True, resolve=_resolver("demand", base_dir, root),
+        "demand": Union("type", variants("demand"), optional=True, resolve=_resolver("demand", base_dir, fence),
                         doc="desired-force law (built-ins below; an installed plugin's name or "
                             "package.module:Class: docs/laws.md). Needed when the current law needs a demand"),
-        "inverse": Union("law", variants("current"), resolve=_resolver("current", base_dir, root),
+        "inverse": Union("law", variants("current"), resolve=_resolver("current", base_dir, fence),
                          doc="current law: an inverse law for demand's force, or a law that decides the "
                              "current (built-ins below; plugins: docs/laws.md)"),
     }

@@ -21,8 +21,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from mrctl.model.params import LuGreParams, params_from_mapping, table_from_mapping
-from mrctl.util.schema import ConfigError, load_yaml, short_repr
+from mrctl.model.params import TABLE_BENCH_NAMES, TABLE_NAMES, LuGreParams, params_from_mapping, table_from_mapping
+from mrctl.util.files import Fence
+from mrctl.util.schema import ConfigError, key_repr, load_yaml, read_named_yaml, short_repr
 
 __all__ = ["INPUT_KINDS", "ParamsFile", "read_params_file", "load_params_file", "params_check",
            "params_input_kind", "input_kind_errors"]
@@ -65,30 +66,56 @@ def _check_meta(data: dict[str, Any]) -> tuple[str, tuple[float, float] | None, 
     return kind, out, errors
 
 
+def _set_errors(values: dict[Any, Any], path: str = "") -> list[str]:
+    """A set's keys and values as the model takes them (spec names, finite
+    numbers, ``laws``, a ``table`` of lists of numbers), each error naming
+    its key as :func:`key_repr` allows and its value as :func:`short_repr`
+    does: the model's own messages would quote them."""
+    pre = f"{path}." if path else ""
+    errors: list[str] = []
+    names = LuGreParams.all_names()
+    for k, v in values.items():
+        if k == "laws":
+            if v not in ("paper", "table", None):
+                errors.append(f"{pre}laws: {short_repr(v)} not allowed (paper: laws (6)-(11); table: "
+                              "interpolated per-level values)")
+        elif k == "table":
+            if isinstance(v, dict):
+                allowed = ("input",) + TABLE_NAMES + TABLE_BENCH_NAMES
+                errors += [f"{pre}table.{key_repr(t)}: unknown (expected {', '.join(allowed)})" for t in v
+                           if t not in allowed]
+        elif k not in names:
+            errors.append(f"{pre}{key_repr(k)}: unknown parameter (expected: {', '.join(names)}, laws, table)")
+        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            errors.append(f"{pre}{k}: must be a finite number, got {short_repr(v)}")
+    return errors
+
+
 def read_params_file(path: str | Path) -> ParamsFile:
     """Read a parameters YAML: the spec's names, plus metadata keys
     (version, description, source, fit are ignored; ``input`` and
     ``input_range`` are checked and returned). A set whose laws leave the
     physical range (σ0, Fs, vs, Fc > 0) over its ``input_range`` is refused."""
-    data = load_yaml(path)
+    return params_from_data(load_yaml(path), str(path))
+
+
+def params_from_data(data: Any, source: str | None = None) -> ParamsFile:
+    """The parameters file's set from its parsed YAML (:func:`read_params_file`)."""
     if not isinstance(data, dict):
-        raise ConfigError(["must be a mapping of parameter names to numbers"], str(path))
+        raise ConfigError(["must be a mapping of parameter names to numbers"], source)
     values = {k: v for k, v in data.items() if k not in _PARAM_FILE_META}
     kind, rng, errors = _check_meta(data)
-    known = set(LuGreParams.all_names()) | {"laws", "table"}
-    for k in values:
-        if k not in known:
-            errors.append(f"{k}: unknown parameter (expected: {', '.join(LuGreParams.all_names())}, laws, table)")
+    errors += _set_errors(values)
     if errors:
-        raise ConfigError(errors, str(path))
+        raise ConfigError(errors, source)
     try:
         params = params_from_mapping(values)
     except ValueError as exc:
-        raise ConfigError(str(exc).split("; "), str(path)) from None
+        raise ConfigError(str(exc).split("; "), source) from None
     if rng is not None:
         problems = params.check_range(rng[1], I_min=rng[0], unit=INPUT_KINDS[kind])
         if problems:
-            raise ConfigError([f"input_range: {p}" for p in problems], str(path))
+            raise ConfigError([f"input_range: {p}" for p in problems], source)
     return ParamsFile(params, kind, rng)
 
 
@@ -105,15 +132,18 @@ def _file_of(value: Any, base_dir: Path) -> Path | None:
     return (base_dir / value) if not Path(value).is_absolute() else Path(value)
 
 
-def params_input_kind(value: Any, base_dir: Path) -> tuple[str, Path | None]:
+def params_input_kind(value: Any, base_dir: Path, fence: Fence | None = None) -> tuple[str, Path | None]:
     """What the set named by a raw ``parameters`` value takes, and its file.
 
     Table I and inline sets take a current; a file says (``input:``, default
-    current). A file that cannot be read counts as current here (the
-    parameters check reports why it cannot be read)."""
+    current). A file that cannot be read, or that ``fence`` does not admit,
+    counts as current here (the parameters check reports why)."""
     f = _file_of(value, base_dir)
     if f is None:
         return "current", None
+    fence = fence if fence is not None else Fence.around(base_dir)
+    if fence.admit(str(f), base_dir, "parameters")[0] is None:
+        return "current", f
     try:
         data = load_yaml(f)
     except ConfigError:
@@ -122,7 +152,7 @@ def params_input_kind(value: Any, base_dir: Path) -> tuple[str, Path | None]:
     return (kind if kind in INPUT_KINDS else "current"), f
 
 
-def input_kind_errors(data: Any, base_dir: Path, backend_input: Any) -> list[str]:
+def input_kind_errors(data: Any, base_dir: Path, backend_input: Any, fence: Fence | None = None) -> list[str]:
     """``parameters`` and ``plant.parameters`` against ``backend.input``: the
     laws must take what the driver takes. One line per mismatch, naming both keys."""
     if not isinstance(data, dict) or backend_input not in INPUT_KINDS:
@@ -133,7 +163,7 @@ def input_kind_errors(data: Any, base_dir: Path, backend_input: Any) -> list[str
                      ("plant.parameters", plant.get("parameters") if isinstance(plant, dict) else None)):
         if raw is None and key == "plant.parameters":
             continue  # the simulated damper runs the law's set, checked above
-        kind, f = params_input_kind(raw, base_dir)
+        kind, f = params_input_kind(raw, base_dir, fence)
         if kind != backend_input:
             errors.append(
                 f"{key}: the set in {f or 'table1'} takes a {kind} ({INPUT_KINDS[kind]}: input: {kind}), but backend.input "
@@ -142,7 +172,12 @@ def input_kind_errors(data: Any, base_dir: Path, backend_input: Any) -> list[str
     return errors
 
 
-def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
+def params_check(base_dir: Path, fence: Fence | None = None) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    """A ``parameters`` value: 'table1', a file (admitted by ``fence``,
+    default under ``base_dir``'s folder; read without quoting it), or
+    ``{file: ..., <name>: value}`` overrides."""
+    fence = fence if fence is not None else Fence.around(base_dir)
+
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if value is None and path.endswith("plant.parameters"):
             return None, []  # the simulated damper uses the law's set
@@ -155,32 +190,20 @@ def params_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
         overrides = dict(value)
         base = LuGreParams()
         if "file" in overrides:
-            fpath = overrides.pop("file")
-            if not isinstance(fpath, str):
-                return None, [f"{path}.file: must be a path string, got {short_repr(fpath)}"]
-            full = (base_dir / fpath) if not Path(fpath).is_absolute() else Path(fpath)
-            try:
-                base = load_params_file(full)
-            except ConfigError as exc:
-                return None, [f"{path}.file ({full}): {e}" for e in exc.errors]
-        errors = []
-        good: dict[str, float] = {}
-        known = set(LuGreParams.all_names())
+            pf, errs = read_named_yaml(overrides.pop("file"), base_dir, fence, f"{path}.file",
+                                       lambda full, data: params_from_data(data))
+            if pf is None:
+                return None, errs
+            base = pf.params
+        errors = _set_errors(overrides, path)
+        if errors:
+            return None, errors
         if "laws" in overrides or "table" in overrides:  # laws: table inline (a sweep writes sets so)
             try:
                 base = replace(base, table=table_from_mapping(overrides.pop("laws", "paper"),
                                                               overrides.pop("table", None)))
             except ValueError as exc:
-                errors += [f"{path}.{e}" for e in str(exc).split("; ")]
-        for k, v in overrides.items():
-            if k not in known:
-                errors.append(f"{path}.{k}: unknown parameter (expected: file, {', '.join(LuGreParams.all_names())})")
-            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-                errors.append(f"{path}.{k}: must be a finite number, got {short_repr(v)}")
-            else:
-                good[k] = float(v)
-        if errors:
-            return None, errors
-        return base.with_overrides(**good), []
+                return None, [f"{path}.{e}" for e in str(exc).split("; ")]
+        return base.with_overrides(**{k: float(v) for k, v in overrides.items()}), []
 
     return check

@@ -13,11 +13,13 @@ name table, :data:`PLANT_MODELS`; :mod:`mrctl.experiment` builds them):
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Callable
 
 from mrctl.model.boucwen import BoucWenParams, bw_params_from_mapping
-from mrctl.util.schema import ConfigError, Custom, Num, Union, load_yaml, short_repr
+from mrctl.util.files import Fence
+from mrctl.util.schema import ConfigError, Custom, Num, Union, key_repr, load_yaml, read_named_yaml, short_repr
 
 #: metadata keys a plant parameters file may carry besides the constants
 _META = ("version", "description", "source", "fit")
@@ -28,42 +30,53 @@ PLANT_MODELS = ("lugre", "bouc-wen")
 
 def load_bouc_wen_file(path: str | Path) -> BoucWenParams:
     """Read a Bouc–Wen parameters YAML (the names of :class:`BoucWenParams`)."""
-    data = load_yaml(path)
+    return bouc_wen_from_data(load_yaml(path), str(path))
+
+
+def bouc_wen_from_data(data: Any, source: str | None = None, file: bool = True) -> BoucWenParams:
+    """The constants of a parsed Bouc–Wen file (its metadata keys aside) or
+    of an inline mapping (``file`` False); every key and value checked here,
+    so an error names a key as :func:`key_repr` allows and quotes a value
+    only as :func:`short_repr` does."""
     if not isinstance(data, dict):
-        raise ConfigError([f"must be a mapping of {', '.join(BoucWenParams.names())}"], str(path))
+        raise ConfigError([f"must be a mapping of {', '.join(BoucWenParams.names())}"], source)
+    values = {k: v for k, v in data.items() if not (file and k in _META)}
+    known = BoucWenParams.names()
+    errors = [f"{key_repr(k)}: unknown parameter (expected one of {', '.join(known)})" for k in values
+              if k not in known]
+    errors += [f"{k}: must be a finite number, got {short_repr(v)}" for k, v in values.items() if k in known
+               and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)))]
+    if errors:
+        raise ConfigError(errors, source)
     try:
-        return bw_params_from_mapping({k: v for k, v in data.items() if k not in _META})
+        return bw_params_from_mapping(values)
     except ValueError as exc:
-        raise ConfigError([str(exc)], str(path)) from None
+        raise ConfigError([str(exc)], source) from None
 
 
-def _bw_file_check(base_dir: Path) -> Callable[[Any, str], tuple[Any, list[str]]]:
+def _bw_file_check(base_dir: Path, fence: Fence | None) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    fence = fence if fence is not None else Fence.around(base_dir)
+
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         if isinstance(value, dict):  # inline constants (a sweep ships its points as plain data)
             try:
-                return bw_params_from_mapping(value), []
-            except ValueError as exc:
-                return None, [f"{path}.{exc}" if ":" in str(exc) else f"{path}: {exc}"]
+                return bouc_wen_from_data(value, file=False), []
+            except ConfigError as exc:
+                return None, [f"{path}.{e}" if ":" in e else f"{path}: {e}" for e in exc.errors]
         if not isinstance(value, str) or not value:
             return None, [f"{path}: must be a Bouc–Wen parameters file path or a mapping of its constants, "
                           f"got {short_repr(value)}"]
-        full = Path(value) if Path(value).is_absolute() else base_dir / value
-        if not full.is_file():
-            return None, [f"{path}: no such file: {full}"]
-        try:
-            return load_bouc_wen_file(full), []
-        except ConfigError as exc:
-            return None, [f"{path} ({full}): {e}" for e in exc.errors]
+        return read_named_yaml(value, base_dir, fence, path, lambda full, data: bouc_wen_from_data(data))
 
     return check
 
 
-def plant_model_schema(base_dir: Path) -> Union:
+def plant_model_schema(base_dir: Path, fence: Fence | None = None) -> Union:
     """``plant.model``: which damper model the simulated bench runs."""
     return Union("type", {
         "lugre": {},
         "bouc-wen": {
-            "parameters": Custom(_bw_file_check(base_dir),
+            "parameters": Custom(_bw_file_check(base_dir, fence),
                                  doc="Bouc–Wen parameters YAML (e.g. config/plants/rd1097_bouc_wen.yaml), or its constants inline"),
             "substeps": Num(default=8, integer=True, min=1, max=64,
                             doc="integration substeps per tick (the Bouc–Wen state is stiff)"),

@@ -8,7 +8,10 @@ the same motion, a different controller, offline.
 
 Why the sidecar's config: it is the experiment as it was validated when the
 log was written (defaults filled in, parameters inline), so the replay
-needs no file but the log and its ``.json``.
+needs no file but the log and its ``.json``. A sidecar is a file like any
+other: the files its config names must lie under the log's folder (its
+``config/`` tree) unless ``--allow-outside-paths``, whatever folder it
+claims its config came from, and its errors never quote it.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ from mrctl.config.experiment import validate_experiment
 from mrctl.errors import BadInput
 from mrctl.runlog.files import sidecar_path
 from mrctl.runlog.read import try_sidecar
-from mrctl.util.schema import Node, load_yaml
+from mrctl.util.files import Fence
+from mrctl.util.schema import Node, load_yaml, quoting
 
 __all__ = ["replay_config", "with_law", "load_with_law"]
 
@@ -44,14 +48,17 @@ def replay_config(log: str | Path, config: str | Path | None = None, law: str | 
     log's length), ``law`` if given. ``BadInput`` when the log is missing or
     has no sidecar config and no ``config`` is given; ``ConfigError`` (with
     key paths) when the result is not a valid experiment. The log itself may
-    lie anywhere (it was named on the command line); the config's own data
-    files stay under its directory unless ``allow_outside``."""
+    lie anywhere (it was named on the command line); the files the config
+    names stay under CONFIG's folder, or the log's for the sidecar's config,
+    unless ``allow_outside``."""
     p = Path(log)
     if not p.is_file():
         raise BadInput(f"--replay {p}: no such run log")
+    quiet = False
     if config is not None:
         cp = Path(config)
         data, base = load_yaml(cp), cp.parent
+        fence = Fence.around(base, allow_outside, allowed=(p,))
         source = f"{cp} replaying {p.name}"
     else:
         side = try_sidecar(p)
@@ -61,7 +68,9 @@ def replay_config(log: str | Path, config: str | Path | None = None, law: str | 
                            f"give the experiment YAML as well: mrctl simulate CONFIG --replay {p}")
         cf = side.get("config_file")
         base = Path(cf).parent if isinstance(cf, str) and Path(cf).parent.is_dir() else p.parent
+        fence = Fence.around(p.parent, allow_outside, allowed=(p,), what="the run log")  # not the folder it claims
         source = f"{sidecar_path(p)} (the config of {p.name})"
+        quiet = True
     if not isinstance(data, dict):
         raise BadInput(f"{config}: not an experiment mapping")
     data = copy.deepcopy(data)
@@ -70,7 +79,8 @@ def replay_config(log: str | Path, config: str | Path | None = None, law: str | 
     data["excitation"] = {"type": "file", "path": str(p.resolve())}
     data["duration_s"] = None
     data["name"] = f"{data.get('name') or p.stem} (replay of {p.name})"
-    return validate_experiment(data, base, source, allow_outside=allow_outside, allowed=(p,))
+    with quoting(values=not quiet):
+        return validate_experiment(data, base, source, fence=fence)
 
 
 def load_with_law(config: str | Path, law: str, *, allow_outside: bool = False) -> Node:

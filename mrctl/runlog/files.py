@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Mapping, Sequence
 
 from mrctl.errors import BadInput
-from mrctl.util.files import check_out_parent
+from mrctl.util.files import check_out_parent, refuse_inputs
 from mrctl.util.jsonutil import jsonable
 
 __all__ = ["SIDECAR_RESERVE_BYTES", "sidecar_path", "check_log_path", "create_log", "write_json", "fsync_dir",
@@ -65,15 +65,6 @@ def check_log_path(path: str | os.PathLike[str], force: bool = False, mkdir: boo
     return p
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    try:
-        if a.resolve() == b.resolve():
-            return True
-        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
-    except (OSError, RuntimeError):
-        return False
-
-
 def check_output_path(path: str | os.PathLike[str], force: bool = False,
                       inputs: Sequence[str | os.PathLike[str]] = (), what: str = "the output") -> Path:
     """``BadInput`` unless ``path`` can be a new output file: not empty, not a
@@ -83,10 +74,7 @@ def check_output_path(path: str | os.PathLike[str], force: bool = False,
     if not str(path):
         raise BadInput(f"'': an empty file name for {what}")
     p = Path(path)
-    for q in inputs:
-        if _same_file(p, Path(q)):
-            raise BadInput(f"{p}: {what} would overwrite {q}, an input of this command; refusing (choose another "
-                           "name)")
+    refuse_inputs([p], inputs, what)
     if p.is_dir() and not p.is_symlink():
         raise BadInput(f"{p}: is a directory; {what} is a file" if what != "the run log"
                        else f"{p}: is a directory; --out names the run log's CSV file")

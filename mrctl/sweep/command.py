@@ -16,14 +16,19 @@ from mrctl.errors import BadInput
 def run_sweep_command(args: argparse.Namespace) -> int:
     """``mrctl sweep`` (its options are mrctl.cli's): run or resume a sweep;
     0 when every point has its row, failed points included."""
-    from mrctl.sweep.runner import run_sweep
+    from mrctl.sweep.runner import check_scheduler_address, run_sweep
     from mrctl.sweep.spec import load_sweep
-    from mrctl.sweep.table import parquet_wanted
+    from mrctl.sweep.table import check_table_path, parquet_wanted
+    from mrctl.util.files import refuse_inputs
 
     if args.workers is not None and args.workers < 1:
         raise BadInput(f"--workers: must be >= 1, got {args.workers}")
+    if args.scheduler is not None:
+        check_scheduler_address(args.scheduler)
+    check_table_path(args.out)  # a directory, /dev/null or a FIFO: refused before anything is read
     parquet_wanted(Path(args.out))  # before any point runs
-    sweep = load_sweep(args.config)
+    sweep = load_sweep(args.config, allow_outside=args.allow_outside_paths)
+    refuse_inputs([args.out], [*sweep.bases.values(), *sweep.fence.admitted])  # the bases and the sets they name
     where = f"Dask at {args.scheduler}" if args.scheduler else f"{args.workers or 'all'} local cores"
     if not args.quiet:
         print(f"{sweep.name}: {sweep.size()} points on {where} → {args.out}", flush=True)

@@ -41,9 +41,16 @@ def prewarm(task: dict[str, Any]) -> None:
     from mrctl.sweep import metrics  # noqa: F401
 
     try:
-        build(validate_experiment(task["config"], Path(task["base_dir"])))
+        build(validate_experiment(task["config"], Path(task["base_dir"]), fence=task_fence(task)))
     except Exception:  # noqa: BLE001 - the point itself will report it
         pass
+
+
+def task_fence(task: dict[str, Any]) -> Any:
+    """Where the files a point's config names must lie (its sweep's fence, as plain data)."""
+    from mrctl.util.files import Fence
+
+    return Fence.from_text(task.get("fence"))
 
 
 def run_points(tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -65,7 +72,7 @@ def run_point(task: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     base_dir = Path(task["base_dir"])
     try:
-        exp = build(validate_experiment(task["config"], base_dir))
+        exp = build(validate_experiment(task["config"], base_dir, fence=task_fence(task)))
         duration = run_duration(exp)
         res = simulate(exp, duration)
         row.update(compute(names, res, exp, task["config"], base_dir, duration))

@@ -3,6 +3,11 @@
 * :func:`read_regular_file`: a config, parameter set or series is read only
   if it is a regular file (``/dev/zero``, a FIFO or a terminal would be read
   without end or block forever) and at most ``max_bytes`` long.
+* :class:`Fence` and its one function :meth:`Fence.admit`: every path a
+  config, sweep, dataset description or sidecar names must lie under the
+  folder of the file named on the command line (its ``config/`` tree, when
+  it lies in one), ``--data-dir``, or anywhere with ``--allow-outside-paths``:
+  a file from elsewhere cannot make mrctl read ``/etc/shadow``.
 * :func:`check_out_parent` / :func:`ensure_out_parent`: an output (``--out``)
   goes into a directory that exists; a missing one is an error naming it
   (a typo must not grow a tree, least of all as root), created only when
@@ -17,15 +22,18 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Iterable
 
 from mrctl.errors import BadInput
 
-__all__ = ["FileProblem", "read_regular_file", "not_regular", "per_user_dir", "private_dir", "MiB", "DEFAULT_OUT_DIR",
-           "check_out_parent", "ensure_out_parent"]
+__all__ = ["FileProblem", "read_regular_file", "open_regular", "flock_holder", "not_regular", "per_user_dir", "private_dir", "MiB", "DEFAULT_OUT_DIR",
+           "check_out_parent", "ensure_out_parent", "Fence", "fence_root", "CONFIG_TREE", "same_file", "refuse_inputs"]
 
 MiB = 1 << 20
 
@@ -62,21 +70,56 @@ def not_regular(path: str | os.PathLike[str]) -> str | None:
     return None if stat.S_ISREG(st.st_mode) else _kind(st.st_mode)
 
 
-def read_regular_file(path: str | os.PathLike[str], max_bytes: int) -> bytes:
-    """The bytes of the regular file at ``path`` (symlinks followed), at most
-    ``max_bytes``. :class:`FileProblem` if it is missing, not a regular file
-    (a device, FIFO, directory …), larger, or unreadable."""
-    flags = os.O_RDONLY | os.O_CLOEXEC | getattr(os, "O_NONBLOCK", 0)  # a FIFO must not block the open
+def open_regular(path: str | os.PathLike[str], flags: int = os.O_RDONLY, mode: int = 0o644) -> int:
+    """A descriptor of the regular file at ``path``, opened without blocking
+    (a FIFO would block the open, a device be read without end) and checked
+    before anything is read or written; :class:`FileProblem` naming what it
+    is otherwise (``missing``: no such file)."""
     try:
-        fd = os.open(path, flags)
+        fd = os.open(path, flags | os.O_CLOEXEC | getattr(os, "O_NONBLOCK", 0), mode)
     except FileNotFoundError:
         raise FileProblem("no such file", missing=True) from None
     except OSError as exc:
-        raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
+        if exc.errno == errno.ELOOP:
+            raise FileProblem("a symlink; refusing to follow it") from None
+        if exc.errno == errno.EISDIR:
+            raise FileProblem("not a regular file (a directory)") from None
+        kind = not_regular(path)
+        if kind is None or kind == "missing" or kind.startswith("unreadable"):
+            raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
+        raise FileProblem(f"not a regular file ({kind})") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             raise FileProblem(f"not a regular file ({_kind(st.st_mode)})")
+        os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def flock_holder(fd: int) -> int | None:
+    """The pid holding a ``flock`` on the file open at ``fd`` (``/proc/locks``), if one does."""
+    try:
+        st = os.fstat(fd)
+        dev = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        for line in Path("/proc/locks").read_text().splitlines():
+            f = line.split()
+            if len(f) >= 6 and f[1] == "FLOCK" and f[5] == dev and f[4].isdigit() and int(f[4]) > 0:
+                return int(f[4])
+    except OSError:
+        pass
+    return None
+
+
+def read_regular_file(path: str | os.PathLike[str], max_bytes: int) -> bytes:
+    """The bytes of the regular file at ``path`` (symlinks followed), at most
+    ``max_bytes``. :class:`FileProblem` if it is missing, not a regular file
+    (a device, FIFO, directory …), larger, or unreadable."""
+    fd = open_regular(path)
+    try:
+        st = os.fstat(fd)
         if st.st_size > max_bytes:
             raise FileProblem(f"too large ({st.st_size / MiB:.1f} MiB; at most {max_bytes / MiB:g} MiB)")
         chunks: list[bytes] = []
@@ -95,6 +138,91 @@ def read_regular_file(path: str | os.PathLike[str], max_bytes: int) -> bytes:
         raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
     finally:
         os.close(fd)
+
+
+#: a folder of this name holds one config tree (mrctl's layout: config/experiments, config/plants,
+#: config/sweeps): the files in it may name each other
+CONFIG_TREE = "config"
+
+
+def fence_root(folder: str | os.PathLike[str]) -> Path:
+    """Where the files a file in ``folder`` names must lie: the nearest
+    enclosing folder named :data:`CONFIG_TREE` (an experiment in
+    ``config/experiments/robust/`` names ``config/plants/…``, a sweep in
+    ``config/sweeps/`` names ``config/experiments/…``), else ``folder``
+    itself; resolved (symlinks followed, as the paths it is compared with)."""
+    here = Path(os.path.abspath(folder)).resolve()
+    for d in (here, *here.parents):
+        if d.name == CONFIG_TREE:
+            return d
+    return here
+
+
+@dataclass(frozen=True)
+class Fence:
+    """Where the files a config names may lie (the D16 rule, for every path
+    a config, sweep, dataset description or sidecar names).
+
+    ``root`` (resolved) is the folder they must lie under, None for anywhere
+    (``--allow-outside-paths``); ``allowed`` are files named on the command
+    line (``simulate --replay RUN.csv``), which may lie anywhere; ``where``
+    and ``hint`` word the refusal."""
+
+    root: Path | None
+    allowed: frozenset[Path] = frozenset()
+    where: str = "the config's folder"
+    hint: str = "move it there or pass --allow-outside-paths"
+    #: every file it admitted (the command's inputs, which no output may replace: :func:`refuse_inputs`)
+    admitted: list[Path] = field(default_factory=list, compare=False, repr=False)
+
+    @classmethod
+    def around(cls, folder: str | os.PathLike[str], allow_outside: bool = False,
+               allowed: Iterable[str | os.PathLike[str]] = (), what: str = "the config") -> "Fence":
+        """The fence of a file in ``folder`` (:func:`fence_root`), or none
+        with ``allow_outside``; ``what`` names that file in the refusal."""
+        root = fence_root(folder)
+        where = (f"{what}'s folder" if root == Path(os.path.abspath(folder)).resolve()
+                 else f"the {CONFIG_TREE}/ tree {what} lies in")
+        return cls(None if allow_outside else root, frozenset(Path(a).resolve() for a in allowed), where)
+
+    @classmethod
+    def anywhere(cls) -> "Fence":
+        return cls(None)
+
+    def to_text(self) -> str | None:
+        """The root as plain data (a sweep's task carries it to its worker)."""
+        return None if self.root is None else str(self.root)
+
+    @classmethod
+    def from_text(cls, root: str | None, where: str = "the sweep's folder") -> "Fence":
+        """The fence :meth:`to_text` described."""
+        return cls(None if root is None else Path(root), where=where)
+
+    def admit(self, value: Any, base_dir: str | os.PathLike[str], key: str) -> tuple[Path | None, str | None]:
+        """The one containment check: ``value`` (a path, relative to
+        ``base_dir``) as ``(path, None)`` if it lies under the root (or is
+        allowed) and is a regular file, else ``(None, error)``, the error
+        naming ``key``. Containment is checked first (symlinks resolved),
+        so nothing is said about a file outside but that it is outside;
+        a FIFO or a device is "not a regular file", never "no such file".
+        The file is not opened."""
+        if not isinstance(value, str) or not value:
+            return None, f"{key}: must be a file path, got {'an empty string' if value == '' else type(value).__name__}"
+        raw = Path(value).expanduser()
+        full = raw if raw.is_absolute() else Path(base_dir) / raw
+        real = full.resolve()
+        if self.root is not None and real not in self.allowed and not real.is_relative_to(self.root):
+            return None, (f"{key}: {real} is outside {self.root}, {self.where}, where the files it names must be; "
+                          f"{self.hint}")
+        kind = not_regular(full)
+        if kind == "missing":
+            if not full.parent.is_dir():
+                return None, f"{key}: no such directory {full.parent} (for {value})"
+            return None, f"{key}: no such file: {full}"
+        if kind is not None:
+            return None, f"{key}: {full}: not a regular file ({kind})"
+        self.admitted.append(full)
+        return full, None
 
 
 def per_user_dir() -> Path:
@@ -131,6 +259,30 @@ def private_dir(path: Path | None = None) -> Path:
         pass
     check_private_dir(p)
     return p
+
+
+def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
+    """``a`` and ``b`` name one file: the same path once resolved, or the
+    same inode (a hard link, a symlink)."""
+    try:
+        if Path(a).resolve() == Path(b).resolve():
+            return True
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except (OSError, RuntimeError):
+        return False
+
+
+def refuse_inputs(outputs: Iterable[str | os.PathLike[str]], inputs: Iterable[str | os.PathLike[str]],
+                  what: str = "--out") -> None:
+    """The one check that an output never replaces an input of its command,
+    ``--force`` or not (by name, through a symlink or a hard link):
+    ``BadInput`` naming both. Touches nothing."""
+    ins = [Path(i) for i in inputs]
+    for o in outputs:
+        for i in ins:
+            if same_file(o, i):
+                raise BadInput(f"{o}: {what} would overwrite {i}, an input of this command; refusing, --force or "
+                               "not (choose another name)")
 
 
 #: the one output directory created without ``--mkdir``: ``runs/`` in the current directory

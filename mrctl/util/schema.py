@@ -8,173 +8,39 @@ generating its reference tables (``docs/config.md``). Experiment, bench,
 dataset and law-parameter schemas are all written in these terms
 (:mod:`mrctl.config`, ``hil_sim.config``, law classes' ``params``).
 
-YAML traps handled here: duplicate keys are an error (PyYAML silently keeps
-the last), and ``1e-3`` is read as a number (YAML 1.1 makes it a string).
+Strict YAML loading, and what an error may quote of a file, are
+:mod:`mrctl.util.yamlfile`'s (re-exported here: one import for a schema).
 """
 
 from __future__ import annotations
 
 import math
-import re
-import reprlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping
 
-import yaml
-
-from mrctl.errors import BadInput
-from mrctl.util.files import FileProblem, MiB, read_regular_file
+from mrctl.util.files import Fence
+from mrctl.util.yamlfile import (
+    MAX_YAML_ALIASES,
+    MAX_YAML_BYTES,
+    MAX_YAML_NODES,
+    ConfigError,
+    key_repr,
+    load_yaml,
+    load_yaml_lines,
+    quoting,
+    read_named_yaml,
+    short_repr,
+)
 
 _REQUIRED = object()
 
 __all__ = [
     "ConfigError", "load_yaml", "Num", "Str", "Bool", "Section", "Union", "Custom", "Node", "REQUIRED",
     "FilePath", "bind_paths", "check_num", "validate_fields", "validate_union", "file_check", "range_check", "optional_bool",
-    "schema_markdown", "short_repr", "MAX_YAML_BYTES", "MAX_YAML_ALIASES", "MAX_YAML_NODES",
+    "schema_markdown", "short_repr", "key_repr", "quoting", "load_yaml_lines", "read_named_yaml",
+    "MAX_YAML_BYTES", "MAX_YAML_ALIASES", "MAX_YAML_NODES",
 ]
-
-#: an error message quotes at most this much of a value (a 2 MB list must not be echoed)
-_SHORT = reprlib.Repr()
-_SHORT.maxlevel, _SHORT.maxstring, _SHORT.maxother = 3, 60, 60
-_SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = _SHORT.maxset = 6
-#: errors listed by one ConfigError, and characters per error line
-MAX_ERRORS, MAX_ERROR_CHARS = 50, 1000
-
-
-def short_repr(value: Any) -> str:
-    """``repr`` of a value cut to a few dozen characters, in time independent
-    of the value's size: what an error message may echo of user input."""
-    try:
-        return _SHORT.repr(value)
-    except Exception:  # noqa: BLE001 - a repr must never turn an error into a traceback
-        return f"<{type(value).__name__}>"
-
-
-def _bounded(errors: list[str]) -> list[str]:
-    """At most :data:`MAX_ERRORS` lines of at most :data:`MAX_ERROR_CHARS` each."""
-    out = [e if len(e) <= MAX_ERROR_CHARS else e[:MAX_ERROR_CHARS - 1] + "…" for e in errors[:MAX_ERRORS]]
-    if len(errors) > MAX_ERRORS:
-        out.append(f"… and {len(errors) - MAX_ERRORS} more errors")
-    return out
-
-
-class ConfigError(BadInput):
-    """One or more problems in a config; ``errors`` holds one line per problem."""
-
-    def __init__(self, errors: list[str], source: str | None = None) -> None:
-        self.errors = _bounded([str(e) for e in errors])
-        self.source = source
-        head = f"{source}: " if source else ""
-        super().__init__(head + ("; ".join(self.errors) if len(self.errors) == 1 else f"{len(self.errors)} errors:\n  " + "\n  ".join(self.errors)))
-
-
-# --------------------------------------------------------------------------
-# YAML loading
-#: the largest YAML file read: experiments, parameter sets, bench configs and
-#: dataset descriptions are 1-3 kB; 30 times that is no real experiment, and
-#: parsing it costs well under a second (a 2.6 MB one took a minute)
-MAX_YAML_BYTES = 64 * 1024
-#: aliases (``*name``) one file may use, and the nodes it may stand for once
-#: every alias is expanded: a few anchors are handy, a billion laughs is not
-MAX_YAML_ALIASES = 64
-MAX_YAML_NODES = 100_000
-
-
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys, reads 1e-3 as a float, and
-    refuses alias bombs (more than :data:`MAX_YAML_ALIASES` aliases, or a
-    document that expands to more than :data:`MAX_YAML_NODES` nodes) before
-    anything is constructed."""
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            self._aliases = getattr(self, "_aliases", 0) + 1
-            if self._aliases > MAX_YAML_ALIASES:
-                mark = self.peek_event().start_mark
-                raise yaml.composer.ComposerError(None, None, f"more than {MAX_YAML_ALIASES} aliases (*name): "
-                                                  f"refused (an alias bomb expands without end)", mark)
-        return super().compose_node(parent, index)
-
-    def compose_document(self) -> Any:
-        node = super().compose_document()
-        if getattr(self, "_aliases", 0) and _expanded_size(node) > MAX_YAML_NODES:
-            raise yaml.composer.ComposerError(None, None, f"expands to more than {MAX_YAML_NODES} nodes through "
-                                              f"its aliases: refused", node.start_mark)
-        return node
-
-
-def _expanded_size(root: yaml.Node) -> int:
-    """Nodes in the document with every alias expanded, without expanding
-    (each node's size is computed once); iterative (no recursion limit).
-    A recursive alias (``&a [1, *a]``, infinite once expanded) is refused."""
-    size: dict[int, int] = {}
-    entered: set[int] = set()
-    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
-    while stack:
-        node, done = stack.pop()
-        if id(node) in size:
-            continue
-        if not done and id(node) in entered:  # entered, not finished: one of its own ancestors
-            raise yaml.composer.ComposerError(None, None, "a recursive alias (a node that contains itself): "
-                                              "refused", node.start_mark)
-        entered.add(id(node))
-        kids: list[yaml.Node] = []
-        if isinstance(node, yaml.SequenceNode):
-            kids = list(node.value)
-        elif isinstance(node, yaml.MappingNode):
-            kids = [n for pair in node.value for n in pair]
-        if done:
-            size[id(node)] = min(1 + sum(size.get(id(k), 1) for k in kids), MAX_YAML_NODES + 1)
-        else:
-            stack.append((node, True))
-            stack.extend((k, False) for k in kids if id(k) not in size)
-    return size[id(root)]
-
-
-def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
-    seen: dict[Any, yaml.Node] = {}
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        if key in seen:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {short_repr(key)} (first at line {seen[key].start_mark.line + 1})", key_node.start_mark
-            )
-        seen[key] = key_node
-    return loader.construct_mapping(node, deep=deep)
-
-
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-_StrictLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:\d[\d_]*)?(?:\.\d*)?[eE][-+]?\d+$"),
-    list("-+0123456789."),
-)
-
-
-def load_yaml(path: str | Path) -> Any:
-    """Parse a YAML file strictly; errors become ConfigError with line numbers.
-    Only a regular UTF-8 text file of at most :data:`MAX_YAML_BYTES` is read
-    (``/dev/zero`` would be read without end)."""
-    p = Path(path)
-    try:
-        text = read_regular_file(p, MAX_YAML_BYTES).decode("utf-8")
-    except FileProblem as exc:
-        raise ConfigError([f"cannot read: {exc}" if exc.missing else str(exc)], str(p)) from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError([f"not a text (UTF-8) file: byte {exc.start} is {exc.object[exc.start]:#04x}"],
-                          str(p)) from None
-    try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - strict SafeLoader subclass
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError([f"{where}invalid YAML: {problem}"], str(p)) from None
-    except RecursionError:  # 200 000 '[': PyYAML's composer recurses per level
-        raise ConfigError(["invalid YAML: nested too deeply (lists or mappings inside each other hundreds of "
-                           "levels down); no config is"], str(p)) from None
-
 
 # --------------------------------------------------------------------------
 # Schema
@@ -247,10 +113,10 @@ class FilePath:
     doc: str = ""
 
 
-def bind_paths(fields_: Mapping[str, Any], base_dir: Path, root: Path | None = None) -> dict[str, Any]:
+def bind_paths(fields_: Mapping[str, Any], base_dir: Path, fence: Fence | None = None) -> dict[str, Any]:
     """``fields_`` with every :class:`FilePath` resolved against ``base_dir``
-    (and kept under ``root``: :func:`file_check`)."""
-    return {k: (Custom(file_check(base_dir, root), default=v.default, doc=v.doc) if isinstance(v, FilePath) else v)
+    (and admitted by ``fence``: :func:`file_check`)."""
+    return {k: (Custom(file_check(base_dir, fence), default=v.default, doc=v.doc) if isinstance(v, FilePath) else v)
             for k, v in fields_.items()}
 
 
@@ -329,7 +195,7 @@ def validate_fields(fields_: Mapping[str, Any], data: Any, path: str) -> tuple[N
     for key in data:
         if key not in fields_:
             allowed = ", ".join(fields_)
-            errors.append(f"{_path(path, str(key))}: unknown key (allowed here: {allowed})")
+            errors.append(f"{_path(path, key_repr(key))}: unknown key (allowed here: {allowed})")
     out: dict[str, Any] = {}
     for key, spec in fields_.items():
         kpath = _path(path, key)
@@ -407,32 +273,15 @@ REQUIRED = _REQUIRED
 
 # --------------------------------------------------------------------------
 # Custom checks many schemas share
-def file_check(base_dir: Path, root: Path | None = None, allowed: Sequence[Path] = ()
-               ) -> Callable[[Any, str], tuple[Any, list[str]]]:
+def file_check(base_dir: Path, fence: Fence | None = None) -> Callable[[Any, str], tuple[Any, list[str]]]:
     """A data file's path (a demand or excitation series): relative to
-    ``base_dir``, a regular file, and under ``root`` unless it is None (the
-    CLI's ``--allow-outside-paths``) or one of ``allowed`` (a file the user
-    named on the command line, e.g. ``simulate --replay RUN.csv``): a config
-    from elsewhere cannot make mrctl read ``/etc/shadow``."""
-    allowed_resolved = {Path(a).resolve() for a in allowed}
+    ``base_dir``, a regular file, admitted by ``fence`` (default: under
+    ``base_dir``'s folder, :meth:`Fence.admit`)."""
+    fence = fence if fence is not None else Fence.around(base_dir)
 
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
-        if not isinstance(value, str) or not value:
-            return None, [f"{path}: must be a file path, got {short_repr(value)}"]
-        p = Path(value)
-        full = p if p.is_absolute() else base_dir / p
-        if root is not None and full.resolve() not in allowed_resolved:
-            try:
-                full.resolve().relative_to(root.resolve())
-            except ValueError:
-                return None, [f"{path}: {full.resolve()} is outside {root.resolve()}, the config's directory, where "
-                              "data files must be; move it there or pass --allow-outside-paths"]
-        if not full.exists():
-            return None, [f"{path}: no such file: {full}"]
-        if not full.is_file():
-            kind = "a directory" if full.is_dir() else "a device, FIFO or socket"
-            return None, [f"{path}: {full}: not a regular file ({kind})"]
-        return str(full), []
+        full, err = fence.admit(value, base_dir, path)
+        return (str(full), []) if full is not None else (None, [str(err)])
 
     return check
 

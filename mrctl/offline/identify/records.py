@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from mrctl.offline.identify.errors import IdentificationError
-from mrctl.util.files import FileProblem, MiB, not_regular, read_regular_file
+from mrctl.util.files import FileProblem, MiB, read_regular_file
 
 __all__ = ["Record", "read_records", "read_signals", "manifest_paths", "MAX_DATA_BYTES", "MAX_MANIFEST_BYTES", "MAX_SI_MAGNITUDE"]
 
@@ -334,7 +334,9 @@ def _manifest_entries(man: Any) -> list:
         rows = list(csv.DictReader(io.StringIO(text, newline="")))
     except (UnicodeDecodeError, csv.Error) as exc:
         raise IdentificationError(f"{p}: cannot read the manifest: {exc}") from None
-    root = Path(man.root) if man.get("root") else None
+    from mrctl.config.dataset import data_fence
+
+    fence = data_fence(man.get("root"))  # the description's, as for its files
     out = []
     for i, row in enumerate(rows, start=2):
         if man.file not in row or man.level not in row:
@@ -342,27 +344,18 @@ def _manifest_entries(man: Any) -> list:
         name = (row[man.file] or "").strip()
         if not name:
             raise IdentificationError(f"{p}: line {i}: no file name in column {man.file!r}")
-        f = (p.parent / name).resolve()
-        if root is not None:
-            try:
-                f.relative_to(root)
-            except ValueError:
-                from mrctl.config.dataset import outside_message
-
-                raise IdentificationError(f"{p}: line {i}: " + outside_message("the file", f, root)) from None
+        full, err = fence.admit(name, p.parent, f"line {i}")
+        if full is None:
+            raise IdentificationError(f"{p}: {err}")
+        f = full.resolve()
         try:
             level = float(row[man.level])
         except (TypeError, ValueError):
-            raise IdentificationError(f"{p}: line {i}: level {str(row[man.level])[:24]!r} is not a "
+            raise IdentificationError(f"{p}: line {i}: the level (column {man.level!r}) is not a "
                                       "number") from None
         if not math.isfinite(level):
             raise IdentificationError(f"{p}: line {i}: level {level!r} (column {man.level!r}) is not a finite "
                                       "number")
-        kind = not_regular(f)
-        if kind == "missing":
-            raise IdentificationError(f"{p}: line {i}: no such file: {f}")
-        if kind is not None:
-            raise IdentificationError(f"{p}: line {i}: {f} is not a regular file ({kind})")
         out.append((str(f), None, "fit", [], [], level, []))
     if not out:
         raise IdentificationError(f"{p}: the manifest lists no files")

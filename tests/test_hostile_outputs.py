@@ -1,0 +1,84 @@
+"""Outputs that must not land where they would: over an input, through a symlink mrctl did not create."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+
+from mrctl.cli import main
+from mrctl.config import load_yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+FIG5 = ROOT / "config" / "experiments" / "fig5.yaml"
+T7 = ROOT / "config" / "experiments" / "labjack_t7.yaml"
+
+
+# -- an output never replaces an input, --force or not, for every command -----------------------
+def test_calibrate_never_writes_over_its_experiment(tmp_path, capsys):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_bytes(T7.read_bytes())
+    os.link(cfg, tmp_path / "hard.yaml")
+    for out in ("c.yaml", "hard.yaml"):
+        assert main(["calibrate", str(cfg), "--out", str(tmp_path / out), "--force"]) == 2
+        assert "an input of this command" in capsys.readouterr().err
+    assert cfg.read_bytes() == T7.read_bytes()
+
+
+@pytest.mark.parametrize("argv", [
+    lambda d: ["simulate", str(d / "x.yaml"), "--out", str(d / "x.yaml"), "--force"],
+    lambda d: ["simulate", str(d / "x.yaml"), "--out", str(d / "e.csv"), "--force"],  # the excitation it names
+    lambda d: ["run", str(d / "x.yaml"), "--out", str(d / "x.yaml"), "--force", "--duration", "0.1"],
+    lambda d: ["sweep", str(d / "s.yaml"), "--out", str(d / "s.yaml")],
+    lambda d: ["sweep", str(d / "s.yaml"), "--out", str(d / "x.yaml")],  # its base
+    lambda d: ["report", str(d / "r.csv"), "--out", str(d / "r.json"), "--force"],  # the run's sidecar
+], ids=["simulate-config", "simulate-series", "run-config", "sweep-file", "sweep-base", "report-sidecar"])
+def test_no_command_writes_over_one_of_its_inputs(tmp_path, capsys, argv):
+    data = load_yaml(FIG5)
+    (tmp_path / "x.yaml").write_text(yaml.safe_dump({**data, "duration_s": 0.2}))
+    assert main(["simulate", str(tmp_path / "x.yaml"), "--out", str(tmp_path / "r.csv"), "-q"]) == 0
+    (tmp_path / "e.csv").write_text("t,x\n0,0\n0.1,0.001\n0.2,0\n")
+    data["excitation"] = {"type": "file", "path": "e.csv"}
+    (tmp_path / "x.yaml").write_text(yaml.safe_dump({**data, "duration_s": 0.2}))
+    (tmp_path / "s.yaml").write_text("base: x.yaml\ngrid: {demand.c_des: [250]}\n")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    capsys.readouterr()
+    assert main(argv(tmp_path)) == 2
+    assert "an input of this command" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+# -- mrctl examples never follows a symlink it did not create ------------------------------------
+@pytest.mark.parametrize("force", [False, True])
+def test_examples_refuse_a_symlinked_folder_and_write_nothing_through_it(tmp_path, capsys, force):
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    (target / "experiments").mkdir()
+    (target / "experiments" / "fig5.yaml").write_text("precious\n")
+    dest = tmp_path / "ex"
+    dest.mkdir()
+    (dest / "config").symlink_to(target)
+    assert main(["examples", str(dest), *(["--force"] if force else [])]) == 2
+    err = capsys.readouterr().err
+    assert f"{dest / 'config'}: is a symlink" in err and "nothing written" in err
+    assert sorted(p.name for p in target.rglob("*")) == ["experiments", "fig5.yaml"]
+    assert (target / "experiments" / "fig5.yaml").read_text() == "precious\n"
+    assert sorted(p.name for p in dest.iterdir()) == ["config"]  # nothing else written either
+
+
+def test_examples_refuse_a_symlinked_dir_and_a_linked_file(tmp_path, capsys):
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to("real")
+    assert main(["examples", str(tmp_path / "link")]) == 2
+    assert "link: is a symlink" in capsys.readouterr().err and not any((tmp_path / "real").iterdir())
+    dest = tmp_path / "ex"
+    assert main(["examples", str(dest), "-q"]) == 0
+    (tmp_path / "secret").write_text("keep\n")
+    victim = dest / "config" / "experiments" / "fig5.yaml"
+    victim.unlink()
+    victim.symlink_to(tmp_path / "secret")
+    assert main(["examples", str(dest), "--force"]) == 2
+    assert "fig5.yaml: is a symlink" in capsys.readouterr().err
+    assert (tmp_path / "secret").read_text() == "keep\n"
