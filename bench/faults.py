@@ -51,6 +51,9 @@ BEGIN = "<!-- BEGIN GENERATED -->"
 END = "<!-- END GENERATED -->"
 
 LATCHED = {"auto_resume": False}
+#: re-arm (mrctl arm) 1 s after the daemon latched (the fault is over by then): the latch, then the ramp
+ARM = {"arms_after_latch_s": (1.0,), "expect_latch": True}
+LATCH = "latched: 0 A until mrctl arm, then a ramp at the slew limit"
 #: a link_loss_s long enough for the daemon to reconnect after a 0.2 s outage
 PATIENT = {"link_loss_s": 0.5}
 HOLD = "hold 5 ticks, then 0 A"
@@ -88,9 +91,14 @@ SCENARIOS: list[Scenario] = [
     Scenario("ignore_writes", f"{HOLD}; device watchdog 0 A (50 ms); exit 3", ["ignore_writes@3.0+1.0"], expect_exit=3),
     Scenario("ignore_setpoints", "not detected (samples are good): the device keeps the old current, "
              "the truth log shows it", ["ignore_setpoints@3.0+0.3"], expect_fault=False),
-    Scenario("disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume (link_loss_s 0.5)",
-             ["disconnect@3.0+0.2"], safety=PATIENT),
+    Scenario("disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect; {LATCH} (link_loss_s 0.5)",
+             ["disconnect@3.0+0.2"], safety=PATIENT, **ARM),
     Scenario("disconnect 1 s", f"{HOLD}; device watchdog 0 A; exit 3", ["disconnect@3.0+1.0"], expect_exit=3),
+    # -- the E-stop (the device reports ESTOP, latched until CLEAR_FAULTS once its input closed)
+    Scenario("estop 0.5 s", f"0 A at once (no hold); {LATCH}", ["estop@3.0+0.5"], **ARM),
+    Scenario("estop open at mrctl arm", "0 A at once; mrctl arm refused while the E-stop is open; 0 A to the end",
+             ["estop@3.0+10"], arms_after_latch_s=(0.0,), expect_latch=True),
+    Scenario("TCP estop 0.5 s", f"0 A at once (no hold); {LATCH}", ["estop@3.0+0.5"], transport="modbus-tcp", **ARM),
     # -- the shipped serial experiment as is (device-paced, 0.84 ms reply timeout,
     # link_loss_s and link probe as shipped, inline serving): what the suite's
     # allowances change
@@ -101,33 +109,36 @@ SCENARIOS: list[Scenario] = [
     Scenario("TCP nan", f"{HOLD}; auto-resume", ["nan@3.0+0.3"], transport="modbus-tcp"),
     Scenario("TCP modbus_exception 1 s", f"{HOLD}; writes refused: device watchdog 0 A; exit 3",
              ["modbus_exception@3.0+1.0"], transport="modbus-tcp", expect_exit=3),
-    Scenario("TCP modbus_exception 70 ms", f"{HOLD}; writes refused: device watchdog 0 A; auto-resume",
-             ["modbus_exception@3.0+0.07"], transport="modbus-tcp"),
-    Scenario("TCP corrupt MBAP 70 ms", f"{HOLD}; auto-resume", ["corrupt_crc@3.0+0.07"], transport="modbus-tcp"),
-    Scenario("TCP garbage 70 ms", f"{HOLD} (stream resync); auto-resume", ["garbage@3.0+0.07"],
+    Scenario("TCP modbus_exception 70 ms", f"{HOLD}; writes refused: device watchdog 0 A; {LATCH}",
+             ["modbus_exception@3.0+0.07"], transport="modbus-tcp", **ARM),
+    Scenario("TCP corrupt MBAP 40 ms", f"{HOLD}; auto-resume (40 failed ticks < latch_after_s' 50)",
+             ["corrupt_crc@3.0+0.04"], transport="modbus-tcp"),
+    Scenario("TCP corrupt MBAP 0.2 s", f"{HOLD}; {LATCH} (a link loss over latch_after_s)",
+             ["corrupt_crc@3.0+0.2"], transport="modbus-tcp", safety=PATIENT, **ARM),
+    Scenario("TCP garbage 40 ms", f"{HOLD} (stream resync); auto-resume", ["garbage@3.0+0.04"],
              transport="modbus-tcp"),
     Scenario("TCP drop_replies 0.15 s", f"{HOLD}; auto-resume", ["drop_replies@3.0+0.15"], transport="modbus-tcp"),
-    Scenario("TCP disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume (link_loss_s 0.5)",
-             ["disconnect@3.0+0.2"], transport="modbus-tcp", safety=PATIENT),
+    Scenario("TCP disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect; {LATCH} (link_loss_s 0.5)",
+             ["disconnect@3.0+0.2"], transport="modbus-tcp", safety=PATIENT, **ARM),
     Scenario("TCP ignore_writes", f"{HOLD}; device watchdog 0 A; exit 3", ["ignore_writes@3.0+1.0"],
              transport="modbus-tcp", expect_exit=3),
     # -- device pacing (loop.pacing: device, the SYNC flag; serial) ------------------------
     Scenario("nan, device-paced", f"{HOLD}; auto-resume", ["nan@3.0+0.3"], pacing="device"),
     Scenario("drop_replies 0.15 s, device-paced", f"{HOLD}; auto-resume", ["drop_replies@3.0+0.15"],
              pacing="device"),
-    Scenario("disconnect 0.2 s, device-paced", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume "
-             "(link_loss_s 0.5)", ["disconnect@3.0+0.2"], safety=PATIENT, pacing="device"),
+    Scenario("disconnect 0.2 s, device-paced", f"{HOLD}; device watchdog 0 A; reconnect; {LATCH} "
+             "(link_loss_s 0.5)", ["disconnect@3.0+0.2"], safety=PATIENT, pacing="device", **ARM),
     # -- Modbus RTU (device-paced and served inline, as hil_modbus_rtu.yaml and hil_sim ship;
     # its client sleeps for the reply, so the two do not starve each other) -------------
     Scenario("RTU nan", f"{HOLD}; auto-resume", ["nan@3.0+0.3"], transport="modbus-rtu", pacing="device", serve="inline"),
-    Scenario("RTU corrupt_crc 70 ms", f"{HOLD}; auto-resume", ["corrupt_crc@3.0+0.07"], transport="modbus-rtu",
+    Scenario("RTU corrupt_crc 40 ms", f"{HOLD}; auto-resume", ["corrupt_crc@3.0+0.04"], transport="modbus-rtu",
              pacing="device", serve="inline"),
     Scenario("RTU garbage", "tolerated: the client hunts for its reply", ["garbage@3.0+0.3"],
              transport="modbus-rtu", pacing="device", serve="inline", expect_fault=False),
     Scenario("RTU drop_replies 0.15 s", f"{HOLD}; auto-resume", ["drop_replies@3.0+0.15"], transport="modbus-rtu",
              pacing="device", serve="inline"),
-    Scenario("RTU disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect, auto-resume (link_loss_s 0.5)",
-             ["disconnect@3.0+0.2"], transport="modbus-rtu", safety=PATIENT, pacing="device"),
+    Scenario("RTU disconnect 0.2 s", f"{HOLD}; device watchdog 0 A; reconnect; {LATCH} (link_loss_s 0.5)",
+             ["disconnect@3.0+0.2"], transport="modbus-rtu", safety=PATIENT, pacing="device", **ARM),
     # -- process faults -------------------------------------------------------------------
     Scenario("SIGTERM", "0 A at the device, complete log, exit 0", process="SIGTERM", duration_s=10.0,
              process_at_ticks=1000),
@@ -173,8 +184,8 @@ def markdown(scenarios: list[Scenario], results: list[dict[str, Any]], meta: dic
         f"{meta['cpus']} CPUs); {meta['wall_s']:.0f} s in total.",
         "",
         "| fault | expected reaction | measured ticks to 0 A at the device | daemon ticks to 0 A commanded "
-        "| kept running / exit code | recovered | ticks lost |",
-        "|---|---|---|---|---|---|---|",
+        "| kept running / exit code | recovered | largest rise per tick (A) | ticks lost |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     notes = []
     devs = []
@@ -182,7 +193,7 @@ def markdown(scenarios: list[Scenario], results: list[dict[str, Any]], meta: dic
         row = table_row(sc, r)
         name = f"{row['fault']} ({sc.transport})" if not sc.process else row["fault"]
         lines.append(f"| {name} | {row['expected']} | {row['device']} | {row['daemon']} | {row['kept']} | "
-                     f"{row['recovered']} | {row['lost']} |")
+                     f"{row['recovered']} | {row['rise']} | {row['lost']} |")
         for why in r.get("retried_because") or []:
             notes.append(f"- {sc.name}: an earlier run was not usable and was repeated: {why}")
         for d in deviations(sc, r):
@@ -190,10 +201,13 @@ def markdown(scenarios: list[Scenario], results: list[dict[str, Any]], meta: dic
     lines.append("")
     lines.append("Columns: *device* = truth-log ticks from the fault's first device tick to the first tick "
                  "whose applied driver input `I_cmd` is 0 A because of it, and who did it (`daemon` = its 0 A "
-                 "setpoint arrived, `OUTPUT_ENABLED` set; `watchdog` = no live setpoint, the device's 50 ms "
+                 "setpoint arrived; `watchdog` = no live setpoint, `WATCHDOG_TRIPPED`, the device's 50 ms "
                  "watchdog; `never` = the device kept a current); *daemon* = the daemon's own ticks (run-log "
                  "rows) from the first tick that saw a bad or missing sample of the fault to the first row "
-                 "commanding 0 A in FAULT; *ticks lost* = the loop's tick count in the sidecar minus the "
+                 "commanding 0 A in FAULT; *largest rise* = the largest increase of the commanded current "
+                 "from one logged tick to the next over the whole run (the first tick's from 0 A, every "
+                 "resume's and re-arm's: the slew limit, 50 A/s, allows 0.050 A a tick); "
+                 "*ticks lost* = the loop's tick count in the sidecar minus the "
                  "log's rows (skipped deadlines are not ticks; they are the `k` column's jumps).")
     lines += ["", "Where the measurement departs from the expected reaction (generated):", ""]
     lines += devs or ["- none"]

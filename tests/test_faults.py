@@ -29,6 +29,7 @@ import pytest
 from hil_sim.bench import BenchDevice
 from hil_sim.config import ConfigError, validate_bench
 from hil_sim.testing.fault_suite import Scenario, run_scenario, usable
+from hil_sim.testing.fault_suite.scenario import SLEW_A_PER_S as SLEW
 from hil_sim.faults import FaultBit, FaultSchedule, check_fault_list, check_transport, parse_fault_arg
 from hil_sim.state import DeviceState
 from mrctl.io.base import Disconnected, Sample, Status
@@ -455,6 +456,7 @@ def _run(sc: Scenario, tmp_path: Path, tries: int = 3) -> dict:
     daemon in FAULT (0 A). Neither is what is under test; both are printed."""
     for i in range(tries):
         r = run_scenario(sc, tmp_path / f"try{i}")
+        r["workdir"] = str(tmp_path / f"try{i}")
         why = usable(r)
         if why is None:
             return r
@@ -466,9 +468,10 @@ def _run(sc: Scenario, tmp_path: Path, tries: int = 3) -> dict:
 def sample_and_link_faults(tmp_path_factory) -> dict:
     # three faults in one run; each starts at a velocity peak of the 1 Hz sine
     # (the law commands ~0.4 A there) and the daemon has recovered before the next
-    # (0.2 s of dropped replies: > hold_ticks failed exchanges even at ~10 ms per
-    # tick on a loaded box, < link_loss_s' 100 at >= 5 ms each)
-    sc = Scenario("ci_combined", "", ["nan@4.0+0.3", "stale_seq@4.5+0.3", "drop_replies@5.0+0.2"],
+    # (0.08 s of dropped replies: > hold_ticks failed exchanges even at ~10 ms per
+    # tick on a loaded box, < latch_after_s' 50 at >= 5 ms each: no latch; a longer
+    # link loss latches, test_a_link_loss_beyond_latch_after_s_latches_...)
+    sc = Scenario("ci_combined", "", ["nan@4.0+0.3", "stale_seq@4.5+0.3", "drop_replies@5.0+0.08"],
                   duration_s=6.5)
     return _run(sc, tmp_path_factory.mktemp("combined"))
 
@@ -495,7 +498,7 @@ def test_device_paced_daemon_commands_0A_within_hold_and_recovers(tmp_path: Path
     """The same sample and link faults with the loop on the device's clock
     (loop.pacing: device, SYNC): the supervisor's reactions are in daemon
     ticks, so they must hold unchanged."""
-    sc = Scenario("ci_device_paced", "", ["nan@4.0+0.3", "drop_replies@5.0+0.2"], duration_s=6.5,
+    sc = Scenario("ci_device_paced", "", ["nan@4.0+0.3", "drop_replies@5.0+0.08"], duration_s=6.5,
                   pacing="device")
     r = _run(sc, tmp_path)
     assert _exit_ok(r), r["daemon_stderr"]
@@ -522,6 +525,65 @@ def test_rtu_device_paced_dropped_replies_give_0A_and_recover(tmp_path: Path) ->
     assert w["daemon_fault_bits_at_0A"] & int(Fault.MISSING), w
     assert w["recovered"], w
     assert r["truth_final_I_cmd"] == 0.0
+
+
+def _latched_until_armed(r: dict, k_fault: int) -> tuple[int, int]:
+    """(the row of the first 0 A after device tick ``k_fault``, the row the re-arm's
+    ramp starts at): asserts 0 A on every row between, and every rise of the whole
+    run within the slew limit (the first tick's, the resumes', the re-arm's)."""
+    import numpy as np
+
+    from hil_sim.testing.fault_suite import load_logs
+
+    run = load_logs(Path(r["workdir"]))[0]
+    t_dev, I = run["t_dev"], np.nan_to_num(run["I"], nan=0.0)
+    i0 = int(np.argmax(np.isfinite(t_dev) & (t_dev >= k_fault / 1000.0)))
+    z = i0 + int(np.argmax(I[i0:] == 0.0))
+    up = z + int(np.argmax(I[z:] > 0.0))
+    assert up > z and (I[z:up] == 0.0).all() and I[up] <= SLEW * 1e-3 + 1e-9
+    assert r["max_rise_A"] <= SLEW * 1e-3 + 1e-9, r["max_rise_A"]
+    return z, up
+
+
+def test_a_link_loss_beyond_latch_after_s_latches_until_mrctl_arm_then_ramps(tmp_path: Path) -> None:
+    """0.8 s of dropped replies (more than latch_after_s' 50 ticks at <= 10 ms a tick, fewer than a
+    raised link_loss_s): 0 A within the hold, still 0 A after the link is back (auto_resume or not),
+    until `mrctl arm`; then the current ramps up at the slew limit. The run completes, degraded
+    by the time latched (exit 5)."""
+    sc = Scenario("ci_latch_link", "", ["drop_replies@4.0+0.8"], safety={"link_loss_s": 2.0},
+                  duration_s=7.0, arms_after_latch_s=(1.5,))
+    r = _run(sc, tmp_path)
+    assert r["exit_code"] == 5, r["daemon_stderr"]
+    a = r["arms"][0]
+    assert a["armed"] and "re-armed" in a["message"], a
+    assert a["status_before"]["safety_state"] == "LATCHED" and a["status_before"]["latch_cause"] == "link loss", a
+    w = r["windows"][0]
+    assert w["daemon_ticks_to_0A"] is not None and w["daemon_ticks_to_0A"] <= HOLD + 2, w
+    saf = r["safety"]
+    assert saf["latches"] == 1 and saf["arms"] == 1 and saf["ticks_latched"] > 700, saf
+    z, up = _latched_until_armed(r, 4000)
+    assert up - z > 700  # from the latch to the arm 1.5 s later (0.8 s of it after the link came back)
+
+
+def test_estop_latches_at_once_rearm_refused_while_open_and_taken_once_closed(tmp_path: Path) -> None:
+    """hil_sim's E-stop (the serial device reports ESTOP, latched until CLEAR_FAULTS once its input
+    closed): 0 A at the first sample that says so, no hold; `mrctl arm` while the input is still
+    open is refused naming the E-stop; one after it closed re-arms (the daemon's CLEAR_FAULTS
+    clears the device's latch) and the current ramps up at the slew limit."""
+    sc = Scenario("ci_estop", "", ["estop@4.0+1.5"], duration_s=8.0, arms_after_latch_s=(0.0, 2.0))
+    r = _run(sc, tmp_path)
+    refused, taken = r["arms"]
+    assert not refused["armed"] and "E-stop" in refused["message"], refused
+    assert taken["armed"] and "re-armed" in taken["message"], taken
+    w = r["windows"][0]
+    assert w["daemon_ticks_to_0A"] is not None and w["daemon_ticks_to_0A"] <= 1, w  # no hold: at once
+    assert w["daemon_fault_bits_at_0A"] & int(Fault.ESTOP) and w["daemon_fault_bits_at_0A"] & int(Fault.LATCHED), w
+    assert w["device_0A_inside_window"], w
+    saf = r["safety"]
+    assert saf["latches"] == 1 and saf["arms"] == 1 and saf["arms_refused"] == 1, saf
+    assert r["exit_code"] == 5, r["daemon_stderr"]
+    z, up = _latched_until_armed(r, 4000)
+    assert up - z > 1000  # from the E-stop to the second arm 2 s later
 
 
 def test_combined_run_loses_no_tick(sample_and_link_faults) -> None:

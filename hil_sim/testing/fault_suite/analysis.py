@@ -10,7 +10,10 @@ from typing import Any
 import numpy as np
 
 from hil_sim.faults import parse_fault_arg
-from hil_sim.testing.fault_suite.scenario import ENABLED_BIT, RATE_HZ, REACTION_TICKS, WATCHDOG_TICKS, Scenario
+from hil_sim.testing.fault_suite.scenario import ENABLED_BIT, RATE_HZ, REACTION_TICKS, WATCHDOG_TICKS, WD_BIT as TRIPPED_BIT, Scenario
+from mrctl.core.safety_config import Fault
+
+DEVICE_WATCHDOG_BIT = int(Fault.DEVICE_WATCHDOG)
 
 __all__ = ["load_logs", "tick_accounting", "fault_window", "analyse", "analyse_process"]
 
@@ -77,9 +80,10 @@ def _range_in(a: np.ndarray, mask: np.ndarray) -> list[float] | None:
 
 
 def _zero_by(status: int) -> str:
-    """Who made a 0 A tick: the daemon's (enabled, 0 A) setpoint, or the device
-    watchdog (no live setpoint: OUTPUT_ENABLED clear)."""
-    return "daemon" if status & ENABLED_BIT else "watchdog"
+    """Who made a 0 A tick: the daemon's live setpoint (0 A, the output enabled,
+    or disabled by its FAULT), or the device watchdog (no live setpoint:
+    WATCHDOG_TRIPPED)."""
+    return "watchdog" if status & TRIPPED_BIT else "daemon"
 
 
 def fault_window(run: dict, truth: dict, k0: int, k1: int, rate_hz: float = RATE_HZ) -> dict[str, Any]:
@@ -168,8 +172,17 @@ def analyse(sc: Scenario, workdir: Path, res: dict[str, Any]) -> dict[str, Any]:
     if not run or not truth:
         out["error"] = "missing log(s): " + ", ".join(n for n, v in (("run", run), ("truth", truth)) if not v)
         return out
+    # the device time of the daemon's first tick that saw the device's watchdog tripped (it latches)
+    f = np.nan_to_num(run["fault"], nan=0.0).astype(np.int64) if "fault" in run else np.zeros(0, np.int64)
+    hit = np.flatnonzero(f & DEVICE_WATCHDOG_BIT)
+    out["daemon_saw_trip_t_dev"] = float(run["t_dev"][hit[0]]) if len(hit) else None
     out["truth_final_I_cmd"] = float(truth["I_cmd"][-1])
     out["truth_rows"] = int(len(truth["k"]))
+    # the largest rise of the commanded current from one logged tick to the next (the first from 0 A):
+    # the slew limit bounds it, after a fault, a resume and a re-arm alike
+    I = np.nan_to_num(run["I"], nan=0.0)
+    rises = np.diff(np.concatenate(([0.0], I)))
+    out["max_rise_A"] = float(rises.max()) if len(rises) else 0.0
     windows = []
     for text in sc.faults:
         spec, _ = parse_fault_arg(text)

@@ -93,6 +93,10 @@ def run_scenario(sc: Scenario, workdir: Path) -> dict[str, Any]:
         out = workdir / "run.csv"
         d = Daemon(cfg, out, sc.duration_s)
         proc_info: dict[str, Any] = {}
+        if sc.arms_after_latch_s:
+            latched = d.wait_for(lambda s: s.get("safety_state") == "LATCHED", timeout_s=sc.duration_s + 30.0)
+            t_latched = time.monotonic()
+            res["arms"] = [_arm_at(d, latched is not None, t_latched + after) for after in sc.arms_after_latch_s]
         if sc.process in ("SIGTERM", "SIGINT", "SIGKILL"):
             # signal while the law commands a clear current (not near one of the
             # fig5 law's own 0 A zero crossings), so "0 A at the device" is the exit's
@@ -140,8 +144,28 @@ def run_scenario(sc: Scenario, workdir: Path) -> dict[str, Any]:
     return res
 
 
+def _arm_at(d: Daemon, latched: bool, at: float) -> dict[str, Any]:
+    """``mrctl arm`` (the client call) at monotonic time ``at``: what the daemon
+    said, and its state just before (nothing if it never latched)."""
+    from mrctl.daemon.arm import ArmRefused, arm
+    from mrctl.daemon.status import StatusError
+
+    if not latched:
+        return {"status_before": None, "armed": False, "message": "never latched"}
+    time.sleep(max(0.0, at - time.monotonic()))
+    out: dict[str, Any] = {"status_before": _brief_status(d.status())}
+    try:
+        out["message"] = arm(d.sock)
+        out["armed"] = True
+    except ArmRefused as exc:
+        out["armed"], out["message"] = False, str(exc)
+    except StatusError as exc:
+        out["armed"], out["message"] = False, f"no daemon: {exc}"
+    return out
+
+
 def _brief_status(st: dict[str, Any] | None) -> dict[str, Any] | None:
     if not st:
         return None
-    return {k: st.get(k) for k in ("ticks", "safety_state", "link_errors", "reloads", "current_A")}
+    return {k: st.get(k) for k in ("ticks", "safety_state", "latch_cause", "link_errors", "reloads", "current_A")}
 

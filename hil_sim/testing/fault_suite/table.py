@@ -8,7 +8,7 @@ from typing import Any
 from mrctl.errors import ExitCode
 
 from hil_sim.testing.fault_suite.analysis import _fault_made_misses
-from hil_sim.testing.fault_suite.scenario import Scenario
+from hil_sim.testing.fault_suite.scenario import RATE_HZ, Scenario
 
 __all__ = ["table_row", "deviations", "usable"]
 
@@ -35,8 +35,9 @@ def table_row(sc: Scenario, r: dict[str, Any]) -> dict[str, str]:
         kept = "kept running, exit 5 (degraded: the fault broke an acceptance bound)"
     else:
         kept = f"exit {exit_code}"
+    rise = r.get("max_rise_A")
     row = {"fault": sc.name, "expected": sc.expected, "device": "-", "daemon": "-", "kept": kept,
-           "recovered": "-", "lost": lost_txt}
+           "recovered": "-", "lost": lost_txt, "rise": "-" if rise is None else f"{rise:.3f}"}
     if r.get("error"):
         row["device"] = row["daemon"] = f"error: {r['error']}"
         return row
@@ -68,6 +69,8 @@ def table_row(sc: Scenario, r: dict[str, Any]) -> dict[str, str]:
             row["recovered"] = "n/a (no fault)"
         elif exit_code not in (0, COMPLETED_DEGRADED):
             row["recovered"] = "no (run ended)"
+        elif _latches(r):
+            row["recovered"] = _after_latch(r)
         elif sc.safety.get("auto_resume") is False:
             row["recovered"] = "no (latched)" if not w.get("recovered") else "yes (?!)"
         elif w.get("recovered"):
@@ -99,10 +102,31 @@ def table_row(sc: Scenario, r: dict[str, Any]) -> dict[str, str]:
     return row
 
 
-def deviations(sc: Scenario, r: dict[str, Any], hold_ticks: int = 5) -> list[str]:
-    """Where the measurement departs from the scenario's documented expectation."""
+def _latches(r: dict[str, Any]) -> int:
+    return int((r.get("safety") or {}).get("latches") or 0)
+
+
+def _after_latch(r: dict[str, Any]) -> str:
+    """The recovered column of a latched run: the cause, and what mrctl arm came to."""
+    arms = r.get("arms") or []
+    taken = [a for a in arms if a.get("armed") and "re-armed" in str(a.get("message"))]
+    cause = next((str((a.get("status_before") or {}).get("latch_cause")) for a in arms), None)
+    what = f"latched ({cause})" if cause else "latched"
+    if not arms:
+        return f"no: {what}, 0 A to the end"
+    if taken:
+        return f"{what}; after mrctl arm"
+    return f"no: {what}; mrctl arm refused"
+
+
+def deviations(sc: Scenario, r: dict[str, Any], hold_ticks: int = 5, slew_step_A: float = 0.05) -> list[str]:
+    """Where the measurement departs from the scenario's documented expectation
+    (``slew_step_A``: the pinned slew limit times the 1 ms period)."""
     out: list[str] = []
     exit_code = r.get("exit_code")
+    rise = r.get("max_rise_A")
+    if rise is not None and rise > slew_step_A + 1e-9:
+        out.append(f"the current rose {rise:.3f} A in one tick > the slew limit's {slew_step_A:.3f} A")
     if sc.process == "SIGKILL":
         p = r.get("process") or {}
         if p.get("restart_first_setpoint_A") != 0.0:
@@ -148,11 +172,15 @@ def deviations(sc: Scenario, r: dict[str, Any], hold_ticks: int = 5) -> list[str
         if n is not None and n > hold_ticks + 2:
             out.append(f"0 A after {n} daemon ticks > hold_ticks + 2 = {hold_ticks + 2}")
         if (sc.expect_fault and sc.expect_exit == 0 and exit_code in (0, COMPLETED_DEGRADED)
-                and sc.safety.get("auto_resume", True)
+                and sc.safety.get("auto_resume", True) and not sc.expect_latch
                 and not w.get("recovered")):
             out.append("did not recover (auto_resume)")
         if sc.safety.get("auto_resume") is False and w.get("recovered"):
             out.append("recovered although latched")
+    if sc.expect_latch and not _latches(r) and not sc.expect_exit:
+        out.append("did not latch")
+    if not sc.expect_latch and sc.safety.get("auto_resume", True) and _latches(r):
+        out.append(f"latched ({_after_latch(r)})")
     return out
 
 
@@ -165,7 +193,13 @@ def usable(r: dict[str, Any]) -> str | None:
     """
     if (r.get("ticks") or {}).get("rows", 0) == 0 and r.get("exit_code") != 0:
         return "start-up failed: " + "; ".join(r.get("daemon_stderr") or [])
-    for w in r.get("windows") or []:
+    ws = r.get("windows") or []
+    trip = r.get("daemon_saw_trip_t_dev")
+    if ws and trip is not None and trip < ws[0].get("k0", 0) / RATE_HZ:
+        # the device's watchdog latches the run: a host stalled past it in the loop before the
+        # fault began leaves nothing to measure (the box's noise, not the fault under test)
+        return f"the device's watchdog tripped at device time {trip:.3f} s, before the fault (a stalled host)"
+    for w in ws:
         if not w.get("valid"):
             return f"window invalid: {w.get('why')}"
         if w.get("I_before_A") == 0.0 or w.get("device_I_before_A") == 0.0:
