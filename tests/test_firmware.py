@@ -388,7 +388,7 @@ def test_the_host_build_refuses_bad_arguments(programs):
 def _run_over_pty(programs, d: Path, host_args: tuple[str, ...] = (), during=None,
                   duration_s: float = 3.0) -> tuple[subprocess.CompletedProcess, str, str, int, Path]:
     """The host build on a pty at 200 Hz, `mrctl run` of firmware_host.yaml against it for
-    ``duration_s`` (3 s); ``during(status_socket)`` runs beside the daemon if given."""
+    ``duration_s`` (3 s); ``during(status_socket, host_process)`` runs beside the daemon if given."""
     from hil_sim.testing.harness import env
 
     link = d / "tty"
@@ -410,7 +410,7 @@ def _run_over_pty(programs, d: Path, host_args: tuple[str, ...] = (), during=Non
             proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                     text=True)
             try:
-                during(str(d / "run.sock"))
+                during(str(d / "run.sock"), host)
             finally:
                 o, e = proc.communicate(timeout=60)
             res = subprocess.CompletedProcess(cmd, proc.returncode, o, e)
@@ -468,8 +468,8 @@ def test_estop_on_the_firmware_latches_the_run_until_mrctl_arm_then_ramps(progra
 
     said: dict = {}
 
-    def during(sock: str) -> None:
-        deadline = time.monotonic() + 30
+    def during(sock: str, _host) -> None:
+        deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
             try:
                 st = query_status(sock, timeout_s=1.0)
@@ -480,8 +480,11 @@ def test_estop_on_the_firmware_latches_the_run_until_mrctl_arm_then_ramps(progra
                 break
             time.sleep(0.02)
         time.sleep(1.0)  # the pin has closed (0.5 s window), the daemon still latched
-        said["before_arm"] = query_status(sock, timeout_s=1.0)
-        said["arm"] = arm(sock)
+        try:
+            said["before_arm"] = query_status(sock, timeout_s=1.0)
+            said["arm"] = arm(sock)
+        except OSError as exc:  # no daemon: a refused start, retried below
+            said["error"] = str(exc)
 
     for attempt in range(3):
         d = tmp_path / f"a{attempt}"
@@ -502,9 +505,67 @@ def test_estop_on_the_firmware_latches_the_run_until_mrctl_arm_then_ramps(progra
     first = int(np.argmax(fault & 256))  # Fault.ESTOP
     assert fault[first] & 1024  # latched at once
     back = first + int(np.argmax(I[first:] > 0))
-    assert back > first + 150 and (I[first:back] == 0).all()  # 0 A from the E-stop to the re-arm (> 0.75 s)
+    k = run["k"]  # tick indices (rows skip the deadlines a loaded host missed)
+    assert k[back] - k[first] > 150 and (I[first:back] == 0).all()  # 0 A from the E-stop to the re-arm (> 0.75 s)
     rises = np.diff(np.concatenate(([0.0], I)))
     assert rises.max() <= 50.0 / 200 + 1e-9  # the slew limit at 200 Hz, the ramp after the re-arm included
     assert I[back:].max() > 0.1
     acc = side["summary"]["acceptance"]["figures"]
     assert acc["latched_s"] > 0.75 and any("time latched" in r for r in side["verdict_reasons"])
+
+
+@pytest.mark.hil
+def test_a_stalled_firmware_latches_the_run_until_mrctl_arm(programs, tmp_path):
+    """The host build stopped (SIGSTOP) for 0.4 s mid-run: no replies for longer than the
+    shipped latch_after_s (0.25 s), and the firmware's own watchdog expires as soon as it runs
+    again: the daemon latches (link loss, or device watchdog), holds 0 A after the firmware is
+    back, and re-arms on `mrctl arm`, ramping at the slew limit. Exit 5, the time latched."""
+    import numpy as np
+
+    from mrctl.daemon.arm import arm
+    from mrctl.daemon.status import query_status
+    from mrctl.runlog.read import read_run, read_sidecar
+
+    said: dict = {}
+
+    def during(sock: str, host) -> None:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                if query_status(sock, timeout_s=1.0).get("ticks", 0) >= 300:
+                    break
+            except OSError:
+                pass
+            time.sleep(0.02)
+        else:
+            return  # never ran 300 ticks: a refused start, retried below
+        host.send_signal(signal.SIGSTOP)
+        time.sleep(0.4)
+        host.send_signal(signal.SIGCONT)
+        time.sleep(0.8)
+        try:
+            said["before_arm"] = query_status(sock, timeout_s=1.0)
+            said["arm"] = arm(sock)
+        except OSError as exc:
+            said["error"] = str(exc)
+
+    for attempt in range(3):
+        d = tmp_path / f"a{attempt}"
+        d.mkdir()
+        res, stdout, stderr, code, out = _run_over_pty(programs, d, during=during, duration_s=5.0)
+        if not (res.returncode == 3 and "refusing to start" in res.stderr):
+            break
+    assert res.returncode == 5, res.stderr
+    st = said["before_arm"]
+    assert st["safety_state"] == "LATCHED" and st["latch_cause"] in ("link loss", "device watchdog"), st
+    assert st["current_A"] == 0.0 and "re-armed" in said["arm"]
+    run = read_run(out)
+    fault = np.nan_to_num(run["fault"]).astype(int)
+    I = np.nan_to_num(run["I"])
+    first = int(np.argmax(fault & 1024))  # the first latched row
+    back = first + int(np.argmax(I[first:] > 0))
+    assert run["k"][back] - run["k"][first] > 100 and (I[first:back] == 0).all()  # > 0.5 s at 0 A
+    assert np.diff(np.concatenate(([0.0], I))).max() <= 50.0 / 200 + 1e-9
+    side = read_sidecar(out)
+    assert side["summary"]["safety"]["latches"] == 1 and side["summary"]["safety"]["arms"] == 1
+    assert any("time latched" in r for r in side["verdict_reasons"])
