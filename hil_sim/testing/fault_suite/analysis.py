@@ -22,10 +22,12 @@ def load_logs(workdir: Path, name: str = "run.csv") -> tuple[dict, dict, dict, d
     """(run columns, sidecar, truth columns, truth summary); missing → {}."""
     from mrctl.daemon.recorder import read_run, read_sidecar
 
+    from mrctl.errors import MrctlError
+
     def safe(f, *a):
         try:
             return f(*a)
-        except (OSError, ValueError, json.JSONDecodeError):
+        except (OSError, ValueError, MrctlError):  # a log the run never wrote (FileProblem: no such file)
             return {}
 
     run = safe(read_run, workdir / name)
