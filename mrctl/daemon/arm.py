@@ -25,6 +25,7 @@ from typing import Any, Callable, Mapping
 
 from mrctl.core.safety import ARM_DONE, ARM_PENDING, ARM_REFUSED
 from mrctl.core.safety_config import ARM_WAIT_S
+from mrctl.daemon.tap import reply_once
 
 __all__ = ["ArmServer", "ArmRefused", "arm"]
 
@@ -66,21 +67,11 @@ class ArmServer:
             state, msg = sup.arm_state, sup.arm_message
         if state == ARM_DONE:
             self.report(f"safety: mrctl arm: {msg}", NOTICE)
-            _reply(conn, {"armed": True, "message": msg})
+            reply_once(conn, {"armed": True, "message": msg})
         else:
             why = msg if state == ARM_REFUSED else "no answer from the loop (is it running?)"
             self.report(f"safety: mrctl arm {why}", WARNING)
-            _reply(conn, {"armed": False, "error": why})
-
-
-def _reply(conn: socket.socket, obj: dict[str, Any]) -> None:
-    try:
-        conn.settimeout(1.0)
-        conn.sendall((json.dumps(obj) + "\n").encode())
-    except OSError:
-        pass
-    finally:
-        conn.close()
+            reply_once(conn, {"armed": False, "error": why})
 
 
 def arm(path: str, connect: Callable[[str], socket.socket] | None = None) -> str:

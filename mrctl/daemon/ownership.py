@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from mrctl.errors import LinkFailure
-from mrctl.util.files import per_user_dir, private_dir
+from mrctl.util.files import flock_holder, per_user_dir, private_dir
 
 __all__ = ["DeviceBusy", "DeviceLock", "acquire", "own", "lock_dir", "SHARED_LOCK_BASE"]
 
@@ -190,15 +190,9 @@ def _open(path: Path) -> int:
 
 def _holder_pid(path: Path, fd: int) -> int | None:
     """The pid holding the flock on this file (/proc/locks), else the file's first line."""
-    try:
-        st = os.fstat(fd)
-        dev = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
-        for line in Path("/proc/locks").read_text().splitlines():
-            f = line.split()
-            if len(f) >= 6 and f[1] == "FLOCK" and f[5] == dev and f[4].isdigit() and int(f[4]) > 0:
-                return int(f[4])
-    except OSError:
-        pass
+    pid = flock_holder(fd)
+    if pid is not None:
+        return pid
     try:
         first = os.pread(fd, 64, 0).split(b"\n", 1)[0]
         return int(first) if first.strip().isdigit() else None

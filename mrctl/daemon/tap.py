@@ -257,11 +257,11 @@ class TapServer:
         try:
             r = parse_request(req, self.bus.columns)
         except ValueError as exc:
-            _reply(conn, {"error": str(exc)})
+            reply_once(conn, {"error": str(exc)})
             return True
         with self._lock:
             if len(self._active) >= self.max_taps:
-                _reply(conn, {"error": f"{self.max_taps} taps are running already; try again later"})
+                reply_once(conn, {"error": f"{self.max_taps} taps are running already; try again later"})
                 return True
             sink = TapSink(self.bus.columns, r, self.formats)
             self._active.add(sink)
@@ -317,7 +317,9 @@ class TapServer:
         return {"active": len(self._active), "served": self.served, "dropped": self.dropped}
 
 
-def _reply(conn: socket.socket, obj: dict[str, Any]) -> None:
+def reply_once(conn: socket.socket, obj: dict[str, Any]) -> None:
+    """One JSON line to a request of the status socket, then the connection closed
+    (a tap refused, an arm answered): never raises."""
     try:
         conn.settimeout(1.0)
         conn.sendall((json.dumps(obj) + "\n").encode())
