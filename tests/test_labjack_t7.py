@@ -44,10 +44,18 @@ def test_preset_addresses_are_ljm_constants() -> None:
     assert p.io("ain")["range_register"]["address"] == 40000
     assert p.io("ain")["resolution_register"]["address"] == 41500
     wd = {k: v["address"] for k, v in p.watchdog["registers"].items()}
-    assert wd == {"enable": 61600, "timeout_s": 61604, "dio_enable": 61630, "dio_state": 61632,
-                  "dio_direction": 61634, "dio_inhibit": 61636, "dac0_enable": 61640, "dac0_value": 61642,
-                  "dac1_enable": 61650, "dac1_value": 61652}
-    assert p.fc23 is False and p.port == 502
+    assert wd == {"enable": 61600, "advanced": 61602, "timeout_s": 61604, "startup_delay_s": 61606,
+                  "strict_enable": 61610, "strict_key": 61612, "reset_enable": 61620, "dio_enable": 61630,
+                  "dio_state": 61632, "dio_direction": 61634, "dio_inhibit": 61636, "dac0_enable": 61640,
+                  "dac0_value": 61642, "dac1_enable": 61650, "dac1_value": 61652}
+    assert p.watchdog["strict_clear"]["address"] == 61614
+    assert p.data["firmware"]["address"] == 60004 and p.data["core_timer"]["address"] == 61520
+    assert p.data["firmware"]["min"] == 1.0016 and p.data["firmware"]["min_core_timer"] == 1.0071
+    assert p.io("ain")["negative_register"]["address"] == 41000
+    assert p.io("ain")["settling_register"]["address"] == 42000
+    assert [p.io("dio")[k]["address"] for k in ("state_register", "direction_register", "inhibit_register")] \
+        == [2800, 2850, 2900]
+    assert p.fc23 is False and p.port == 502 and p.data["modbus"]["mbfb"] == 76
 
 
 # -- mrctl check: every new input is a clear error with its key path ----------------------

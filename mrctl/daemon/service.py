@@ -52,7 +52,7 @@ from mrctl.core.controller import Controller, safe_zero
 from mrctl.daemon import ownership
 from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
-from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
+from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s, wire_words
 from mrctl.config.acceptance import bounds as acceptance_bounds
 from mrctl.daemon.logcheck import LogWatch, close_log, verdict_exit
 from mrctl.daemon.loop import FixedRateLoop
@@ -285,8 +285,9 @@ class Service:
         timeouts: list[int] = []
         rtts, errors = probe(link, cfg.link.probe_exchanges, clock=lambda: self.opts.clock_ns() * 1e-9,
                              timeouts=timeouts)
+        _what, advice = wire_words(cfg.backend)
         f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type,
-                   timeouts=timeouts[0])
+                   timeouts=timeouts[0], advice=advice)
         if f.ok:
             self.say(f.message)
             return exp
