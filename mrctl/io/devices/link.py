@@ -132,7 +132,7 @@ class PresetLink(Link):
         s = cfg.device
         t = s.preset.data["timing"]
         return (f"{s.preset.name} over Ethernet, one MBFB request per tick (datasheet A-1/A-3-1 model: "
-                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {len(s.ains)} AIN x "
+                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {max(s.ains) - min(s.ains) + 1} AIN x "
                 f"{float(t['ain_sample_s'][s.ain_resolution_index]) * 1e3:g} ms at resolution index "
                 f"{s.ain_resolution_index})")
 

@@ -10,11 +10,12 @@ __all__ = ["model_period_s", "tick_ops"]
 def model_period_s(setup: DeviceSetup, medium: str = "ethernet", mbfb: bool = True) -> float:
     """One tick's command-response time by the vendor's figures: the overhead of a request with
     I/O (datasheet A-1, table A.1.1) per request, plus each input's sample time at its resolution
-    index and its settling (A-3-1)."""
+    index and its settling (A-3-1). The inputs are read as one block from the lowest to the highest
+    in use, so the T7 converts every input in between too."""
     t = setup.preset.data["timing"]
     per_ain = float(t["ain_sample_s"][setup.ain_resolution_index]) + setup.ain_settling_us * 1e-6
     n_req = 1 if mbfb else len(tick_ops(setup))
-    return n_req * float(t["overhead_io_s"][medium]) + len(setup.ains) * per_ain
+    return n_req * float(t["overhead_io_s"][medium]) + (max(setup.ains) - min(setup.ains) + 1) * per_ain
 
 
 #: what a written op carries: the DAC's volts, the enable output's level, the watchdog key
