@@ -225,6 +225,8 @@ class Service:
             self.link = link
             stack.callback(link.close)
             stack.callback(self._zero_on_exit)  # runs before close, also after a refusal below
+        if getattr(link, "setup_report", None):  # a device preset: what open chose and read back
+            self.say(f"opened: {link.describe()}")
         err = safe_zero(link)
         if err:
             raise LinkFailure(f"could not command 0 A at start: {err}")
