@@ -315,7 +315,8 @@ def _run(args: argparse.Namespace) -> int:
                 t7 = T7Device(state, cfg.t7, latency_s=args.latency_s)
                 ready_info["device"] = args.device
             try:
-                tcp = modbus.ModbusTcpInline(state, host, port, default_register_map(), device=t7)
+                tcp = modbus.ModbusTcpInline(state, host, port, default_register_map(), device=t7,
+                                             max_clients=16 if t7 is None else t7.max_connections)
             except OSError as e:
                 raise StartupError(f"--bind {host}:{port}: cannot listen: {e.strerror}") from None
             cleanups.append(tcp.close)

@@ -205,6 +205,8 @@ class ModbusTcpInline:
         self._conns: dict[int, list[Any]] = {}
         self._n_delayed = 0
         self._down = False  # inside a disconnect window
+        #: a device that restarts (the emulated T7's watchdog reset) drops every connection, as its network does
+        self._generation = getattr(self.dev, "generation", 0)
 
     def _listen(self) -> None:
         s = socket.create_server((self.host, self.port))
@@ -219,6 +221,11 @@ class ModbusTcpInline:
         if fbits & _DISCONNECT or self._down:
             if self._disconnect_window(fbits):
                 return
+        gen = getattr(self.dev, "generation", 0)
+        if gen != self._generation:
+            self._generation = gen
+            for fd in list(self._conns):
+                self._drop(fd)
         if self._n_delayed:
             self._flush_delayed()
         lsock = self._lsock

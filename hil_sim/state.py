@@ -63,6 +63,9 @@ class DeviceState:
         #: input closed (firmware-like devices); False: the latch is the host's (the emulated T7)
         self.estop_latches = True
         self._sample = Sample(seq=0, t_dev_s=0.0, x_m=0.0, v_mps=0.0, F_N=float("nan"), status=0)
+        #: monotonic ns at which the latest sample was published (0 = none yet): when its
+        #: inputs were "converted", for a device that stamps its samples (the emulated T7's CORE_TIMER)
+        self.sample_ns = 0
         #: the bench's extra channels (names fixed at start) and their values,
         #: published with each sample (docs/protocol.md §2.5, docs/registers.md)
         self.channel_names: tuple[str, ...] = ()
@@ -90,9 +93,17 @@ class DeviceState:
 
     # -- clock side -------------------------------------------------------
     def publish(self, sample: Sample, channels: tuple[float, ...] = ()) -> None:
+        now = time.monotonic_ns()
         with self._lock:
             self._sample = sample
             self._channels = channels
+            self.sample_ns = now
+
+    def latest_sample_ns(self) -> tuple[Sample, int]:
+        """The latest sample and the monotonic ns it was published at, in one step."""
+        with self._lock:
+            self.requests_served += 1
+            return self._sample, self.sample_ns
 
     def setpoint(self) -> tuple[float, bool, int]:
         """(current A, enable, monotonic ns of arrival or 0 if none yet)."""

@@ -441,7 +441,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from mrctl.config.laws import laws_markdown, laws_report
-    from mrctl.daemon.feasibility import assess, wire_time_s
+    from mrctl.daemon.feasibility import assess, wire_time_s, wire_words
 
     if args.laws:
         print(laws_markdown())
@@ -460,7 +460,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     cfg = exp.config
     wire = wire_time_s(cfg.backend)
     if wire is not None:
-        f = assess(cfg.rate_hz, wire, what=f"{cfg.backend.type} at {cfg.backend.baudrate} Bd")
+        what, advice = wire_words(cfg.backend)
+        f = assess(cfg.rate_hz, wire, what=what, advice=advice)
         if not f.ok:
             level = "warning" if cfg.link.on_infeasible == "reduce_rate" else "error"
             _err(f"{args.config}: {level}: {f.message}")
@@ -500,6 +501,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     src = Path(args.config)
     args.out = out_path(args, str(src.with_name(src.stem + ".cal.yaml")))
     return run_from_args(args, lambda _path: _load(args))
+
+
+def cmd_device(args: argparse.Namespace) -> int:
+    from mrctl.daemon.device import disarm
+
+    return disarm(_load(args), args.config, lambda m: _say(args, m), _err)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -655,6 +662,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "or stuck input, or a sensor whose noise is below the converter's step)")
     _outside_option(ca)
     ca.set_defaults(func=cmd_calibrate)
+
+    dv = sub.add_parser("device", help="a device preset's own settings: device disarm CONFIG turns its watchdog "
+                                       "off in flash (docs/hardware.md)")
+    dv.add_argument("action", choices=("disarm",), help="disarm: WATCHDOG_ENABLE_DEFAULT = 0, read back")
+    dv.add_argument("config", help="experiment YAML with the device backend (backend.device, host, port)")
+    add_quiet_options(dv, progress=False)
+    _outside_option(dv)
+    dv.set_defaults(func=cmd_device)
 
     ex = sub.add_parser("examples", help="copy the example experiments, bench configs, systemd units and docs out")
     ex.add_argument("dir", nargs="?", default="mrctl-examples",

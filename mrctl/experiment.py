@@ -19,7 +19,7 @@ from mrctl.config.bench import quarter_car_params
 from mrctl.config.laws import law_context as _law_context
 from mrctl.errors import LinkFailure, MrctlError
 from mrctl.estimation import KinematicObserver, VelocityLead
-from mrctl.io import link_class
+from mrctl.io import link_class_for
 from mrctl.io.base import Link, LinkError
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawContext
 from mrctl.laws.registry import law_class
@@ -150,7 +150,7 @@ class Experiment:
 
     def make_link(self) -> Link:
         """The link named by ``backend.type`` (the BACKENDS table)."""
-        return link_class(self.config.backend.type).from_config(self.config.backend, self)
+        return link_class_for(self.config.backend).from_config(self.config.backend, self)
 
     def make_lead(self, link: Link) -> VelocityLead | None:
         """Latency compensation (``latency.lead_s``): explicit, or 'auto' =

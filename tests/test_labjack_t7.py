@@ -16,6 +16,7 @@ import signal
 import socket
 import struct
 import subprocess
+import threading
 import sys
 import time
 from pathlib import Path
@@ -44,10 +45,18 @@ def test_preset_addresses_are_ljm_constants() -> None:
     assert p.io("ain")["range_register"]["address"] == 40000
     assert p.io("ain")["resolution_register"]["address"] == 41500
     wd = {k: v["address"] for k, v in p.watchdog["registers"].items()}
-    assert wd == {"enable": 61600, "timeout_s": 61604, "dio_enable": 61630, "dio_state": 61632,
-                  "dio_direction": 61634, "dio_inhibit": 61636, "dac0_enable": 61640, "dac0_value": 61642,
-                  "dac1_enable": 61650, "dac1_value": 61652}
-    assert p.fc23 is False and p.port == 502
+    assert wd == {"enable": 61600, "advanced": 61602, "timeout_s": 61604, "startup_delay_s": 61606,
+                  "strict_enable": 61610, "strict_key": 61612, "reset_enable": 61620, "dio_enable": 61630,
+                  "dio_state": 61632, "dio_direction": 61634, "dio_inhibit": 61636, "dac0_enable": 61640,
+                  "dac0_value": 61642, "dac1_enable": 61650, "dac1_value": 61652}
+    assert p.watchdog["strict_clear"]["address"] == 61614
+    assert p.data["firmware"]["address"] == 60004 and p.data["core_timer"]["address"] == 61520
+    assert p.data["firmware"]["min"] == 1.0016 and p.data["firmware"]["min_core_timer"] == 1.0071
+    assert p.io("ain")["negative_register"]["address"] == 41000
+    assert p.io("ain")["settling_register"]["address"] == 42000
+    assert [p.io("dio")[k]["address"] for k in ("state_register", "direction_register", "inhibit_register")] \
+        == [2800, 2850, 2900]
+    assert p.fc23 is False and p.port == 502 and p.data["modbus"]["mbfb"] == 76
 
 
 # -- mrctl check: every new input is a clear error with its key path ----------------------
@@ -462,3 +471,52 @@ def test_a_bad_calibration_file_is_a_clear_error(tmp_path, capsys) -> None:
     err = capsys.readouterr().err
     assert "calibration (" in err and "channels.z: unknown channel" in err and "driver.tau_s" in err, err
     assert "Traceback" not in err
+
+
+def test_sigkill_while_another_client_polls_dac0_and_enable_drop_within_the_timeout(tmp_path) -> None:
+    """Issue 32: a second Modbus client polling the T7 every 100 ms (Kipling, an IOC) no longer
+    keeps DAC0 or the enable alive after mrctl is SIGKILLed: the strict watchdog ignores it."""
+    hil, port = _start(tmp_path, _bench(tmp_path, enable=True))
+    polls: list[tuple[int, float, int]] = []
+    stop = [False]
+
+    def poller() -> None:
+        with socket.create_connection(("127.0.0.1", port), timeout=2.0) as s:
+            tid = 0
+            while not stop[0]:
+                got = []
+                for address in (1000, 2800):  # DAC0 (FLOAT32), DIO_STATE (UINT32)
+                    tid += 1
+                    s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, address, 2))
+                    data = b""
+                    while len(data) < 13:
+                        chunk = s.recv(64)
+                        if not chunk:
+                            return
+                        data += chunk
+                    got.append(data[9:13])
+                polls.append((time.monotonic_ns(), struct.unpack(">f", got[0])[0], struct.unpack(">I", got[1])[0] & 1))
+                time.sleep(0.1)
+
+    try:
+        exp = _exp_for(tmp_path, port, duration_s=30.0, enable_dio=0)
+        run = Run(exp, tmp_path / "run.csv", 30.0)
+        st = run.wait_for(lambda s: s.get("ticks", 0) > 200 or s.get("loop", {}).get("ticks", 0) > 200, 30.0)
+        assert st is not None, run.stderr()
+        t = threading.Thread(target=poller, daemon=True)
+        t.start()
+        time.sleep(1.0)
+        t_kill = time.monotonic_ns()
+        os.kill(run.pid, signal.SIGKILL)
+        run.wait(10)
+        time.sleep(2.5)
+        stop[0] = True
+        t.join(3)
+    finally:
+        hil.stop()
+    before = [p for p in polls if p[0] < t_kill]
+    after = [p for p in polls if p[0] > t_kill + 2.0e9]  # the watchdog's 1 s + 1 s
+    assert before and max(p[1] for p in before) > 0.05, before
+    assert after and all(p[1] == 0.0 and p[2] == 0 for p in after), after
+    off = [p[0] for p in polls if p[0] > t_kill and p[1] == 0.0 and p[2] == 0]
+    print(f"DAC0 0 V and enable low {(off[0] - t_kill) / 1e6:.0f} ms after SIGKILL with a 100 ms poller")

@@ -36,10 +36,14 @@ def device_fields() -> dict[str, Any]:
                               "through a monostable (docs/hardware.md); null = not wired"),
         "enable_toggle_s": Num(default=None, optional=True, min=0.0, min_exclusive=True, max=1.0,
                                doc="device: shortest toggle period of enable_dio (s), at most once a tick; null = 0.002"),
+        "ain_settling_us": Num(default=None, optional=True,
+                               doc="device: settling time of every input used (µs), set and read back; "
+                                   "null = 0 (the device's automatic)"),
     }
 
 
-_DEVICE_OPTIONS = ("ain_range_V", "ain_resolution_index", "device_watchdog_s", "enable_dio", "enable_toggle_s")
+_DEVICE_OPTIONS = ("ain_range_V", "ain_resolution_index", "device_watchdog_s", "enable_dio", "enable_toggle_s",
+                   "ain_settling_us")
 
 
 def device_checks(cfg: Node, data: dict[str, Any]) -> tuple[Node, list[str]]:
@@ -59,8 +63,14 @@ def device_checks(cfg: Node, data: dict[str, Any]) -> tuple[Node, list[str]]:
         if raw.get("use_fc23"):
             errors.append(f"backend.use_fc23: a {backend.device} has no FC23 (read/write multiple registers)")
         I_max = cfg.safety.get("I_max") if "safety" in cfg else None
-        setup, errs = resolve_device(backend.device, backend.channels,
-                                     {k: backend.get(k) for k in _DEVICE_OPTIONS}, "backend",
+        options = {k: backend.get(k) for k in _DEVICE_OPTIONS}
+        estop = cfg.safety.get("estop") if "safety" in cfg else None
+        if estop is not None and estop.get("input") is not None:
+            from mrctl.config.estop import parse_dio
+
+            options.update(estop_dio=parse_dio(str(estop.input)), estop_input=estop.input,
+                           estop_active=estop.get("active"))
+        setup, errs = resolve_device(backend.device, backend.channels, options, "backend",
                                      I_max if isinstance(I_max, float) else None)
         errors += errs
         if setup is not None and not errors:

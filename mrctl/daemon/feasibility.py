@@ -47,10 +47,23 @@ class Feasibility:
 
 def wire_time_s(backend_cfg: Any) -> float | None:
     """Seconds one tick occupies the wire, or None where it is not the limit
-    (TCP, sim): asked of the link class that serves ``backend.type``."""
-    from mrctl.io import link_class
+    (TCP, sim): asked of the link class that serves the backend (a device
+    preset's link answers with its vendor's timing model)."""
+    from mrctl.io import link_class_for
 
-    return link_class(backend_cfg.type).wire_time_s(backend_cfg)
+    return link_class_for(backend_cfg).wire_time_s(backend_cfg)
+
+
+def wire_words(backend_cfg: Any) -> tuple[str, str | None]:
+    """(what the wire-time estimate is of, the advice for a refused rate) for
+    ``backend_cfg``: the link class's own words where it has them."""
+    from mrctl.io import link_class_for
+
+    cls = link_class_for(backend_cfg)
+    what = getattr(cls, "wire_what", None)
+    advice = getattr(cls, "infeasible_advice", None)
+    return (what(backend_cfg) if what else f"{backend_cfg.type} at {backend_cfg.get('baudrate')} Bd",
+            advice(backend_cfg) if advice else None)
 
 
 def probe(link: Any, n: int, clock: Callable[[], float] = time.perf_counter,
@@ -90,14 +103,15 @@ ADVICE = ("try a lower rate_hz, or link.on_infeasible: reduce_rate to let mrctl 
 
 
 def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), errors: int = 0,
-           what: str = "link", timeouts: int = 0) -> Feasibility:
+           what: str = "link", timeouts: int = 0, advice: str | None = None) -> Feasibility:
     """Decide, and say why in one message a lab user can act on.
 
     ``timeouts``: how many of the ``errors`` were timeouts. Timeouts mean a
     slow link (or host), not a broken one: with too many of them the run is
     refused but a lower rate is suggested (``link.on_infeasible:
     reduce_rate`` takes it); other errors (bad frames, exceptions) say the
-    link is unreliable at any rate."""
+    link is unreliable at any rate. ``advice``: the link's own way to a
+    faster tick (default: a faster baud rate or Modbus TCP)."""
     budget = LINK_SHARE / rate_hz
     p50 = statistics.median(rtts) if rtts else None
     p99 = sorted(rtts)[min(len(rtts) - 1, int(0.99 * len(rtts)))] if rtts else None
@@ -108,7 +122,7 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
                            "rate, and that the device is running and serving")
     parts = []
     if wire_s is not None:
-        parts.append(f"{wire_s * 1e3:.2f} ms on the wire")
+        parts.append(f"{wire_s * 1e3:.2f} ms on the wire" if advice is None else f"{wire_s * 1e3:.2f} ms by the model")
     if p99 is not None:
         parts.append(f"measured round trip p50 {p50 * 1e3:.2f} ms, p99 {p99 * 1e3:.2f} ms")  # type: ignore[operator]
     how = " and ".join(parts) if parts else "no measurement"
@@ -137,7 +151,7 @@ def assess(rate_hz: float, wire_s: float | None, rtts: Sequence[float] = (), err
     msg = (f"{what}: {how} per tick does not fit {rate_hz:g} Hz ({budget * 1e3:.2f} ms allowed for the link). "
            + (f"The highest standard rate that fits is {best:g} Hz (set link.on_infeasible: reduce_rate to run there)"
               if best else "No standard rate down to 10 Hz fits")
-           + "; or use a faster baud rate / Modbus TCP.")
+           + (advice if advice is not None else "; or use a faster baud rate / Modbus TCP") + ".")
     return Feasibility(rate_hz, wire_s, p50, p99, errors, False, best, msg)
 
 

@@ -53,7 +53,7 @@ from mrctl.daemon import ownership
 from mrctl.daemon.arm import ArmServer
 from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
-from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
+from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s, wire_words
 from mrctl.config.acceptance import bounds as acceptance_bounds
 from mrctl.daemon.logcheck import LogWatch, close_log, verdict_exit
 from mrctl.daemon.loop import FixedRateLoop
@@ -226,6 +226,8 @@ class Service:
             self.link = link
             stack.callback(link.close)
             stack.callback(self._zero_on_exit)  # runs before close, also after a refusal below
+        if getattr(link, "setup_report", None):  # a device preset: what open chose and read back
+            self.say(f"opened: {link.describe()}")
         _clear_faults(link)  # a new run starts clean: what is still tripped is refused below
         err = safe_zero(link)
         if err:
@@ -291,8 +293,9 @@ class Service:
         timeouts: list[int] = []
         rtts, errors = probe(link, cfg.link.probe_exchanges, clock=lambda: self.opts.clock_ns() * 1e-9,
                              timeouts=timeouts)
+        _what, advice = wire_words(cfg.backend)
         f = assess(cfg.rate_hz, wire_time_s(cfg.backend), rtts, errors, what=cfg.backend.type,
-                   timeouts=timeouts[0])
+                   timeouts=timeouts[0], advice=advice)
         if f.ok:
             self.say(f.message)
             return exp

@@ -29,6 +29,8 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "modbus-tcp": ("mrctl.io.modbus", "ModbusTcpLink"),
     "modbus-rtu": ("mrctl.io.modbus", "ModbusRtuLink"),
 }
+#: a backend with ``device: NAME`` (a DAQ preset, docs/hardware.md) → the preset link, whatever its type
+PRESET_BACKEND: tuple[str, str] = ("mrctl.io.devices.link", "PresetLink")
 
 
 def link_class(kind: str) -> type[Link]:
@@ -38,6 +40,16 @@ def link_class(kind: str) -> type[Link]:
     except KeyError:
         raise KeyError(f"unknown backend type {kind!r} (known: {', '.join(BACKENDS)})") from None
     return getattr(importlib.import_module(module), name)
+
+
+def link_class_for(backend: object) -> type[Link]:
+    """The class serving a validated ``backend`` section: the preset link for a
+    ``backend.device``, else :data:`BACKENDS`' class for its type."""
+    get = getattr(backend, "get", None)
+    if get is not None and get("device") is not None:
+        module, name = PRESET_BACKEND
+        return getattr(importlib.import_module(module), name)
+    return link_class(str(getattr(backend, "type")))
 
 
 __all__ = [
@@ -51,4 +63,5 @@ __all__ = [
     "Sample",
     "Status",
     "link_class",
+    "link_class_for",
 ]

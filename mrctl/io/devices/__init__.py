@@ -9,11 +9,13 @@ checks both together (every error with its key path) and turns them into
 * a :class:`~mrctl.io.registers.RegisterMap` whose linear scaling is the
   channel calibration (``physical = volts * scale + offset``), so the tick
   runs through the ordinary :class:`~mrctl.io.modbus.ModbusLink` machinery;
-* the device set-up the link does at open (input range and resolution per
-  used input, the device watchdog, the enable output), each read back.
+* the device set-up the link does at open (input range, resolution, negative
+  channel and settling per used input, the device watchdog, the enable output,
+  the E-stop input), each read back.
 
-The link that does the set-up is :class:`mrctl.io.devices.link.PresetTcpLink`
-(generic: what differs between devices is in the YAML). docs/hardware.md.
+The link that does the set-up and the tick is :class:`mrctl.io.devices.link.PresetLink`
+(generic: what differs between devices is in the YAML); the backend table
+(:func:`mrctl.io.link_class_for`) chooses it for a ``backend.device``. docs/hardware.md.
 """
 
 from __future__ import annotations
@@ -103,6 +105,8 @@ class ChannelSpec:
     n: int
     per_V: float
     offset_V: float
+    #: differential input: the AIN read as the negative side (None: single-ended)
+    negative: int | None = None
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,11 @@ class DeviceSetup:
     enable_dio: int | None
     enable_toggle_s: float
     extra: Mapping[str, Any] = field(default_factory=dict)
+    #: AIN settling time set on every input used (µs; 0 = the device's automatic)
+    ain_settling_us: float = 0.0
+    #: the E-stop input (safety.estop): its DIO and whether high is the active (stop) level
+    estop_dio: int | None = None
+    estop_active_high: bool = False
 
     @property
     def ains(self) -> tuple[int, ...]:
@@ -140,14 +149,20 @@ class DeviceSetup:
                              for r, c in self.channels.items()},
                 "ain_range_V": self.ain_range_V, "ain_resolution_index": self.ain_resolution_index,
                 "device_watchdog_s": self.watchdog_s, "enable_dio": self.enable_dio,
-                "enable_toggle_s": self.enable_toggle_s}
+                "enable_toggle_s": self.enable_toggle_s, "ain_settling_us": self.ain_settling_us,
+                "negative_ain": {r: c.negative for r, c in self.channels.items() if c.negative is not None},
+                "estop_dio": self.estop_dio, "estop_active": None if self.estop_dio is None
+                else ("high" if self.estop_active_high else "low")}
 
     def describe(self) -> str:
-        wired = ", ".join(f"{r}={c.kind.upper()}{c.n}" for r, c in self.channels.items())
+        wired = ", ".join(f"{r}={c.kind.upper()}{c.n}" + (f"-AIN{c.negative}" if c.negative is not None else "")
+                          for r, c in self.channels.items())
         en = f", enable DIO{self.enable_dio} toggled every {self.enable_toggle_s * 1e3:g} ms" \
             if self.enable_dio is not None else ""
+        es = f", E-stop DIO{self.estop_dio} active {'high' if self.estop_active_high else 'low'}" \
+            if self.estop_dio is not None else ""
         return (f"{self.preset.name} ({wired}; AIN range +/-{self.ain_range_V:g} V, resolution index "
-                f"{self.ain_resolution_index}; device watchdog {self.watchdog_s} s{en})")
+                f"{self.ain_resolution_index}; device watchdog {self.watchdog_s} s, strict{en}{es})")
 
 
 def _number(v: Any) -> bool:
@@ -160,9 +175,10 @@ def _channel(preset: Preset, role: str, data: Any, path: str, errors: list[str])
         errors.append(f"{path}: must be a mapping ({kind}, {per_key}, offset_V), got {type(data).__name__}")
         return None
     ok = True
+    allowed = (kind, per_key, "offset_V") + (("negative_ain",) if kind == "ain" else ())
     for key in data:
-        if key not in (kind, per_key, "offset_V"):
-            errors.append(f"{path}.{key}: unknown key (allowed here: {kind}, {per_key}, offset_V)")
+        if key not in allowed:
+            errors.append(f"{path}.{key}: unknown key (allowed here: {', '.join(allowed)})")
             ok = False
     io = preset.io(kind)
     count = int(io["count"])
@@ -189,9 +205,17 @@ def _channel(preset: Preset, role: str, data: Any, path: str, errors: list[str])
         errors.append(f"{path}.offset_V: {off!r} V (the DAC at 0 A) is outside {io['name']}'s "
                       f"{io['min_V']:g}-{io['max_V']:g} V")
         ok = False
+    neg = data.get("negative_ain")
+    if neg is not None and ok:
+        # AIN#_NEGATIVE_CH (ljm_constants): "positive must be even channel from 0-12 and negative must be positive+1"
+        if isinstance(neg, bool) or not isinstance(neg, int) or n % 2 or neg != n + 1 or n > 12:
+            errors.append(f"{path}.negative_ain: {neg!r} not allowed: a {preset.name}'s differential pairs are "
+                          f"an even AIN0-AIN12 with the next one (AIN{n} pairs with "
+                          + (f"AIN{n + 1})" if n % 2 == 0 and n <= 12 else "none: it is odd)"))
+            ok = False
     if not ok:
         return None
-    return ChannelSpec(role, kind, int(n), float(per), float(off))
+    return ChannelSpec(role, kind, int(n), float(per), float(off), None if neg is None else int(neg))
 
 
 def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: str = "backend",
@@ -200,7 +224,8 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
     ``name``; return (set-up or None, every error with its key path).
 
     ``options``: ``ain_range_V``, ``ain_resolution_index``, ``device_watchdog_s``,
-    ``enable_dio``, ``enable_toggle_s`` (None = the preset's default).
+    ``enable_dio``, ``enable_toggle_s``, ``ain_settling_us`` (None = the preset's default),
+    ``estop_dio``/``estop_input``/``estop_active`` (safety.estop on a DIO, or None).
     ``I_max_A`` (safety.I_max): the DAC must reach it within its range."""
     try:
         preset = load_preset(str(name))
@@ -226,6 +251,10 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
         other = used.setdefault((s.kind, s.n), role)
         if other != role:
             errors.append(f"{cpath}.{role}.{s.kind}: {s.kind.upper()}{s.n} is already {cpath}.{other}")
+    for role, s in specs.items():
+        if s.negative is not None and ("ain", s.negative) in used:
+            errors.append(f"{cpath}.{role}.negative_ain: AIN{s.negative} is already "
+                          f"{cpath}.{used[('ain', s.negative)]}")
     dac = specs.get("current")
     io = preset.io("dac")
     if dac is not None and I_max_A is not None:
@@ -260,6 +289,12 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
     tog = 0.002 if tog is None else tog
     if not _number(tog) or not 0 < tog <= 1.0:
         errors.append(f"{path}.enable_toggle_s: {tog!r} not allowed (seconds, > 0 and <= 1)")
+    settle = options.get("ain_settling_us")
+    settle = 0.0 if settle is None else settle
+    max_us = float(ain.get("settling_register", {}).get("max_us", 0))
+    if not _number(settle) or not 0 <= settle <= max_us:
+        errors.append(f"{path}.ain_settling_us: {settle!r} not allowed (0 = automatic, up to {max_us:g} µs)")
+    estop_dio, estop_high = _estop(preset, options, dio, dcount, errors)
     if errors:
         return None, errors
     regs: dict[str, Any] = {}
@@ -278,4 +313,24 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
         return None, errs
     assert rmap is not None
     return DeviceSetup(preset, specs, rmap, float(rng), int(res), int(wd_s),
-                       None if dio is None else int(dio), float(tog)), []
+                       None if dio is None else int(dio), float(tog), ain_settling_us=float(settle),
+                       estop_dio=estop_dio, estop_active_high=estop_high), []
+
+
+def _estop(preset: Preset, options: Mapping[str, Any], enable_dio: Any, dcount: int,
+           errors: list[str]) -> tuple[int | None, bool]:
+    """``safety.estop`` on this preset (``estop_dio``: the DIO number its name parsed to): a DIO it
+    has, not the enable output (read as an input at every open and every tick: reading ``DIO#``
+    makes the line an input, docs/hardware.md)."""
+    n, inp, active = options.get("estop_dio"), options.get("estop_input"), options.get("estop_active")
+    if n is None:
+        return None, False  # none, or not a DIO (the generic checks say so: mrctl/config/estop.py)
+    if not 0 <= n < dcount:
+        errors.append(f"safety.estop.input: {inp!r} not allowed: a {preset.name} has DIO0-DIO{dcount - 1} "
+                      "(FIO0-7 = DIO0-7, EIO0-7 = DIO8-15, CIO0-3 = DIO16-19, MIO0-2 = DIO20-22)")
+        return None, False
+    if enable_dio is not None and n == enable_dio:
+        errors.append(f"safety.estop.input: {inp!r} is DIO{n}, the enable output (backend.enable_dio): "
+                      "the E-stop needs an input of its own")
+        return None, False
+    return n, active == "high"

@@ -1,127 +1,256 @@
-"""PresetTcpLink: a Modbus TCP link to a device preset (docs/hardware.md).
+"""PresetLink: a bought DAQ (a device preset, e.g. the LabJack T7) over Modbus TCP (docs/hardware.md).
 
-The tick is the ordinary :class:`~mrctl.io.modbus.ModbusTcpLink` tick over
-the register map that :func:`mrctl.io.devices.resolve_device` built from the
-lab's channels (FC16 to the DAC, FC3 over the analog inputs: a T7 has no
-FC23). What this class adds is what a bought DAQ needs and mrctl's own
-register map does not:
+Chosen by the backend table for a ``backend.device`` (:func:`mrctl.io.link_class_for`); it shares
+the TCP byte transport (:class:`mrctl.io.modbus.transport.TcpIO`) with the register-map links, not
+their class. One tick is **one request** when the device answers LabJack's Modbus Feedback
+(:mod:`mrctl.io.devices.mbfb`), in this order:
 
-* **set-up at open, each value read back**: the identity register, the range
-  and resolution index of every analog input in use, the enable output low;
-* **the device watchdog** (the T7's counts whole seconds and is cleared by
-  any communication): on timeout the DAC goes to the volts of 0 A and the
-  enable output low. Its registers are power-up defaults kept in flash, so
-  they are read first and written only when they differ;
-* **the enable output** (``enable_dio``): toggled every ``enable_toggle_s``
-  while the output is enabled, one extra FC16 then. Wired to the driver's
-  enable input through a retriggerable monostable (a charge pump), it
-  disables the driver within the monostable's time when the toggling stops
-  (the host died, the link hangs): faster than any device watchdog;
-* **safe close**: 0 A on the DAC, then the enable output low.
+1. read DAC (what the last tick wrote: the device's watchdog, or another client, changed it?);
+2. write DAC (the volts of this tick's current; of 0 A while disabled);
+3. write the enable output (toggled every ``enable_toggle_s`` while enabled, low otherwise);
+4. write the strict watchdog's key to its clear register (only mrctl clears the watchdog);
+5. read the analog inputs in use (one block); 6. read the E-stop DIO (reading ``DIO#`` keeps the
+   line an input); 7. read ``CORE_TIMER`` (the sample's device time, 40 MHz).
 
-No device clock and no sample counter: the sample time is the host's at
-reception, ``seq`` counts exchanges (docs/hardware.md says what that costs).
+A device that refuses MBFB (ILLEGAL_FUNCTION, or silence) gets the same operations as one FC3/FC16
+each; the start-up line says which was chosen. Every reply is checked (transaction id, protocol
+id, unit, function, exact length); a reply to another transaction is skipped and counted, never
+taken for this tick's.
+
+At open, each value read back: the identity and firmware (too old for the watchdog block: refused,
+exit 3), range, resolution index, negative channel and settling of every input in use, the enable
+output low, the E-stop DIO an input, the watchdog block (strict, :mod:`mrctl.io.devices.watchdog`).
+Safe close: 0 A on the DAC, the enable output low.
 """
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from typing import Any
 
-from mrctl.io.base import DeviceError, Disconnected, LinkError, Sample
+from mrctl.io.base import (
+    CounterUnwrap, DeviceError, Disconnected, FrameError, Link, LinkTimeout, Sample, Status, network_device_key,
+)
 from mrctl.io.devices import DeviceSetup
-from mrctl.io.modbus.codec import FC_READ_HOLDING, FC_WRITE_MULTIPLE, Tx, read_request_pdu, write_request_pdu
-from mrctl.io.modbus.tcp import ModbusTcpLink
+from mrctl.io.devices.mbfb import FC_READ, FC_WRITE, Request, mbfb_request, plain_requests, read_pdu, write_pdu
+from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, _tick_ops, model_period_s
+from mrctl.io.devices.watchdog import WatchdogError, configure_watchdog, disarm_watchdog, watchdog_plan
+from mrctl.io.modbus.codec import exception_name
+from mrctl.io.modbus.transport import TcpIO
 
-__all__ = ["PresetTcpLink", "DeviceSetupError"]
+__all__ = ["PresetLink", "DeviceSetupError", "model_period_s"]
 
 _PACK = {"float32": struct.Struct(">f"), "uint32": struct.Struct(">I"), "uint16": struct.Struct(">H")}
+_F32 = _PACK["float32"]
+_ILLEGAL_FUNCTION = 1
+_NO_LOAD_CELL = int(Status.NO_LOAD_CELL)
+_WD_TRIPPED = int(Status.WATCHDOG_TRIPPED)
+_DRIVER_FAULT = int(Status.DRIVER_FAULT)
+_ESTOP = int(Status.ESTOP)
+_NAN = math.nan
 
 
 class DeviceSetupError(DeviceError):
-    """The device did not take (or read back) a set-up value: not the device
-    the config names, or a value it refuses. Exit 3 at start-up."""
+    """The device did not take (or read back) a set-up value, is not the device the config names,
+    or its firmware is too old. Exit 3 at start-up."""
 
     def __init__(self, message: str) -> None:
         super().__init__(0, message)
 
 
-class PresetTcpLink(ModbusTcpLink):
-    """``backend: {type: modbus-tcp, device: NAME, channels: ...}``.
+class PresetLink(Link):
+    """``backend: {type: modbus-tcp, device: NAME, channels: ...}``: an exchange link, one request
+    per tick (MBFB), the current computed from a sample going out with the next tick's request."""
 
-    A split link: the tick reads the inputs (FC3), the laws run, and the
-    current goes out (FC16) in the same tick, about one command-response
-    time after its sample, not one period later as with an exchange (the
-    device has no combined read/write, so a tick is two requests either
-    way). :meth:`exchange` (write, then read) still serves the start-up probe
-    of the old kind and the safe close."""
+    kinds = ("modbus-tcp",)
+    split = False
+    COUNTERS = Link.COUNTERS + ("transactions", "enable_toggles", "watchdog_trips", "dac_mismatches",
+                                "estop_ticks", "invalid_values")
 
-    split = True
-    COUNTERS = ModbusTcpLink.COUNTERS + ("enable_toggles",)
-
-    def __init__(self, setup: DeviceSetup, **options: Any) -> None:
-        """``setup``: the checked preset and wiring; ``options``: ModbusTcpLink's (host, port, ...)."""
+    def __init__(self, setup: DeviceSetup, *, host: str, port: int | None = None, unit_id: int | None = None,
+                 timeout_s: float | None = None, open_timeout_s: float = 1.0, spin_wait: bool = True,
+                 protocol: str | None = None) -> None:
+        """``protocol``: "mbfb", "plain" (FC3/FC16), or None to try MBFB at open and fall back."""
+        if protocol not in (None, "mbfb", "plain"):
+            raise ValueError(f"protocol must be 'mbfb', 'plain' or None, got {protocol!r}")
+        super().__init__(0.01 if timeout_s is None else timeout_s)
         self.setup = setup
-        options.setdefault("port", setup.preset.port)
-        super().__init__(register_map=setup.register_map, use_fc23=setup.preset.fc23 or False,
-                         watchdog_ms=0, **options)
+        p = setup.preset
+        self.host, self.port = host, int(p.port if port is None else port)
+        self.unit_id = int(p.unit_id if unit_id is None else unit_id)
+        self.open_timeout_s = float(open_timeout_s)
+        self.spin_wait = bool(spin_wait)
+        self.protocol_config = protocol
+        self.protocol: str | None = None  #: "mbfb" | "plain", decided at open
+        self.configure_on_open = True  #: False: connect and identify only (mrctl device disarm)
+        self.firmware: float | None = None
+        self.core_timer = False  #: CORE_TIMER read every tick (firmware 1.0071 on)
+        self.setup_report: list[tuple[str, Any]] = []
+        self._step = ""
+        self._io: TcpIO | None = None
+        self._rx = bytearray()
+        self._tid = 0
+        self._reqs: list[Request] = []
+        self._roles: list[list[int]] = []  # per request: what each of its written values carries
+        self._vals = [0.0, 0, 0]  # this tick's DAC volts, enable level, key (by role)
         self._toggle_ns = round(setup.enable_toggle_s * 1e9)
         self._level = 0
         self._t_toggle_ns = 0
-        self._toggle_tx: Tx | None = None
-        #: what the set-up found and did, for the start-up log: (register, value read back)
-        self.setup_report: list[tuple[str, Any]] = []
+        self._last_volts: float | None = None
+        wd = p.watchdog
+        self._key = int(wd["strict_key"]) if wd is not None else 0
+        self._wd_volts = _F32.unpack(_F32.pack(setup.dac_volts(0.0)))[0]
+        self._seq_local = 0
+        self._hz = float(p.data.get("core_timer", {}).get("hz", 1.0))
+        io = p.io("dac")
+        self._vlo, self._vhi = float(io["min_V"]), float(io["max_V"])
+        ch = setup.channels
+        lo = min(setup.ains)
+        self._ain_lo = lo
+
+        def idx(role: str) -> tuple[int, float, float] | None:
+            c = ch.get(role)
+            return None if c is None else (c.n - lo, c.per_V, c.offset_V)
+
+        self._x, self._v, self._F, self._I = idx("x"), idx("v"), idx("F"), idx("current_monitor")
 
     @classmethod
-    def from_config(cls, cfg: Any, context: Any = None) -> "PresetTcpLink":
+    def from_config(cls, cfg: Any, context: Any = None) -> "PresetLink":
         return cls(cfg.device, host=cfg.host, port=cfg.port, unit_id=cfg.unit_id, timeout_s=cfg.timeout_s,
                    open_timeout_s=cfg.open_timeout_s, spin_wait=cfg.spin_wait)
 
-    def describe(self) -> str:
-        return f"{super().describe()}; {self.setup.describe()}"
+    @classmethod
+    def wire_time_s(cls, cfg: Any) -> float | None:
+        """The datasheet's model of one MBFB tick over Ethernet (``mrctl check``'s estimate)."""
+        setup = getattr(cfg, "get", lambda _k: None)("device")
+        return model_period_s(setup) if isinstance(setup, DeviceSetup) else None
 
-    # -- register access outside the tick (set-up, close) ---------------------------
-    def _tx(self, fc: int, pdu: bytes, n_regs: int) -> Tx:
-        return Tx(fc, pdu, n_regs, None, False).build_tcp(self.unit_id)
+    @classmethod
+    def wire_what(cls, cfg: Any) -> str:
+        s = cfg.device
+        t = s.preset.data["timing"]
+        return (f"{s.preset.name} over Ethernet, one MBFB request per tick (datasheet A-1/A-3-1 model: "
+                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {max(s.ains) - min(s.ains) + 1} AIN x "
+                f"{float(t['ain_sample_s'][s.ain_resolution_index]) * 1e3:g} ms at resolution index "
+                f"{s.ain_resolution_index})")
+
+    @classmethod
+    def infeasible_advice(cls, cfg: Any) -> str:
+        return ("; or read fewer inputs, a lower ain_resolution_index, ain_settling_us 0; Ethernet, not WiFi "
+                "(6.5 ms a request); USB is not Modbus TCP (mrctl does not speak it); for 1 kHz the reference "
+                "firmware (firmware/README.md)")
+
+    def device_key(self) -> str | None:
+        return network_device_key("modbus-tcp", str(self.host), self.port, None)
+
+    def describe(self) -> str:
+        how = {"mbfb": "one MBFB request per tick", "plain": "FC3/FC16 per value (no MBFB)",
+               None: "MBFB (tried at open)"}[self.protocol]
+        clock = "device clock CORE_TIMER" if self.core_timer else "host clock"
+        return (f"modbus-tcp {self.host}:{self.port}, {how}, {clock}, timeout {self.timeout_s * 1e3:.3g} ms; "
+                f"{self.setup.describe()}")
+
+    # -- the wire ----------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._io is not None
+
+    def _close_transport(self) -> None:
+        io, self._io = self._io, None
+        if io is not None:
+            io.close()
+
+    def _where(self) -> str:
+        return f"{self.setup.preset.name} at {self.host}:{self.port}"
+
+    def _rpc(self, adu: bytearray, fc: int, resp_len: int, deadline: float, wake_ns: int = 0) -> bytes:
+        """Send ``adu`` with the next transaction id; the reply's whole frame, checked."""
+        io = self._io
+        if io is None:
+            raise Disconnected(f"{self._where()}: not open")
+        tid = self._tid = (self._tid + 1) & 0xFFFF
+        adu[0], adu[1] = tid >> 8, tid & 0xFF
+        io.write(adu, deadline)
+        self.transactions += 1
+        rx = self._rx
+        while True:
+            while len(rx) >= 7:
+                if rx[2] or rx[3] or not 2 <= (rx[4] << 8 | rx[5]) <= 254:
+                    rx.clear()
+                    io.drain()
+                    raise FrameError(f"{self._where()}: bad MBAP header; stream flushed")
+                total = 6 + (rx[4] << 8 | rx[5])
+                if len(rx) < total:
+                    break
+                frame = bytes(rx[:total])
+                del rx[:total]
+                if frame[0] << 8 | frame[1] != tid:
+                    self.stale_replies += 1  # the late answer to an earlier request
+                    continue
+                return self._check(frame, fc, resp_len)
+            chunk = io.recv(deadline, wake_ns)
+            wake_ns = 0
+            if not chunk:
+                raise LinkTimeout(f"{self._where()}: no reply to tid {tid} within {self.timeout_s * 1e3:.3g} ms")
+            if not rx and len(chunk) == resp_len and chunk[0] << 8 | chunk[1] == tid:
+                return self._check(chunk, fc, resp_len)
+            rx += chunk
+
+    def _check(self, frame: bytes, fc: int, resp_len: int) -> bytes:
+        if frame[6] != self.unit_id:
+            raise FrameError(f"{self._where()}: reply from unit {frame[6]}, asked unit {self.unit_id}")
+        got = frame[7]
+        if got == fc | 0x80 and len(frame) >= 9:
+            raise DeviceError(frame[8], f"{self._where()}: function {fc} refused: {exception_name(frame[8])}")
+        if got != fc:
+            raise FrameError(f"{self._where()}: reply with function {got}, asked {fc}")
+        if len(frame) != resp_len:
+            raise FrameError(f"{self._where()}: function {fc} reply of {len(frame)} bytes, expected {resp_len}")
+        return frame
 
     def read_value(self, address: int, dtype: str, deadline: float | None = None) -> Any:
         """One register value (FC3), outside the tick."""
         self._step = f"reading register {address}"
         st = _PACK[dtype]
-        n = st.size // 2
-        data = self._exchange_tx(self._tx(FC_READ_HOLDING, read_request_pdu(FC_READ_HOLDING, address, n), n),
-                                 deadline or time.monotonic() + self.open_timeout_s, 0)
-        self.transactions += 1
-        return st.unpack(data)[0]
+        frame = self._rpc(bytearray(struct.pack(">HHHB", 0, 0, 6, self.unit_id) + read_pdu(address, st.size // 2)),
+                          FC_READ, 9 + st.size, deadline or time.monotonic() + self.open_timeout_s)
+        if frame[8] != st.size:
+            raise FrameError(f"{self._where()}: read of {address}: byte count {frame[8]}, expected {st.size}")
+        return st.unpack_from(frame, 9)[0]
 
     def write_value(self, address: int, dtype: str, value: Any, deadline: float | None = None) -> None:
         """One register value (FC16), outside the tick."""
         self._step = f"writing {value!r} to register {address}"
-        data = _PACK[dtype].pack(value)
-        self._exchange_tx(self._tx(FC_WRITE_MULTIPLE, write_request_pdu(address, data), len(data) // 2),
-                          deadline or time.monotonic() + self.open_timeout_s, 0)
-        self.transactions += 1
+        pdu = write_pdu(address, _PACK[dtype].pack(value))
+        frame = self._rpc(bytearray(struct.pack(">HHHB", 0, 0, len(pdu) + 1, self.unit_id) + pdu), FC_WRITE, 12,
+                          deadline or time.monotonic() + self.open_timeout_s)
+        if frame[8:12] != pdu[1:5]:
+            raise FrameError(f"{self._where()}: write of {address} echoed {frame[8:12].hex()}")
 
-    def _set(self, name: str, address: int, dtype: str, value: Any) -> None:
-        """Write, read back, compare (float32 compared as float32)."""
-        self.write_value(address, dtype, value)
-        got = self.read_value(address, dtype)
-        want = _PACK[dtype].unpack(_PACK[dtype].pack(value))[0]
-        if got != want:
-            raise DeviceSetupError(f"{self._where()}: {name} = {value!r} written, read back {got!r}")
-        self.setup_report.append((name, got))
-
-    # -- open: set-up ----------------------------------------------------------------------
+    # -- open: set-up ----------------------------------------------------------------------------
     def _open_transport(self) -> None:
-        super()._open_transport()
-        self._step = "set-up"
+        self._io = TcpIO.connect(self.host, self.port, self.open_timeout_s, self.spin_wait)
+        self._rx.clear()
+        self._last_volts = None
+        self._reqs = []
+        self._step = "connecting"
         try:
-            self._setup_device()
+            from mrctl.io.devices.setup import identify, set_up
+
+            identify(self)
+            if self.configure_on_open:
+                set_up(self)
+                self._step = "the first tick"
+                self._choose_protocol()
         except DeviceSetupError:
             self._close_transport()
             raise
-        except DeviceError as e:  # the device refused a set-up register: say which, and what it means
+        except WatchdogError as e:
+            self._close_transport()
+            raise DeviceSetupError(f"{self._where()}: {e}") from None
+        except DeviceError as e:
             self._close_transport()
             raise DeviceSetupError(f"{self._where()}: {self._step} refused ({e}): is this a "
                                    f"{self.setup.preset.name}?") from None
@@ -129,126 +258,139 @@ class PresetTcpLink(ModbusTcpLink):
             self._close_transport()
             raise
 
-    def _setup_device(self) -> None:
-        s, p = self.setup, self.setup.preset
-        self.setup_report = []
-        for name, ident in (p.data.get("identity") or {}).items():
-            got = self.read_value(int(ident["address"]), ident["type"])
-            if got != ident["value"]:
-                raise DeviceSetupError(f"{self._where()}: {name} reads {got!r}, a {p.name} has {ident['value']!r}: "
-                                       "not the device the config names")
-            self.setup_report.append((name, got))
-        ain = p.io("ain")
-        rr, ri = ain["range_register"], ain["resolution_register"]
-        for n in s.ains:
-            self._set(f"AIN{n}_RANGE", int(rr["address"]) + int(rr["stride"]) * n, rr["type"], s.ain_range_V)
-            self._set(f"AIN{n}_RESOLUTION_INDEX", int(ri["address"]) + int(ri["stride"]) * n, ri["type"],
-                      s.ain_resolution_index)
-        if s.enable_dio is not None:
-            addr = p.address("dio", s.enable_dio)
-            self.write_value(addr, p.io("dio")["type"], 0)  # output, low: driver disabled until we toggle
-            self._toggle_tx = self._tx(FC_WRITE_MULTIPLE, write_request_pdu(addr, b"\x00\x00"), 1)
-            self._level = 0
-            self._t_toggle_ns = 0
-        self._configure_watchdog()
+    def _choose_protocol(self) -> None:
+        """MBFB once at 0 A, output disabled; ILLEGAL_FUNCTION or silence: FC3/FC16 per value."""
+        ops = _tick_ops(self.setup, self.core_timer)
+        only = [op for op, _r in ops]
+        self._clock = CounterUnwrap(1 << 32) if self.core_timer else None
+        want = self.protocol_config
+        if want in (None, "mbfb"):
+            self.protocol, self._reqs = "mbfb", [mbfb_request(only, self.unit_id)]
+            self._roles = [[r for _op, r in ops if r >= 0]]
+            try:
+                self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
+                return
+            except DeviceError as e:
+                if want == "mbfb" or e.code != _ILLEGAL_FUNCTION:
+                    raise
+            except LinkTimeout:
+                if want == "mbfb":
+                    raise
+            self.setup_report.append(("protocol", "MBFB refused: FC3/FC16 per value"))
+        self.protocol, self._reqs = "plain", plain_requests(only, self.unit_id)
+        self._roles = [[r] if r >= 0 else [] for _op, r in ops]
+        self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
 
-    def _configure_watchdog(self) -> None:
-        """Device watchdog: read what is there; if it differs from what we
-        want, disable it, write the differing values, enable it; read back."""
+    def _send_safe(self) -> None:
+        """0 A on the DAC, the enable output low: the tick's request, or (not set up: device
+        disarm, a failed start) the two registers written alone."""
+        if self._reqs:
+            super()._send_safe()
+            return
+        p, s = self.setup.preset, self.setup
+        deadline = time.monotonic() + max(self.timeout_s, 0.05)
+        self.write_value(p.address("dac", s.dac.n), "float32", s.dac_volts(0.0), deadline)
+        if s.enable_dio is not None:
+            self.write_value(p.address("dio", s.enable_dio), p.io("dio")["type"], 0, deadline)
+
+    def disarm(self) -> bool:
+        """The device's watchdog off in flash (``mrctl device disarm``); True if it was armed."""
+        wd = self.setup.preset.watchdog
+        if wd is None:
+            return False
+        try:
+            return disarm_watchdog(wd, self.read_value, self.write_value)
+        except WatchdogError as e:
+            raise DeviceSetupError(f"{self._where()}: {e}") from None
+
+    def arm_watchdog(self) -> None:
+        """The strict watchdog block as :mod:`mrctl.io.devices.watchdog` plans it (at open)."""
         s, wd = self.setup, self.setup.preset.watchdog
         if wd is None:
             return
-        regs = wd["registers"]
-        want: dict[str, Any] = {"timeout_s": s.watchdog_s}
-        dac_n = s.dac.n
-        for n in (0, 1):
-            if f"dac{n}_enable" in regs:
-                want[f"dac{n}_enable"] = 1 if n == dac_n else 0
-        want[f"dac{dac_n}_value"] = s.dac_volts(0.0)
-        if s.enable_dio is not None:
-            bit = 1 << s.enable_dio
-            want.update(dio_enable=1, dio_state=0, dio_direction=bit, dio_inhibit=((1 << 23) - 1) & ~bit)
-        else:
-            want["dio_enable"] = 0
+        want = watchdog_plan(wd, s.watchdog_s, s.dac.n, s.dac_volts(0.0), s.enable_dio, int(s.preset.io("dio")["count"]))
+        report, written = configure_watchdog(wd, want, self.read_value, self.write_value)
+        self.setup_report += [(f"WATCHDOG {k}", v) for k, v in report]
+        self.setup_report.append(("WATCHDOG written", ", ".join(written) or "nothing (already as needed)"))
 
-        def read(k: str) -> Any:
-            return self.read_value(int(regs[k]["address"]), regs[k]["type"])
-
-        def same(k: str, v: Any) -> bool:
-            st = _PACK[regs[k]["type"]]
-            return read(k) == st.unpack(st.pack(v))[0]
-
-        differs = [k for k, v in want.items() if not same(k, v)]
-        if differs or read("enable") != 1:
-            self.write_value(int(regs["enable"]["address"]), regs["enable"]["type"], 0)
-            for k in differs:
-                self.write_value(int(regs[k]["address"]), regs[k]["type"], want[k])
-            self.write_value(int(regs["enable"]["address"]), regs["enable"]["type"], 1)
-        for k, v in {**want, "enable": 1}.items():
-            if not same(k, v):
-                raise DeviceSetupError(f"{self._where()}: watchdog {k} did not keep {v!r} "
-                                       f"(read back {read(k)!r})")
-            self.setup_report.append((f"WATCHDOG {k}", v))
-
-    # -- the tick -----------------------------------------------------------------------------
-    def read(self) -> Sample:
-        """The tick's sample: one FC3 (FC4) per read block."""
-        if self._io is None:
-            raise Disconnected(f"{self.describe()}: not open")
-        deadline = time.monotonic() + self.timeout_s
-        bufs = self._read_bufs
-        try:
-            for tx in self._txs:
-                if tx.block >= 0:
-                    bufs[tx.block] = self._exchange_tx(tx, deadline, 0)
-                    self.transactions += 1
-        except LinkError as e:
-            self._note_error(e)
-            raise
-        self.exchanges += 1
-        return self._to_sample()
-
-    def write(self, current_A: float) -> None:
-        """The tick's current (FC16 to the DAC), then the enable output's toggle when due."""
-        if self._io is None:
-            raise Disconnected(f"{self.describe()}: not open")
-        if not -3.4e38 < current_A < 3.4e38:
-            raise ValueError(f"current_A must be finite, got {current_A!r}")
-        deadline = time.monotonic() + self.timeout_s
-        try:
-            self._request(self._txs[0], current_A if self.enabled else 0.0, 1 if self.enabled else 0, deadline, 0)
-            self._toggle(deadline)
-        except LinkError as e:
-            self._note_error(e)
-            raise
-
+    # -- the tick ---------------------------------------------------------------------------------
     def _transact(self, current_A: float, deadline: float, wake_ns: int) -> Sample:
-        sample = super()._transact(current_A, deadline, wake_ns)
-        self._toggle(deadline)
-        return sample
+        return self._tick(current_A, self.enabled, deadline, wake_ns)
 
-    def _toggle(self, deadline: float) -> None:
-        """Flip the enable output if ``enable_toggle_s`` has passed (held low while disabled)."""
-        tx = self._toggle_tx
-        if tx is not None:
-            now = time.monotonic_ns()
-            if now - self._t_toggle_ns >= self._toggle_ns:
-                level = (self._level ^ 1) if self.enabled else 0
-                if level != self._level:
-                    tx.adu[-1] = level  # the register's low byte: the last byte of the FC16 request
-                    self._exchange_tx(tx, deadline, 0)
-                    self.transactions += 1
-                    self.enable_toggles += 1
-                    self._level = level
-                self._t_toggle_ns = now
+    def _tick(self, current_A: float, enabled: bool, deadline: float, wake_ns: int) -> Sample:
+        volts = self.setup.dac_volts(current_A if enabled else 0.0)
+        volts = self._vlo if volts < self._vlo else self._vhi if volts > self._vhi else volts
+        level = self._next_level(enabled)
+        vals = self._vals
+        vals[_DAC], vals[_ENABLE], vals[_KEY] = volts, level, self._key
+        reads: list[Any] = []
+        roles = self._roles
+        for j, req in enumerate(self._reqs):
+            adu = req.adu
+            for (st, off), role in zip(req.slots, roles[j]):
+                st.pack_into(adu, off, vals[role])
+            frame = self._rpc(adu, req.fc, req.resp_len, deadline, wake_ns)
+            wake_ns = 0
+            if req.fc == FC_WRITE:
+                if frame[8:12] != adu[8:12]:
+                    raise FrameError(f"{self._where()}: write echoed {frame[8:12].hex()}")
+            elif req.fc == FC_READ:
+                if frame[8] != req.resp_len - 9:
+                    raise FrameError(f"{self._where()}: byte count {frame[8]}, expected {req.resp_len - 9}")
+                reads.extend(req.decode.unpack_from(frame, 9))  # type: ignore[union-attr]
+            elif req.decode is not None:
+                reads.extend(req.decode.unpack_from(frame, 8))
+        if level != self._level:
+            self.enable_toggles += 1
+            self._level = level
+        return self._sample(reads, _F32.unpack(_F32.pack(volts))[0])
 
-    def _send_safe(self) -> None:
-        """0 A on the DAC, then the enable output low."""
-        try:
-            super()._send_safe()
-        finally:
-            tx = self._toggle_tx
-            if tx is not None:
-                tx.adu[-1] = 0
-                self._exchange_tx(tx, time.monotonic() + max(self.timeout_s, 0.05), 0)
-                self._level = 0
+    def _next_level(self, enabled: bool) -> int:
+        if self.setup.enable_dio is None or not enabled:
+            return 0
+        now = time.monotonic_ns()
+        if now - self._t_toggle_ns >= self._toggle_ns:
+            self._t_toggle_ns = now
+            return self._level ^ 1
+        return self._level
+
+    def _sample(self, reads: list[Any], volts_written: float) -> Sample:
+        """reads: DAC before the write, the AIN block, [E-stop DIO], [CORE_TIMER]."""
+        status = 0
+        prev, last = reads[0], self._last_volts
+        self._last_volts = volts_written
+        if last is not None and prev != last:
+            self.dac_mismatches += 1
+            if prev == self._wd_volts:
+                self.watchdog_trips += 1
+                status |= _WD_TRIPPED  # the device's watchdog acted (or it restarted) since the last tick
+            else:
+                status |= _DRIVER_FAULT  # someone else writes the DAC
+        n_ain = max(self.setup.ains) - self._ain_lo + 1
+        i = 1 + n_ain
+        if self.setup.estop_dio is not None:
+            if (reads[i] == 1) == self.setup.estop_active_high:
+                status |= _ESTOP
+                self.estop_ticks += 1
+            i += 1
+        if self.core_timer:
+            raw = int(reads[i])
+            seq, t = raw, self._clock(raw) / self._hz  # type: ignore[misc]
+        else:
+            self._seq_local = (self._seq_local + 1) & 0xFFFFFFFF
+            seq, t = self._seq_local, time.monotonic()
+        x = self._phys(self._x, reads)
+        v = self._phys(self._v, reads)
+        F = self._phys(self._F, reads)
+        if self._F is None:
+            status |= _NO_LOAD_CELL
+        if not (x - x == 0.0 and (self._v is None or v - v == 0.0) and (self._F is None or F - F == 0.0)):
+            self.invalid_values += 1
+        return Sample(seq, t, x, v, F, status, self._phys(self._I, reads))
+
+    @staticmethod
+    def _phys(ch: tuple[int, float, float] | None, reads: list[Any]) -> float:
+        if ch is None:
+            return _NAN
+        i, per, off = ch
+        return (reads[1 + i] - off) * per

@@ -211,12 +211,8 @@ class ModbusLink(Link):
 
     @classmethod
     def from_config(cls, cfg: Any, context: Any = None) -> "ModbusLink":
-        """From the validated ``backend`` section (type modbus-tcp or modbus-rtu);
-        with ``device`` set (a preset, docs/hardware.md), the preset's link."""
-        if getattr(cfg, "get", None) is not None and cfg.get("device") is not None:
-            from mrctl.io.devices.link import PresetTcpLink
-
-            return PresetTcpLink.from_config(cfg, context)
+        """From the validated ``backend`` section (type modbus-tcp or modbus-rtu; a
+        ``backend.device`` is the preset link's: :func:`mrctl.io.link_class_for`)."""
         sub = ModbusLink._by_transport[cfg.type.removeprefix("modbus-")]
         return sub(unit_id=cfg.unit_id, register_map=cfg.register_map, timeout_s=cfg.timeout_s,
                    use_fc23=cfg.use_fc23, watchdog_ms=cfg.watchdog_ms, open_timeout_s=cfg.open_timeout_s,

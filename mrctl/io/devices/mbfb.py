@@ -1,0 +1,108 @@
+"""LabJack's Modbus Feedback (MBFB, function 76) and the plain requests a preset link falls back to.
+
+Frame layout (T-series datasheet, "Protocol Details [Direct Modbus TCP]", "Modbus Feedback
+(MBFB, function #76)"; the same layout is in ``labjack/C_CPP_LJM``
+``more/utilities/stepwise_feedback.c`` and the ``async_labjack`` crate's
+``src/modbus_feedback/mbfb.rs``): after the MBAP header and the function code 76, one frame per
+operation, executed in order:
+
+* read:  ``0x00``, address (UINT16, big-endian), number of registers (1 byte);
+* write: ``0x01``, address, number of registers, then the registers' data (2 bytes each).
+
+The response is the MBAP header, 76, then the read frames' data back to back in request order
+(writes return nothing); a refused request is the usual Modbus exception (``76 | 0x80``, code).
+
+Everything here is pure bytes, built once per link (a tick only patches the written values and
+the transaction id into the request). :class:`Op` lists are the tick's operations; the same list
+serves both protocols: one MBFB request, or one FC3/FC16 request per operation.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+__all__ = ["FC_MBFB", "FC_READ", "FC_WRITE", "Op", "Request", "mbfb_request", "plain_requests",
+           "read_pdu", "write_pdu"]
+
+FC_MBFB = 76
+FC_READ = 3
+FC_WRITE = 16
+_FMT = {"float32": "f", "uint32": "I", "uint16": "H"}
+_NREGS = {"float32": 2, "uint32": 2, "uint16": 1}
+
+
+@dataclass(frozen=True)
+class Op:
+    """One operation of the tick: read ``count`` values of ``dtype`` from ``address`` on, or write one."""
+
+    write: bool
+    address: int
+    dtype: str
+    count: int = 1
+
+    @property
+    def n_regs(self) -> int:
+        return _NREGS[self.dtype] * self.count
+
+
+class Request:
+    """One prebuilt request: ``adu`` (MBAP with tid 0, patched per send), where each written value
+    goes (``slots``: struct and offset per write op, in op order), the reply's function code, its
+    exact length and the struct that decodes its data (reads in op order)."""
+
+    __slots__ = ("adu", "slots", "fc", "resp_len", "decode", "n_values")
+
+    def __init__(self, adu: bytearray, slots: list[tuple[struct.Struct, int]], fc: int, resp_len: int,
+                 decode: struct.Struct | None) -> None:
+        self.adu, self.slots, self.fc, self.resp_len, self.decode = adu, slots, fc, resp_len, decode
+        self.n_values = 0 if decode is None else len(decode.unpack(bytes(decode.size)))
+
+
+def _mbap(pdu: bytes, unit: int) -> bytearray:
+    return bytearray(struct.pack(">HHHB", 0, 0, len(pdu) + 1, unit) + pdu)
+
+
+def read_pdu(address: int, n_regs: int) -> bytes:
+    """FC3 (read holding registers)."""
+    return struct.pack(">BHH", FC_READ, address, n_regs)
+
+
+def write_pdu(address: int, data: bytes) -> bytes:
+    """FC16 (write multiple registers)."""
+    return struct.pack(">BHHB", FC_WRITE, address, len(data) // 2, len(data)) + data
+
+
+def mbfb_request(ops: list[Op], unit: int) -> Request:
+    """The whole tick in one MBFB request."""
+    body = bytearray((FC_MBFB,))
+    slots: list[tuple[struct.Struct, int]] = []
+    rfmt = ">"
+    for op in ops:
+        if not 1 <= op.n_regs <= 255:
+            raise ValueError(f"MBFB frame of {op.n_regs} registers at {op.address}")
+        body += struct.pack(">BHB", 1 if op.write else 0, op.address, op.n_regs)
+        if op.write:
+            st = struct.Struct(">" + _FMT[op.dtype])
+            slots.append((st, 7 + len(body)))
+            body += bytes(st.size)
+        else:
+            rfmt += _FMT[op.dtype] * op.count
+    dec = struct.Struct(rfmt)
+    adu = _mbap(bytes(body), unit)
+    if len(adu) > 260 or 8 + dec.size > 260:
+        raise ValueError(f"MBFB request of {len(adu)} bytes (reply {8 + dec.size}): beyond a Modbus TCP ADU (260)")
+    return Request(adu, slots, FC_MBFB, 8 + dec.size, dec if dec.size else None)
+
+
+def plain_requests(ops: list[Op], unit: int) -> list[Request]:
+    """The same tick as one FC3 or FC16 per operation (devices or firmware without MBFB)."""
+    out = []
+    for op in ops:
+        st = struct.Struct(">" + _FMT[op.dtype] * op.count)
+        if op.write:
+            adu = _mbap(write_pdu(op.address, bytes(st.size)), unit)
+            out.append(Request(adu, [(st, len(adu) - st.size)], FC_WRITE, 12, None))
+        else:
+            out.append(Request(_mbap(read_pdu(op.address, op.n_regs), unit), [], FC_READ, 9 + st.size, st))
+    return out
