@@ -253,13 +253,10 @@ class T7Device:
         return cm + (off if not val - val == 0.0 else val / per + off)
 
     def ain_volts(self, n: int) -> float:
-        """What AIN n reads now: single-ended, or against its pair, with the
-        converter's noise, quantised to its 16 bits over the range and clipped
-        to it. LabJack's T-series datasheet, A-3-1 "Noise and Resolution": a
-        16-bit ADC over +/-10 V has an LSB of 0.305 mV, and the effective
-        resolution (from the RMS noise) is below the converter's 16 bits, so the
-        noise is at least an LSB RMS: modelled as exactly that, the kindest the
-        device can be (a constant reading is a dead input's)."""
+        """AIN n now: single-ended or against its pair, with 1 LSB rms of noise,
+        in whole LSBs of 16 bits over the range, clipped to it (datasheet A-3-1:
+        effective resolution below 16 bits means noise above an LSB rms; a
+        constant reading is a dead input's)."""
         io = self.io
         v = self._pin(n)
         if io.ain_neg[n] != SINGLE_ENDED:

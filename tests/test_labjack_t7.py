@@ -520,3 +520,52 @@ def test_sigkill_while_another_client_polls_dac0_and_enable_drop_within_the_time
     assert after and all(p[1] == 0.0 and p[2] == 0 for p in after), after
     off = [p[0] for p in polls if p[0] > t_kill and p[1] == 0.0 and p[2] == 0]
     print(f"DAC0 0 V and enable low {(off[0] - t_kill) / 1e6:.0f} ms after SIGKILL with a 100 ms poller")
+
+
+def test_estop_on_the_t7s_dio_latches_the_run_until_mrctl_arm_then_ramps(tmp_path) -> None:
+    """Issue 32's done-when on the emulated T7: the E-stop's NC contact on FIO4 (active high)
+    opens 5 s into the bench's time (the daemon is in its loop by then) for 0.5 s. The daemon
+    commands 0 A on the tick whose
+    sample reads it (no hold) and disables the output (the enable line stops toggling, the
+    monostable drops); it stays at 0 A after the contact closed, until `mrctl arm`, which
+    ramps the current back at the slew limit. The run ends with its time latched (exit 5)."""
+    from mrctl.daemon.arm import arm
+    from mrctl.runlog.read import read_run, read_sidecar
+
+    data = yaml.safe_load(BENCH.read_text())
+    data["labjack_t7"]["enable"] = {"dio": 0, "hold_s": 0.04}
+    data["labjack_t7"]["estop"] = {"dio": 4, "active": "high"}
+    bench = tmp_path / "bench.yaml"
+    bench.write_text(yaml.safe_dump(data, sort_keys=False))
+    hil, port = _start(tmp_path, bench, "--fault", "estop@5+0.5")
+    said: dict = {}
+    try:
+        exp = _exp_for(tmp_path, port, duration_s=9.0, enable_dio=0)
+        cfg = yaml.safe_load(exp.read_text())
+        cfg["safety"]["estop"] = {"input": "FIO4", "active": "high"}
+        exp.write_text(yaml.safe_dump(cfg, sort_keys=False))
+        run = Run(exp, tmp_path / "run.csv", 9.0)
+        st = run.wait_for(lambda s: s.get("safety_state") == "LATCHED", timeout_s=30.0)
+        assert st is not None, run.stderr()
+        said["latched"] = st
+        time.sleep(1.0)  # the contact has closed again (0.5 s window)
+        said["before"] = run.status()
+        said["arm"] = arm(run.sock)
+        code = run.wait(timeout_s=60.0)
+    finally:
+        hil.stop()
+    assert code == 5, run.stderr()
+    assert said["latched"]["latch_cause"] == "estop" and said["before"]["safety_state"] == "LATCHED"
+    assert "re-armed" in said["arm"]
+    cols = read_run(tmp_path / "run.csv")
+    fault = np.nan_to_num(cols["fault"]).astype(int)
+    I = np.nan_to_num(cols["I"])
+    first = int(np.argmax(fault & 256))  # Fault.ESTOP: the first tick whose sample read the input open
+    assert fault[first] & 1024 and I[first] == 0.0  # latched and 0 A on that very tick
+    side = read_sidecar(tmp_path / "run.csv")
+    rate = float(side["rate_hz"])  # 500 Hz, or what the start-up probe reduced it to
+    back = first + int(np.argmax(I[first:] > 0))
+    assert cols["k"][back] - cols["k"][first] > 0.75 * rate and (I[first:back] == 0).all()
+    assert np.diff(np.concatenate(([0.0], I))).max() <= 50.0 / rate + 1e-9  # the slew limit per tick
+    assert side["summary"]["safety"]["latches"] == 1 and side["summary"]["safety"]["arms"] == 1
+    assert any("time latched" in r for r in side["verdict_reasons"])

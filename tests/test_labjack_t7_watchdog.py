@@ -183,7 +183,7 @@ def test_a_raw_mbfb_frame_built_by_hand_is_answered_and_a_third_client_is_refuse
     with socket.create_connection(("127.0.0.1", port)) as a, socket.create_connection(("127.0.0.1", port)) as b:
         r = _ask(a, adu)
         assert r[:8] == bytes([0x12, 0x34, 0, 0, 0, 6, 0x01, 0x4C]) and len(r) == 12
-        assert struct.unpack(">f", r[8:])[0] == pytest.approx(0.001 / 0.0025 + 2.47, abs=1e-5)
+        assert struct.unpack(">f", r[8:])[0] == pytest.approx(0.001 / 0.0025 + 2.47, abs=5 * 20 / 65536)  # noise
         assert dev.dac_V[0] == 1.25 and state.setpoint()[0] == pytest.approx(0.5)
         bad = bytes([0x4C, 0x02, 0, 0, 2])  # frame type 2: no such frame
         assert _ask(b, bytes([0, 1, 0, 0, 0, len(bad) + 1, 1]) + bad)[7:] == bytes([0xCC, 0x03])
