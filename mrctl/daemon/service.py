@@ -314,22 +314,32 @@ class Service:
         if estop.input is None:
             self.warn("safety.estop: no E-stop input configured: only the hard-wired E-stop protects this bench "
                       "(docs/hardware.md)", NOTICE)
-        deadline, n = time.monotonic() + 0.5, 0
-        while True:  # a reply lost on a busy host is tried again, as the start-up 0 A is
+        # a device clears its latched bits when it acts on the request (hil_sim: at its next tick), so
+        # the answer is read until it is clean, asking again each time, for up to 0.5 s; a lost reply
+        # on a busy host is tried again as the start-up 0 A is
+        deadline, n, last = time.monotonic() + 0.5, 0, ""
+        latching = int(Status.ESTOP | Status.WATCHDOG_TRIPPED)
+        status: int | None = None
+        while status is None or status & latching:
+            if n and time.monotonic() > deadline:
+                break
             n += 1
             try:
-                sample = link.read() if link.split else link.exchange(0.0)
-                break
+                status = int((link.read() if link.split else link.exchange(0.0)).status)
             except LinkError as exc:
-                if time.monotonic() > deadline:
-                    raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {exc}") from None
-        status = int(sample.status)
+                last = str(exc)
+                continue
+            if status & latching:
+                _clear_faults(link)
+                time.sleep(0.005)
+        if status is None:
+            raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
         if status & int(Status.ESTOP):
             raise LinkFailure(f"refusing to start: the E-stop input is open (safety.estop.input: {estop.input}); "
                               "close it (reset the E-stop) and start again")
         if status & int(Status.WATCHDOG_TRIPPED):
             raise LinkFailure("refusing to start: the device reports its watchdog tripped and did not clear it "
-                              "on request (CLEAR_FAULTS)")
+                              f"on request (CLEAR_FAULTS, {n} attempts in 0.5 s)")
 
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
         try:
