@@ -1,0 +1,377 @@
+/* The run log's rows as CSV text, in C: the compiled build's row formatter.
+ *
+ * mrctl/runlog/rowtext.py is the interface and the reference: every value is
+ * written exactly as Python's '%.<P>g' % value writes it (the formats of
+ * mrctl/runlog/format.py are the log's contract), so the compiled and the
+ * interpreted builds write the same bytes (tests/test_rowtext.py).
+ *
+ * Why C: Python's '%' costs ~0.2 us a value in object handling around the
+ * conversion, and the log is 15 values a tick. Here a value costs tens of ns:
+ *
+ *   - NaN, +-inf, +-0 and integers below 10^P are written directly;
+ *   - any other value is scaled by an exact power of ten (10^0..10^22) with
+ *     one correctly rounded multiply or divide, so the scaled value is within
+ *     half an ulp of the exact one; rounded to P digits it is the exact
+ *     answer unless it lies within a few ulps of a tie (...5 exactly), and
+ *     then, or out of that range (|x| < ~1e-14 or > ~1e30), or for P > 12,
+ *     the value goes to CPython's own PyOS_double_to_string, which is what
+ *     '%' calls: correct by construction, rare by design.
+ *
+ * The GIL: the caller chooses. The daemon's loop thread formats a few rows
+ * in its idle time and keeps the GIL (handing it over can cost a cross-CPU
+ * wake-up inside a tick: docs/design.md, "Threads"); a writer thread or
+ * mrctl simulate's block writer releases it for the whole block, taking it
+ * back only for a value that needs CPython's conversion.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define MAX_PREC 17       /* integers up to 10^17 < 2^63 */
+#define MAX_FAST_PREC 12  /* scaled values < 10^12 < 2^40: ulps far below the tie margin */
+#define MAX_VALUE_CHARS 26 /* '-', 17 digits, '.', 'e-308', and the separator */
+
+static const double POW10[23] = {
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11,
+    1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+
+static const uint64_t IPOW10[19] = {
+    1ULL, 10ULL, 100ULL, 1000ULL, 10000ULL, 100000ULL, 1000000ULL, 10000000ULL,
+    100000000ULL, 1000000000ULL, 10000000000ULL, 100000000000ULL,
+    1000000000000ULL, 10000000000000ULL, 100000000000000ULL,
+    1000000000000000ULL, 10000000000000000ULL, 100000000000000000ULL,
+    1000000000000000000ULL};
+
+static char *put_uint(char *p, uint64_t v)
+{
+    char tmp[20];
+    int n = 0;
+    do {
+        tmp[n++] = (char)('0' + (int)(v % 10));
+        v /= 10;
+    } while (v);
+    while (n)
+        *p++ = tmp[--n];
+    return p;
+}
+
+/* x as '%.<prec>g' writes it, at p; the end of the text, or NULL when only
+ * CPython's conversion can tell (then nothing is written that counts). */
+static char *fmt_g(char *p, double x, int prec)
+{
+    if (isnan(x)) {  /* '%g' writes every NaN as 'nan', whatever its sign */
+        memcpy(p, "nan", 3);
+        return p + 3;
+    }
+    if (signbit(x)) {
+        *p++ = '-';
+        x = -x;
+    }
+    if (isinf(x)) {
+        memcpy(p, "inf", 3);
+        return p + 3;
+    }
+    if (x == 0.0) {
+        *p++ = '0';
+        return p;
+    }
+    if (x < POW10[prec] && x == floor(x))  /* fewer than prec digits: written whole */
+        return put_uint(p, (uint64_t)x);
+    if (prec > MAX_FAST_PREC)
+        return NULL;
+
+    int e10 = (int)floor(log10(x));
+    uint64_t d = 0;
+    const double lo = POW10[prec - 1], hi = POW10[prec];
+    for (int attempt = 0;; attempt++) {
+        int s = prec - 1 - e10;
+        if (s > 22 || s < -22)
+            return NULL;
+        double y = s >= 0 ? x * POW10[s] : x / POW10[-s];  /* one rounding: within half an ulp */
+        if (attempt == 0 && y < lo) {  /* log10 rounded up across a power of ten */
+            e10--;
+            continue;
+        }
+        if (attempt == 0 && y >= hi) {
+            e10++;
+            continue;
+        }
+        double whole = floor(y), frac = y - whole;  /* exact */
+        if (fabs(frac - 0.5) <= y * 0x1p-50)  /* a tie, or too close to one to tell */
+            return NULL;
+        d = (uint64_t)whole + (frac > 0.5 ? 1u : 0u);
+        break;
+    }
+    if (d == IPOW10[prec]) {  /* 9.99..95 rounds up to the next power of ten */
+        d = IPOW10[prec - 1];
+        e10++;
+    } else if (d > IPOW10[prec] || d < IPOW10[prec - 1]) {
+        return NULL;
+    }
+
+    char dig[MAX_PREC + 1];
+    for (int i = prec - 1; i >= 0; i--) {
+        dig[i] = (char)('0' + (int)(d % 10));
+        d /= 10;
+    }
+    int nd = prec;
+    while (nd > 1 && dig[nd - 1] == '0')
+        nd--;
+    if (e10 < -4 || e10 >= prec) {  /* d.ddde+XX, at least two exponent digits */
+        *p++ = dig[0];
+        if (nd > 1) {
+            *p++ = '.';
+            memcpy(p, dig + 1, (size_t)(nd - 1));
+            p += nd - 1;
+        }
+        *p++ = 'e';
+        *p++ = e10 < 0 ? '-' : '+';
+        int ae = e10 < 0 ? -e10 : e10;
+        if (ae < 10)
+            *p++ = '0';
+        return put_uint(p, (uint64_t)ae);
+    }
+    if (e10 >= 0) {
+        int whole = e10 + 1;
+        if (nd <= whole) {
+            memcpy(p, dig, (size_t)nd);
+            p += nd;
+            memset(p, '0', (size_t)(whole - nd));
+            return p + (whole - nd);
+        }
+        memcpy(p, dig, (size_t)whole);
+        p += whole;
+        *p++ = '.';
+        memcpy(p, dig + whole, (size_t)(nd - whole));
+        return p + (nd - whole);
+    }
+    *p++ = '0';
+    *p++ = '.';
+    memset(p, '0', (size_t)(-e10 - 1));
+    p += -e10 - 1;
+    memcpy(p, dig, (size_t)nd);
+    return p + nd;
+}
+
+typedef struct {
+    const char *base;   /* the value of row 0 */
+    Py_ssize_t stride;  /* bytes from one row to the next */
+} Column;
+
+/* CPython's conversion of one value (needs the GIL); the end, or NULL with an exception set. */
+static char *fmt_g_cpython(char *p, double x, int prec)
+{
+    char *s = PyOS_double_to_string(x, 'g', prec, 0, NULL);
+    if (s == NULL)
+        return NULL;
+    size_t n = strlen(s);
+    if (n > MAX_VALUE_CHARS - 1) {
+        PyMem_Free(s);
+        PyErr_SetString(PyExc_SystemError, "rowtext: a value longer than expected");
+        return NULL;
+    }
+    memcpy(p, s, n);
+    PyMem_Free(s);
+    return p + n;
+}
+
+static PyObject *format_table(const Column *cols, const int *prec, int ncols, Py_ssize_t row0,
+                              Py_ssize_t nrows, int release)
+{
+    if (nrows > (PY_SSIZE_T_MAX - 1) / ((Py_ssize_t)ncols * MAX_VALUE_CHARS + 1)) {
+        PyErr_SetString(PyExc_OverflowError, "rowtext: too many rows for one call");
+        return NULL;
+    }
+    PyObject *out = PyBytes_FromStringAndSize(NULL, nrows * ((Py_ssize_t)ncols * MAX_VALUE_CHARS + 1));
+    if (out == NULL)
+        return NULL;
+    char *start = PyBytes_AS_STRING(out), *p = start;
+    PyThreadState *ts = release ? PyEval_SaveThread() : NULL;
+    int failed = 0;
+    for (Py_ssize_t r = row0; r < row0 + nrows && !failed; r++) {
+        for (int j = 0; j < ncols; j++) {
+            double x;
+            memcpy(&x, cols[j].base + r * cols[j].stride, sizeof x);
+            char *q = fmt_g(p, x, prec[j]);
+            if (q == NULL) {
+                if (ts != NULL)
+                    PyEval_RestoreThread(ts);
+                q = fmt_g_cpython(p, x, prec[j]);
+                if (ts != NULL)
+                    ts = PyEval_SaveThread();
+                if (q == NULL) {
+                    failed = 1;
+                    break;
+                }
+            }
+            p = q;
+            *p++ = j + 1 < ncols ? ',' : '\n';
+        }
+    }
+    if (ts != NULL)
+        PyEval_RestoreThread(ts);
+    if (failed) {
+        Py_DECREF(out);
+        return NULL;
+    }
+    if (_PyBytes_Resize(&out, p - start) < 0)
+        return NULL;
+    return out;
+}
+
+/* precisions: a sequence of ints in [1, MAX_PREC], one per column. */
+static int read_precisions(PyObject *seq, int *prec, int ncols)
+{
+    PyObject *fast = PySequence_Fast(seq, "rowtext: precisions must be a sequence of ints");
+    if (fast == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(fast) != ncols) {
+        PyErr_Format(PyExc_ValueError, "rowtext: %d columns but %zd precisions", ncols,
+                     PySequence_Fast_GET_SIZE(fast));
+        Py_DECREF(fast);
+        return -1;
+    }
+    for (int j = 0; j < ncols; j++) {
+        long v = PyLong_AsLong(PySequence_Fast_GET_ITEM(fast, j));
+        if (v == -1 && PyErr_Occurred()) {
+            Py_DECREF(fast);
+            return -1;
+        }
+        if (v < 1 || v > MAX_PREC) {
+            PyErr_Format(PyExc_ValueError, "rowtext: precision %ld outside 1..%d", v, MAX_PREC);
+            Py_DECREF(fast);
+            return -1;
+        }
+        prec[j] = (int)v;
+    }
+    Py_DECREF(fast);
+    return 0;
+}
+
+/* A contiguous buffer of native doubles (array('d'), a float64 ndarray, a
+ * packed block); its length in doubles, or -1 with an exception set. */
+static Py_ssize_t get_doubles(PyObject *obj, Py_buffer *view)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return -1;
+    const char *f = view->format ? view->format : "B";
+    if (*f == '@' || *f == '=' || *f == '<')  /* native order on the machines mrctl builds on */
+        f++;
+    if (strcmp(f, "d") != 0 || view->itemsize != 8) {
+        PyErr_Format(PyExc_TypeError, "rowtext: need a buffer of float64, got format '%s'",
+                     view->format ? view->format : "B");
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return view->len / 8;
+}
+
+static int check_rows(Py_ssize_t row0, Py_ssize_t nrows, Py_ssize_t have)
+{
+    if (row0 < 0 || nrows < 0 || row0 > have || nrows > have - row0) {
+        PyErr_Format(PyExc_IndexError, "rowtext: rows %zd..%zd outside the %zd rows given", row0,
+                     row0 + nrows, have);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *rowtext_format_rows(PyObject *module, PyObject *args)
+{
+    PyObject *buf, *precs;
+    Py_ssize_t row0, nrows;
+    int release = 0;
+    (void)module;
+    if (!PyArg_ParseTuple(args, "OOnn|p:format_rows", &buf, &precs, &row0, &nrows, &release))
+        return NULL;
+    Py_ssize_t ncols = PyObject_Length(precs);
+    if (ncols < 0)
+        return NULL;
+    if (ncols < 1 || ncols > 1024) {
+        PyErr_SetString(PyExc_ValueError, "rowtext: 1 to 1024 columns");
+        return NULL;
+    }
+    int prec[1024];
+    Column cols[1024];
+    if (read_precisions(precs, prec, (int)ncols) < 0)
+        return NULL;
+    Py_buffer view;
+    Py_ssize_t n = get_doubles(buf, &view);
+    if (n < 0)
+        return NULL;
+    PyObject *out = NULL;
+    if (check_rows(row0, nrows, n / ncols) == 0) {
+        for (Py_ssize_t j = 0; j < ncols; j++) {
+            cols[j].base = (const char *)view.buf + 8 * j;
+            cols[j].stride = 8 * ncols;
+        }
+        out = format_table(cols, prec, (int)ncols, row0, nrows, release);
+    }
+    PyBuffer_Release(&view);
+    return out;
+}
+
+static PyObject *rowtext_format_columns(PyObject *module, PyObject *args)
+{
+    PyObject *seq, *precs;
+    Py_ssize_t row0, nrows;
+    int release = 0;
+    (void)module;
+    if (!PyArg_ParseTuple(args, "OOnn|p:format_columns", &seq, &precs, &row0, &nrows, &release))
+        return NULL;
+    PyObject *fast = PySequence_Fast(seq, "rowtext: columns must be a sequence of buffers");
+    if (fast == NULL)
+        return NULL;
+    Py_ssize_t ncols = PySequence_Fast_GET_SIZE(fast);
+    if (ncols < 1 || ncols > 1024) {
+        Py_DECREF(fast);
+        PyErr_SetString(PyExc_ValueError, "rowtext: 1 to 1024 columns");
+        return NULL;
+    }
+    int prec[1024];
+    Column cols[1024];
+    Py_buffer *views = PyMem_Calloc((size_t)ncols, sizeof(Py_buffer));
+    PyObject *out = NULL;
+    Py_ssize_t got = 0;
+    if (views == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    if (read_precisions(precs, prec, (int)ncols) < 0)
+        goto done;
+    for (; got < ncols; got++) {
+        Py_ssize_t n = get_doubles(PySequence_Fast_GET_ITEM(fast, got), &views[got]);
+        if (n < 0 || check_rows(row0, nrows, n) < 0) {
+            if (n >= 0)
+                got++;  /* release this one too */
+            goto done;
+        }
+        cols[got].base = (const char *)views[got].buf;
+        cols[got].stride = 8;
+    }
+    out = format_table(cols, prec, (int)ncols, row0, nrows, release);
+done:
+    for (Py_ssize_t j = 0; j < got; j++)
+        PyBuffer_Release(&views[j]);
+    PyMem_Free(views);
+    Py_DECREF(fast);
+    return out;
+}
+
+static PyMethodDef rowtext_methods[] = {
+    {"format_rows", rowtext_format_rows, METH_VARARGS,
+     "format_rows(buf, precisions, row0, nrows, release_gil=False) -> bytes\n\n"
+     "Rows row0..row0+nrows of a row-major buffer of float64 (len(precisions) per row) as CSV\n"
+     "lines, each value as '%.<P>g' % value writes it."},
+    {"format_columns", rowtext_format_columns, METH_VARARGS,
+     "format_columns(columns, precisions, row0, nrows, release_gil=False) -> bytes\n\n"
+     "The same for a sequence of float64 column buffers."},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef rowtext_module = {PyModuleDef_HEAD_INIT, "_rowtext",
+                                            "The run log's compiled row formatter (see rowtext.py).",
+                                            -1, rowtext_methods};
+
+PyMODINIT_FUNC PyInit__rowtext(void) { return PyModule_Create(&rowtext_module); }
