@@ -19,15 +19,20 @@
  *
  * The GIL: the caller chooses. The daemon's loop thread formats a few rows
  * in its idle time and keeps the GIL (handing it over can cost a cross-CPU
- * wake-up inside a tick: docs/design.md, "Threads"); a writer thread or
- * mrctl simulate's block writer releases it for the whole block, taking it
- * back only for a value that needs CPython's conversion.
+ * wake-up inside a tick: docs/design.md, "Threads"); a writer thread
+ * releases it for the whole block, taking it back only for a value that
+ * needs CPython's conversion. mrctl simulate's block writer formats and
+ * write(2)s a block in one call without the GIL (write_columns): the
+ * compiled loop beside it holds the GIL for a whole block, and a writer that
+ * needed it between formatting and writing would wait for that block.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#include <errno.h>
+#include <unistd.h>
 
 #define MAX_PREC 17       /* integers up to 10^17 < 2^63 */
 #define MAX_FAST_PREC 12  /* scaled values < 10^12 < 2^40: ulps far below the tie margin */
@@ -177,48 +182,107 @@ static char *fmt_g_cpython(char *p, double x, int prec)
     return p + n;
 }
 
-static PyObject *format_table(const Column *cols, const int *prec, int ncols, Py_ssize_t row0,
-                              Py_ssize_t nrows, int release)
+/* The rows as CSV text at p; the end, or NULL with an exception set. With
+ * *ts not NULL the GIL is released, and it is taken back (and released
+ * again) around CPython's conversion of the rare value that needs it; on
+ * failure the GIL is held and *ts is NULL. */
+static char *format_into(char *p, const Column *cols, const int *prec, int ncols, Py_ssize_t row0,
+                         Py_ssize_t nrows, PyThreadState **ts)
 {
-    if (nrows > (PY_SSIZE_T_MAX - 1) / ((Py_ssize_t)ncols * MAX_VALUE_CHARS + 1)) {
-        PyErr_SetString(PyExc_OverflowError, "rowtext: too many rows for one call");
-        return NULL;
-    }
-    PyObject *out = PyBytes_FromStringAndSize(NULL, nrows * ((Py_ssize_t)ncols * MAX_VALUE_CHARS + 1));
-    if (out == NULL)
-        return NULL;
-    char *start = PyBytes_AS_STRING(out), *p = start;
-    PyThreadState *ts = release ? PyEval_SaveThread() : NULL;
-    int failed = 0;
-    for (Py_ssize_t r = row0; r < row0 + nrows && !failed; r++) {
+    for (Py_ssize_t r = row0; r < row0 + nrows; r++) {
         for (int j = 0; j < ncols; j++) {
             double x;
             memcpy(&x, cols[j].base + r * cols[j].stride, sizeof x);
             char *q = fmt_g(p, x, prec[j]);
             if (q == NULL) {
-                if (ts != NULL)
-                    PyEval_RestoreThread(ts);
+                if (*ts != NULL)
+                    PyEval_RestoreThread(*ts);
                 q = fmt_g_cpython(p, x, prec[j]);
-                if (ts != NULL)
-                    ts = PyEval_SaveThread();
                 if (q == NULL) {
-                    failed = 1;
-                    break;
+                    *ts = NULL;
+                    return NULL;
                 }
+                if (*ts != NULL)
+                    *ts = PyEval_SaveThread();
             }
             p = q;
             *p++ = j + 1 < ncols ? ',' : '\n';
         }
     }
+    return p;
+}
+
+static Py_ssize_t text_capacity(int ncols, Py_ssize_t nrows)
+{
+    if (nrows > (PY_SSIZE_T_MAX - 1) / ((Py_ssize_t)ncols * MAX_VALUE_CHARS + 1)) {
+        PyErr_SetString(PyExc_OverflowError, "rowtext: too many rows for one call");
+        return -1;
+    }
+    return nrows * ((Py_ssize_t)ncols * MAX_VALUE_CHARS + 1);
+}
+
+static PyObject *format_table(const Column *cols, const int *prec, int ncols, Py_ssize_t row0,
+                              Py_ssize_t nrows, int release)
+{
+    Py_ssize_t cap = text_capacity(ncols, nrows);
+    if (cap < 0)
+        return NULL;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, cap);
+    if (out == NULL)
+        return NULL;
+    char *start = PyBytes_AS_STRING(out);
+    PyThreadState *ts = release ? PyEval_SaveThread() : NULL;
+    char *end = format_into(start, cols, prec, ncols, row0, nrows, &ts);
     if (ts != NULL)
         PyEval_RestoreThread(ts);
-    if (failed) {
+    if (end == NULL) {
         Py_DECREF(out);
         return NULL;
     }
-    if (_PyBytes_Resize(&out, p - start) < 0)
+    if (_PyBytes_Resize(&out, end - start) < 0)
         return NULL;
     return out;
+}
+
+/* Format and write(2) to fd, all without the GIL (but for the rare value
+ * CPython converts); (bytes written, complete lines written, errno or 0). */
+static PyObject *write_table(int fd, const Column *cols, const int *prec, int ncols, Py_ssize_t row0,
+                             Py_ssize_t nrows)
+{
+    Py_ssize_t cap = text_capacity(ncols, nrows);
+    if (cap < 0)
+        return NULL;
+    char *start = PyMem_RawMalloc(cap > 0 ? (size_t)cap : 1);
+    if (start == NULL)
+        return PyErr_NoMemory();
+    PyThreadState *ts = PyEval_SaveThread();
+    char *end = format_into(start, cols, prec, ncols, row0, nrows, &ts);
+    Py_ssize_t done = 0, lines = nrows;
+    int err = 0;
+    if (end != NULL) {
+        Py_ssize_t len = end - start;
+        while (done < len) {
+            ssize_t k = write(fd, start + done, (size_t)(len - done));
+            if (k < 0 && errno == EINTR)
+                continue;
+            if (k <= 0) {
+                err = k < 0 ? errno : EIO;
+                break;
+            }
+            done += k;
+        }
+        if (err) {  /* a partial write keeps its complete lines */
+            lines = 0;
+            for (Py_ssize_t i = 0; i < done; i++)
+                lines += start[i] == '\n';
+        }
+    }
+    if (ts != NULL)
+        PyEval_RestoreThread(ts);
+    PyMem_RawFree(start);
+    if (end == NULL)
+        return NULL;
+    return Py_BuildValue("nni", done, lines, err);
 }
 
 /* precisions: a sequence of ints in [1, MAX_PREC], one per column. */
@@ -313,14 +377,11 @@ static PyObject *rowtext_format_rows(PyObject *module, PyObject *args)
     return out;
 }
 
-static PyObject *rowtext_format_columns(PyObject *module, PyObject *args)
+/* format_columns and write_columns: columns (a sequence of float64 buffers),
+ * precisions, row0, nrows; then release (format) or fd (write). */
+static PyObject *columns_call(PyObject *seq, PyObject *precs, Py_ssize_t row0, Py_ssize_t nrows, int release,
+                              int fd)
 {
-    PyObject *seq, *precs;
-    Py_ssize_t row0, nrows;
-    int release = 0;
-    (void)module;
-    if (!PyArg_ParseTuple(args, "OOnn|p:format_columns", &seq, &precs, &row0, &nrows, &release))
-        return NULL;
     PyObject *fast = PySequence_Fast(seq, "rowtext: columns must be a sequence of buffers");
     if (fast == NULL)
         return NULL;
@@ -351,13 +412,40 @@ static PyObject *rowtext_format_columns(PyObject *module, PyObject *args)
         cols[got].base = (const char *)views[got].buf;
         cols[got].stride = 8;
     }
-    out = format_table(cols, prec, (int)ncols, row0, nrows, release);
+    out = fd < 0 ? format_table(cols, prec, (int)ncols, row0, nrows, release)
+                 : write_table(fd, cols, prec, (int)ncols, row0, nrows);
 done:
     for (Py_ssize_t j = 0; j < got; j++)
         PyBuffer_Release(&views[j]);
     PyMem_Free(views);
     Py_DECREF(fast);
     return out;
+}
+
+static PyObject *rowtext_format_columns(PyObject *module, PyObject *args)
+{
+    PyObject *seq, *precs;
+    Py_ssize_t row0, nrows;
+    int release = 0;
+    (void)module;
+    if (!PyArg_ParseTuple(args, "OOnn|p:format_columns", &seq, &precs, &row0, &nrows, &release))
+        return NULL;
+    return columns_call(seq, precs, row0, nrows, release, -1);
+}
+
+static PyObject *rowtext_write_columns(PyObject *module, PyObject *args)
+{
+    PyObject *seq, *precs;
+    Py_ssize_t row0, nrows;
+    int fd;
+    (void)module;
+    if (!PyArg_ParseTuple(args, "iOOnn:write_columns", &fd, &seq, &precs, &row0, &nrows))
+        return NULL;
+    if (fd < 0) {
+        PyErr_SetString(PyExc_ValueError, "rowtext: a negative file descriptor");
+        return NULL;
+    }
+    return columns_call(seq, precs, row0, nrows, 0, fd);
 }
 
 static PyMethodDef rowtext_methods[] = {
@@ -368,6 +456,10 @@ static PyMethodDef rowtext_methods[] = {
     {"format_columns", rowtext_format_columns, METH_VARARGS,
      "format_columns(columns, precisions, row0, nrows, release_gil=False) -> bytes\n\n"
      "The same for a sequence of float64 column buffers."},
+    {"write_columns", rowtext_write_columns, METH_VARARGS,
+     "write_columns(fd, columns, precisions, row0, nrows) -> (bytes written, lines written, errno)\n\n"
+     "format_columns' text written to the file descriptor fd, all without the GIL; errno 0 when\n"
+     "everything was written."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef rowtext_module = {PyModuleDef_HEAD_INIT, "_rowtext",

@@ -258,9 +258,11 @@ class RowFigures:
     """:func:`mrctl.runlog.acceptance.row_figures`, block by block: the share
     of rows in fault, the longest forced-0 A stretch and the longest gap
     between logged ticks (s). ``x``: the column whose NaN means no usable
-    sample; ``fault``, ``k``: the fault bits and tick index columns."""
+    sample; ``fault``, ``k``: the fault bits and tick index columns (None:
+    no fault bits, every row fault-free; consecutive ticks from 0, as
+    offline)."""
 
-    def __init__(self, dt_s: float, x: str = "x", fault: str = "fault", k: str = "k") -> None:
+    def __init__(self, dt_s: float, x: str = "x", fault: str | None = "fault", k: str | None = "k") -> None:
         self.dt_s = float(dt_s)
         self.names = (x, fault, k)
         self.rows = 0
@@ -271,10 +273,16 @@ class RowFigures:
         self._last_k = math.nan
 
     def add(self, block: Block) -> None:
-        x, f, k = (np.asarray(block[c], float) for c in self.names)
-        if not len(k):
+        xc, fc, kc = self.names
+        x = np.asarray(block[xc], float)
+        if not len(x):
             return
-        faulted = np.isfinite(f) & (f != 0)
+        k = np.asarray(block[kc], float) if kc is not None else np.arange(self.rows, self.rows + len(x), dtype=float)
+        if fc is not None:
+            f = np.asarray(block[fc], float)
+            faulted = np.isfinite(f) & (f != 0)
+        else:
+            faulted = np.zeros(len(x), bool)
         self.in_fault += int(np.count_nonzero(faulted))
         zero = ~np.isfinite(x) | faulted
         d = np.diff(np.concatenate(([1 if self._open is not None else 0], zero.view(np.int8))))

@@ -13,18 +13,21 @@ compiler at install) runs the ``%`` twin here. Formats other than ``%.Pg``
 
 Two layouts: :meth:`RowFormatter.rows` reads a row-major block of doubles
 (the daemon's packed blocks), :meth:`RowFormatter.columns` one buffer per
-column (``mrctl simulate``'s arrays). ``release_gil``: the compiled path
-lets other threads run while it formats (a writer thread, simulate's block
-writer); the daemon's loop thread keeps the GIL for its few rows at a time
-(docs/design.md, "Threads").
+column (``mrctl simulate``'s arrays; :meth:`RowFormatter.write_columns`
+formats and writes them, in the compiled build to a plain file in one C
+call without the GIL). ``release_gil``: the compiled path lets other threads
+run while it formats (a writer thread); the daemon's loop thread keeps the
+GIL for its few rows at a time (docs/design.md, "Threads").
 """
 
 from __future__ import annotations
 
+import io
 import itertools
+import os
 import re
 import struct
-from typing import Any, Mapping, Sequence
+from typing import Any, BinaryIO, Mapping, Sequence
 
 from mrctl.runlog.format import row_format
 
@@ -126,3 +129,36 @@ class RowFormatter:
                 raise IndexError(f"rows {row0}..{row0 + nrows} outside a column of {min(map(len, lists)) + a}")
             parts.append((self.row_fmt * (b - a)) % tuple(itertools.chain.from_iterable(zip(*lists))))
         return "".join(parts).encode("ascii")
+
+    def write_columns(self, fh: BinaryIO, cols: Sequence[Any], row0: int, nrows: int
+                      ) -> tuple[int, int, OSError | None]:
+        """:meth:`columns_text` written to ``fh``: (bytes written, complete
+        rows written, the write's error or None). Compiled, to a plain file
+        (``io.FileIO``), the rows are formatted and written in one call
+        without the GIL; else the text goes through ``fh.write``."""
+        if self._c is not None and type(fh) is io.FileIO:
+            if len(cols) != self.ncols:
+                raise ValueError(f"{self.ncols} columns, {len(cols)} buffers given")
+            if row0 < 0 or nrows < 0:
+                raise IndexError(f"rows {row0}..{row0 + nrows}: negative")
+            done, rows, err = self._c.write_columns(fh.fileno(), cols, self.precisions, row0, nrows)
+            return done, rows, (OSError(err, os.strerror(err)) if err else None)
+        return write_all(fh, self.columns_text(cols, row0, nrows, release_gil=True), nrows)
+
+
+def write_all(fh: BinaryIO, data: bytes, rows: int) -> tuple[int, int, OSError | None]:
+    """``data`` (``rows`` lines) written to ``fh``, repeating short writes:
+    (bytes written, complete lines written, the error or None)."""
+    view = memoryview(data)
+    done = 0
+    try:
+        while done < len(data):
+            k = fh.write(view[done:])
+            if k is None:  # a buffered file takes everything
+                k = len(data) - done
+            if k <= 0:
+                raise OSError(f"write() returned {k} with {len(data) - done} bytes left")
+            done += k
+    except OSError as exc:
+        return done, data.count(b"\n", 0, done), exc
+    return done, rows, None

@@ -16,8 +16,6 @@ from __future__ import annotations
 import itertools
 import os
 import signal
-import sys
-import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
@@ -26,6 +24,7 @@ from mrctl.errors import BadInput, DependencyMissing, ExitCode, MrctlError
 from mrctl.sweep.point import prewarm, run_point, run_points
 from mrctl.sweep.spec import Point, Sweep, expand
 from mrctl.sweep.table import ResultsTable, columns
+from mrctl.util.progress import make_bar
 
 IN_FLIGHT_PER_WORKER = 4
 #: most points sent to a worker at once: a compiled point is ~8 ms, and a
@@ -138,35 +137,6 @@ def run_dask(tasks: Iterable[dict[str, Any]], client: Any, batch: int = 1) -> It
         client.cancel([f for f in futures if not f.done()])
 
 
-class _Progress:
-    """tqdm when installed (rate, time left), else a line every 5 s on stderr."""
-
-    def __init__(self, total: int, initial: int, enabled: bool) -> None:
-        self.bar = None
-        self.total, self.n, self.t0, self.last = total, initial, time.monotonic(), 0.0
-        self.enabled = enabled
-        if not enabled:
-            return
-        try:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, initial=initial, unit="pt", dynamic_ncols=True, file=sys.stderr)
-        except ImportError:
-            pass
-
-    def update(self) -> None:
-        self.n += 1
-        if self.bar is not None:
-            self.bar.update(1)
-        elif self.enabled and time.monotonic() - self.last > 5.0:
-            self.last = time.monotonic()
-            print(f"sweep: {self.n}/{self.total} points", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def run_sweep(sweep: Sweep, out: str | os.PathLike[str], scheduler: Any = None, workers: int | None = None,
               progress: bool = True) -> dict[str, int]:
     """Run every point not yet in ``out``; counts by status (this run's points), plus ``skipped``.
@@ -197,7 +167,7 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], scheduler: Any = None, 
         done.add(p.hash)  # a point twice in a sweep (same config) runs once
         values[p.index] = {**p.values, "seed": p.seed}
         todo.append(p)
-    bar = _Progress(total, total - len(todo), progress)
+    bar = make_bar(total, "sweep", progress, initial=total - len(todo), unit="pt", every_s=5.0)
     n_workers = workers if workers is not None else (os.cpu_count() or 1)
     tasks = (p.task(sweep.metrics) for p in todo)
     if client is not None:
