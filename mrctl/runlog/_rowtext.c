@@ -49,17 +49,38 @@ static const uint64_t IPOW10[19] = {
     1000000000000000ULL, 10000000000000000ULL, 100000000000000000ULL,
     1000000000000000000ULL};
 
+static const char DIGITS2[] =
+    "00010203040506070809101112131415161718192021222324252627282930313233343536373839"
+    "40414243444546474849505152535455565758596061626364656667686970717273747576777879"
+    "8081828384858687888990919293949596979899";
+
+/* the decimal digits of v, exactly n of them (leading zeros), ending at end */
+static void put_digits(char *end, uint64_t v, int n)
+{
+    while (n >= 2) {
+        unsigned r = (unsigned)(v % 100);
+        v /= 100;
+        end -= 2;
+        memcpy(end, DIGITS2 + 2 * r, 2);
+        n -= 2;
+    }
+    if (n)
+        *--end = (char)('0' + (int)(v % 10));
+}
+
+static int count_digits(uint64_t v)
+{
+    int n = 1;
+    while (n < 19 && v >= IPOW10[n])
+        n++;
+    return n;
+}
+
 static char *put_uint(char *p, uint64_t v)
 {
-    char tmp[20];
-    int n = 0;
-    do {
-        tmp[n++] = (char)('0' + (int)(v % 10));
-        v /= 10;
-    } while (v);
-    while (n)
-        *p++ = tmp[--n];
-    return p;
+    int n = count_digits(v);
+    put_digits(p + n, v, n);
+    return p + n;
 }
 
 /* x as '%.<prec>g' writes it, at p; the end of the text, or NULL when only
@@ -82,12 +103,18 @@ static char *fmt_g(char *p, double x, int prec)
         *p++ = '0';
         return p;
     }
-    if (x < POW10[prec] && x == floor(x))  /* fewer than prec digits: written whole */
+    if (x < POW10[prec] && (double)(uint64_t)x == x)  /* an integer of at most prec digits: written whole */
         return put_uint(p, (uint64_t)x);
     if (prec > MAX_FAST_PREC)
         return NULL;
 
-    int e10 = (int)floor(log10(x));
+    uint64_t bits;
+    memcpy(&bits, &x, sizeof bits);
+    int e2 = (int)((bits >> 52) & 0x7ff) - 1023;  /* 2^e2 <= x < 2^(e2+1) (x normal) */
+    if (e2 < -200 || e2 > 200)  /* far out of the exact powers' reach anyway; subnormals too */
+        return NULL;
+    /* floor(e2 log10 2): log10(x) is this or one more; the scaled value tells which */
+    int e10 = e2 >= 0 ? (e2 * 78913) >> 18 : -((-e2 * 78913 + (1 << 18) - 1) >> 18);
     uint64_t d = 0;
     const double lo = POW10[prec - 1], hi = POW10[prec];
     for (int attempt = 0;; attempt++) {
@@ -95,7 +122,7 @@ static char *fmt_g(char *p, double x, int prec)
         if (s > 22 || s < -22)
             return NULL;
         double y = s >= 0 ? x * POW10[s] : x / POW10[-s];  /* one rounding: within half an ulp */
-        if (attempt == 0 && y < lo) {  /* log10 rounded up across a power of ten */
+        if (attempt == 0 && y < lo) {  /* (never, from the estimate above; kept for safety) */
             e10--;
             continue;
         }
@@ -103,7 +130,7 @@ static char *fmt_g(char *p, double x, int prec)
             e10++;
             continue;
         }
-        double whole = floor(y), frac = y - whole;  /* exact */
+        double whole = (double)(uint64_t)y, frac = y - whole;  /* exact: 0 < y < 2^53 */
         if (fabs(frac - 0.5) <= y * 0x1p-50)  /* a tie, or too close to one to tell */
             return NULL;
         d = (uint64_t)whole + (frac > 0.5 ? 1u : 0u);
@@ -117,10 +144,7 @@ static char *fmt_g(char *p, double x, int prec)
     }
 
     char dig[MAX_PREC + 1];
-    for (int i = prec - 1; i >= 0; i--) {
-        dig[i] = (char)('0' + (int)(d % 10));
-        d /= 10;
-    }
+    put_digits(dig + prec, d, prec);
     int nd = prec;
     while (nd > 1 && dig[nd - 1] == '0')
         nd--;
