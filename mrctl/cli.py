@@ -148,7 +148,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     exp = _load_simulated(args)
     duration = run_duration(exp, override)
     total = run_ticks(exp, duration)
-    bar = make_bar(total, "simulate", not (args.quiet or args.no_progress), unit="ticks", delay_s=2.0)
+    bar = make_bar(total, "simulate", not (args.quiet or args.no_progress), unit="ticks", delay_s=2.0, every_s=30.0)
     done = [0]
 
     def progress(ticks: int) -> None:
