@@ -97,6 +97,21 @@ def run_ticks(exp: Experiment, duration_s: float) -> int:
     return int(round(duration_s / exp.dt)) + 1
 
 
+#: the verdict's row figures (:func:`mrctl.runlog.acceptance.row_figures`): in
+#: :attr:`SimResult.row_figures`, not in the summary
+ROW_FIGURES = ("fault_share", "longest_zero_stretch_s", "longest_gap_s")
+
+
+def offline_figures(exp: Experiment, channels: tuple[str, ...]) -> FigureSet:
+    """The figures a simulation accumulates block by block, over its own
+    columns (:data:`BLOCK_COLUMNS` and the bench's channels): tracking, the
+    quarter car's ride, the verdict's row figures. A figure added here is in
+    every simulation's summary (:mod:`mrctl.runlog.blockmetrics`)."""
+    settle = exp.excitation.settle_s
+    return FigureSet([TrackingFigures(settle, exp.I_max), *([RideFigures(settle)] if "a_sprung" in channels else []),
+                      RowFigures(exp.dt, x="x_meas", fault=None, k=None)])
+
+
 def simulate_blocks(exp: Experiment, duration_s: float, on_block: BlockSink | None = None, *,
                     block_ticks: int = BLOCK_TICKS, progress: Callable[[int], None] | None = None) -> SimResult:
     """Run the closed loop for ``duration_s`` of simulated time, a block of
@@ -126,10 +141,7 @@ def simulate_blocks(exp: Experiment, duration_s: float, on_block: BlockSink | No
     size = max(1, min(int(block_ticks), n))
     cols = {c: array("d", bytes(8 * size)) for c in (*BLOCK_COLUMNS, *channels)}
     views = {c: np.frombuffer(a, dtype=float) for c, a in cols.items()}
-    settle = exp.excitation.settle_s
-    rows = RowFigures(exp.dt, x="x_meas", fault=None, k=None)
-    figures = FigureSet([TrackingFigures(settle, exp.I_max), *([RideFigures(settle)] if "a_sprung" in channels
-                                                               else []), rows])
+    figures = offline_figures(exp, tuple(channels))
     wall = 0.0
     k0 = 0
     while k0 < n and loop.fault is None:
@@ -153,7 +165,7 @@ def simulate_blocks(exp: Experiment, duration_s: float, on_block: BlockSink | No
     else:
         F_last = bench.F
     s = figures.result()
-    row_figs = {key: s.pop(key) for key in ("fault_share", "longest_zero_stretch_s", "longest_gap_s") if key in s}
+    row_figs = {key: s.pop(key) for key in ROW_FIGURES if key in s}
     s["ticks"] = float(k0)
     s["simulated_s"] = (k0 - 1) * exp.dt
     s["wall_s"] = wall

@@ -64,6 +64,12 @@ class ExactSum:
             x = hi
         partials[i:] = [x]
 
+    def merge(self, other: ExactSum) -> None:
+        """Add everything ``other`` holds (exactly)."""
+        for p in other._partials:
+            self.add(p)
+        self._special += other._special
+
     def value(self) -> float:
         return self._special if self._special else math.fsum(self._partials)
 
@@ -125,10 +131,8 @@ class _Stretch:
         out.rows = self.rows + later.rows
         out.t_first = self.t_first
         out.valid = self.valid + later.valid
-        for s in (self.sq, later.sq):
-            for p in s._partials:
-                out.sq.add(p)
-            out.sq._special += s._special
+        out.sq.merge(self.sq)
+        out.sq.merge(later.sq)
         out.f_min, out.f_max = min(self.f_min, later.f_min), max(self.f_max, later.f_max)
         out.I_first, out.I_last = self.I_first, later.I_last
         out.step = _max_nan(_max_nan(self.step, later.step), abs(later.I_first - self.I_last))
@@ -246,9 +250,7 @@ class RideFigures:
         for i, (key, _) in enumerate(self.KEYS):
             both = _Squares()
             for side in (0, 1):
-                for p in self._parts[side][i].sq._partials:
-                    both.sq.add(p)
-                both.sq._special += self._parts[side][i].sq._special
+                both.sq.merge(self._parts[side][i].sq)
                 both.n += self._parts[side][i].n
             out[key] = both.rms()
         return out
