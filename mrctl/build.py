@@ -6,7 +6,8 @@ core"). The same sources run interpreted when no compiler was there at
 install, or when ``MRCTL_PURE_PYTHON=1`` asks for it at run time: then
 :func:`install_pure_finder` (called by ``mrctl/__init__.py`` before anything
 else of mrctl is imported) makes Python load those modules' ``.py`` files
-instead of their compiled extensions. Both builds compute the same currents
+instead of their compiled extensions, and refuse the C extensions of
+:data:`C_EXTENSIONS` (their Python twins run instead). Both builds compute the same currents
 bit for bit (tests/test_builds.py).
 
 Kept free of imports from the rest of mrctl: ``setup.py`` reads the module
@@ -41,6 +42,13 @@ COMPILED_MODULES: tuple[str, ...] = (
     "mrctl.core.offline",
 )
 
+#: C extensions built beside them, with the same all-or-nothing fallback: each
+#: has a Python twin that writes the same bytes (the run log's row formatter,
+#: mrctl/runlog/rowtext.py)
+C_EXTENSIONS: tuple[str, ...] = (
+    "mrctl.runlog._rowtext",
+)
+
 #: the environment switch that forces the interpreted build
 PURE_ENV = "MRCTL_PURE_PYTHON"
 
@@ -54,10 +62,13 @@ def pure_requested() -> bool:
 
 
 class _PureFinder:
-    """A meta-path finder that loads the compiled modules from their sources."""
+    """A meta-path finder that loads the compiled modules from their sources
+    and refuses the C extensions (their callers fall back to Python)."""
 
     def find_spec(self, name: str, path: Sequence[str] | None, target: ModuleType | None = None
                   ) -> importlib.machinery.ModuleSpec | None:
+        if name in C_EXTENSIONS:  # the interpreted build uses the Python twin
+            raise ModuleNotFoundError(f"{name}: not loaded with {PURE_ENV} set", name=name)
         if name not in COMPILED_MODULES or not path:
             return None
         leaf = name.rpartition(".")[2]

@@ -155,24 +155,40 @@ def _load_simulated(args: argparse.Namespace):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """The offline closed loop; ``--out``: :func:`mrctl.offline.simulate_log.simulate_logged`."""
-    from mrctl.offline.simulate import run_duration, simulate
+    """The offline closed loop, streamed in blocks; ``--out``: :func:`mrctl.offline.simulate_log.simulate_logged`."""
+    from mrctl.offline.simulate import run_duration, run_ticks, simulate_blocks
     from mrctl.offline.simulate_log import simulate_logged, simulate_verdict
     from mrctl.runlog import files
     from mrctl.util.options import check_duration
+    from mrctl.util.progress import make_bar
 
     override = check_duration(args.duration)
+    if args.no_log and args.out is not None:
+        raise BadInput("--no-log and --out: give one (--no-log keeps only the figures)")
     args.out = out_path(args)
     if args.out is not None:
         files.check_log_path(args.out, args.force, args.mkdir)  # before a long simulation, not after
     exp = _load_simulated(args)
     duration = run_duration(exp, override)
-    if args.out is None:
-        res = simulate(exp, duration)
-        verdict, code = simulate_verdict(exp, res)
-    else:
-        res, verdict, code = simulate_logged(exp, duration, args.out, args.config, force=args.force,
-                                             mkdir=args.mkdir, replay_of=args.replay)
+    total = run_ticks(exp, duration)
+    bar = make_bar(total, "simulate", not (args.quiet or args.no_progress), unit="ticks", delay_s=2.0, every_s=30.0)
+    done = [0]
+
+    def progress(ticks: int) -> None:
+        bar.update(ticks - done[0])
+        done[0] = ticks
+
+    try:
+        if args.out is None:  # the figures only, accumulated block by block
+            res = simulate_blocks(exp, duration, progress=progress)
+            verdict, code = simulate_verdict(exp, res)
+        else:
+            res, verdict, code = simulate_logged(
+                exp, duration, args.out, args.config, force=args.force, mkdir=args.mkdir, replay_of=args.replay,
+                on_estimate=lambda e: _say(args, f"run log {args.out}: {e.text()}") if e.total_bytes >= 2**28 else None,
+                progress=progress)
+    finally:
+        bar.close()
     return _simulated(args, exp, res, verdict, code)
 
 
@@ -520,10 +536,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--replay", metavar="RUN.csv",
                     help="re-run a logged experiment's motion (t, x, v of the run log) with its sidecar's config")
     sp.add_argument("--law", metavar="NAME", help="use this inverse law instead of the config's (inverse.law)")
-    add_out_options(sp, "run CSV to write (a .json sidecar goes beside it)")
+    add_out_options(sp, "run CSV to write (a .json sidecar goes beside it), streamed while the loop runs; a "
+                        "disk that cannot hold it is refused after the first block (exit 2)")
+    sp.add_argument("--no-log", action="store_true", help="keep only the figures (as without --out), in memory "
+                                                          "that does not grow with --duration")
     sp.add_argument("--duration", type=float, metavar="S", help="simulated seconds (overrides duration_s)")
     sp.add_argument("--force", action="store_true", help="replace an existing run log and sidecar")
-    add_quiet_options(sp, progress=False)
+    add_quiet_options(sp)
     _outside_option(sp)
     sp.set_defaults(func=cmd_simulate)
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from mrctl.build import COMPILED, COMPILED_MODULES, PURE, PURE_ENV, module_build, pure_requested, tick_build
+from mrctl.build import C_EXTENSIONS, COMPILED, COMPILED_MODULES, PURE, PURE_ENV, module_build, pure_requested, tick_build
 from mrctl.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,15 +40,20 @@ def test_the_suite_runs_the_compiled_build_where_a_compiler_was_there():
     assert tick_build() == COMPILED
     pure = [m for m in COMPILED_MODULES if module_build(importlib.import_module(m)) != COMPILED]
     assert not pure, f"installed without their compiled extension: {pure}"
+    for name in C_EXTENSIONS:  # built with them (the run log's row formatter)
+        assert module_build(importlib.import_module(name)) == COMPILED
 
 
 def test_the_switch_loads_every_compiled_module_from_its_source():
     code = ("import importlib, json; from mrctl.build import COMPILED_MODULES, module_build, tick_build; "
-            "print(json.dumps([tick_build(), [module_build(importlib.import_module(m)) for m in COMPILED_MODULES]]))")
+            "from mrctl.runlog.rowtext import compiled_available; "
+            "print(json.dumps([tick_build(), [module_build(importlib.import_module(m)) for m in COMPILED_MODULES], "
+            "compiled_available()]))")
     res = _pure("-c", code)
     assert res.returncode == 0, res.stderr
-    build, builds = json.loads(res.stdout)
+    build, builds, c_formatter = json.loads(res.stdout)
     assert build == PURE and set(builds) == {PURE}
+    assert not c_formatter  # the C extensions are refused: their Python twins run
     res = _pure("-m", "mrctl.cli", "--version")
     assert res.returncode == 0 and "(pure Python)" in res.stdout
 

@@ -406,6 +406,37 @@ def test_deferred_format_stops_at_the_deadline_and_resumes(tmp_path):
     assert np.array_equal(read_run(tmp_path / "run.csv")["t"], np.array([row(k)[0] for k in range(65)]))
 
 
+def test_the_run_logs_formats_take_the_run_logs_formatter_in_the_loop_and_the_thread(tmp_path):
+    """With the run log's formats (RUN_FORMATS) the recorder formats with the
+    run log's one formatter (compiled: C, 32 rows a chunk; interpreted: '%',
+    8): the loop's idle time and the writer thread write the bytes '%' writes."""
+    from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS
+    from mrctl.runlog.rowtext import RowFormatter
+
+    rng = np.random.default_rng(3)
+    n = 3 * 64 + 29
+    rows = [tuple(float(v) for v in rng.normal(0.0, 10.0 ** rng.integers(-5, 4), len(RUN_COLUMNS))) for _ in range(n)]
+    rows[5] = (math.nan, -0.0, math.inf, 1e-320, 1234567885.0, *rows[5][5:])
+    want = (",".join(RUN_COLUMNS) + "\n" + "".join(
+        ",".join(RUN_FORMATS[c] % v for c, v in zip(RUN_COLUMNS, r)) + "\n" for r in rows)).encode()
+    for defer in (False, True):
+        path = tmp_path / f"d{defer}.csv"
+        with Recorder(path, RUN_COLUMNS, capacity_ticks=1024, block_ticks=64, fmt=RUN_FORMATS,
+                      defer_format=defer) as rec:
+            for r in rows:
+                rec.record(*r)
+                rec.format_pending(time.monotonic_ns() + 10**9)
+        assert path.read_bytes() == want, defer
+    rec = Recorder(tmp_path / "c.csv", RUN_COLUMNS, capacity_ticks=256, block_ticks=100, fmt=RUN_FORMATS,
+                   defer_format=True)
+    for r in rows[:101]:
+        rec.record(*r)
+    ticks = iter([0, 0, 5])
+    rec.format_pending(5, clock=lambda: next(ticks))  # two chunks, then out of time
+    assert rec._pending[0][3] == (64 if RowFormatter(RUN_COLUMNS, RUN_FORMATS).compiled else 16)
+    rec.close()
+
+
 def test_deferred_format_without_idle_time_falls_back_to_the_thread_in_order(tmp_path):
     """A loop that never calls format_pending loses nothing: the second full
     block sends every waiting block to the writer thread, oldest first."""

@@ -57,13 +57,17 @@ from typing import Any, BinaryIO
 
 import mrctl.runlog.files as files
 from mrctl.daemon.logwriter import STOP, LogWriter
-from mrctl.runlog.format import CORE_COLUMNS, SIDECAR_FORMAT, describe_columns, row_format
+from mrctl.runlog.format import CORE_COLUMNS, SIDECAR_FORMAT, describe_columns
 from mrctl.runlog.read import read_run, read_sidecar, sidecar_path
+from mrctl.runlog.rowtext import RowFormatter
 
 __all__ = ["CORE_COLUMNS", "Recorder", "read_run", "read_sidecar", "sidecar_path"]
 
-#: Rows formatted per ``%`` call (bounds one GIL-holding C call to ~0.1 ms for 12 columns).
+#: Rows formatted per call in the loop's idle time: ~15-25 µs of a 15-column
+#: row format at a time, so the loop never waits long past its deadline
+#: (the compiled formatter: ~0.45 µs a row; the interpreted one, ``%``: ~3 µs).
 _CHUNK_ROWS = 8
+_CHUNK_ROWS_COMPILED = 32
 
 
 def _utc_now() -> str:
@@ -100,7 +104,7 @@ class Recorder:
         "_buf", "_off", "_end", "_rb", "_pack",
         "_tick", "_ov_rows", "_ov_first", "_ov_last", "_after_close", "_free", "_q", "_pending",
         "path", "sidecar", "columns", "meta", "rate_hz", "flush_interval_s", "block_ticks", "n_blocks",
-        "capacity_ticks", "flush_every_ticks", "defer_format", "_chunk_fmt", "_unpack_chunk", "_tail_fmts",
+        "capacity_ticks", "flush_every_ticks", "defer_format", "_fmt", "_chunk_rows",
         "_w", "_closed", "_close_stats", "_sidecar_base", "_sidecar_error", "on_block",
     )
 
@@ -122,7 +126,7 @@ class Recorder:
         sidecar_reserve: int = files.SIDECAR_RESERVE_BYTES,
     ) -> None:
         cols = tuple(str(c) for c in columns)
-        row_fmt = row_format(cols, fmt, require_core)  # ValueError now, not in the writer later
+        self._fmt = RowFormatter(cols, fmt, require_core)  # ValueError now, not in the writer later
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
         if not (flush_interval_s > 0 and math.isfinite(flush_interval_s)):
@@ -149,13 +153,10 @@ class Recorder:
         self.n_blocks = max(2, -(-int(capacity_ticks) // self.block_ticks))
         self.capacity_ticks = self.n_blocks * self.block_ticks
 
-        self._chunk_fmt = row_fmt * _CHUNK_ROWS
+        self._chunk_rows = _CHUNK_ROWS_COMPILED if self._fmt.compiled else _CHUNK_ROWS
         self.defer_format = bool(defer_format)
         #: loop thread only: [block, rows, first tick, rows formatted, text parts]
         self._pending: deque[list] = deque()
-        self._unpack_chunk = struct.Struct("=" + "d" * (len(cols) * _CHUNK_ROWS)).unpack_from
-        self._tail_fmts = {m: (struct.Struct("=" + "d" * (len(cols) * m)).unpack_from, row_fmt * m)
-                           for m in range(1, _CHUNK_ROWS)}
 
         # Hot-path state.
         self._rb = 8 * len(cols)  # bytes per row
@@ -183,10 +184,10 @@ class Recorder:
         # a bad path fails before the first tick.
         p.parent.mkdir(parents=True, exist_ok=True)
         fh = (opener or (lambda q: files.create_log(q, force=True)))(p)
-        self._w = LogWriter(fh, p, self._q, self._free, row_fmt=row_fmt, chunk_rows=_CHUNK_ROWS,
-                            ncols=len(cols), flush_interval_s=self.flush_interval_s)
+        self._w = LogWriter(fh, p, self._q, self._free, formatter=self._fmt, chunk_rows=self._chunk_rows,
+                            flush_interval_s=self.flush_interval_s)
         try:
-            _, exc = self._w.write_all((",".join(cols) + "\n").encode("ascii"))
+            _, exc = self._w.write_all(self._fmt.header())
             if exc is not None:
                 raise exc
             self._w.sync()
@@ -276,28 +277,27 @@ class Recorder:
     def format_pending(self, until_ns: int, clock: Callable[[], int] = time.monotonic_ns) -> None:
         """Format waiting rows, a chunk at a time, while ``clock() < until_ns``.
 
-        For the loop thread's idle time (``defer_format=True``): a chunk of
-        ``_CHUNK_ROWS`` rows costs ~25 µs, so stop a little earlier than
-        the moment the loop must start waiting. A finished block's text goes
-        to the writer thread and the block back to the free list.
+        For the loop thread's idle time (``defer_format=True``): a chunk
+        (32 rows compiled, 8 interpreted) costs ~15-25 µs, so stop a little
+        earlier than the moment the loop must start waiting. A finished
+        block's text goes to the writer thread and the block back to the
+        free list. The formatter keeps the GIL: handing it over here could
+        cost the loop a cross-CPU wake-up (docs/design.md, "Threads").
         """
         pend = self._pending
+        rows = self._fmt.rows
+        chunk = self._chunk_rows
         while pend and clock() < until_ns:
             job = pend[0]
             buf, n, _, row, parts = job
-            m = n - row
-            if m >= _CHUNK_ROWS:
-                parts.append(self._chunk_fmt % self._unpack_chunk(buf, row * self._rb))
-                row += _CHUNK_ROWS
-            else:
-                unpack, fmt = self._tail_fmts[m]
-                parts.append(fmt % unpack(buf, row * self._rb))
-                row = n
+            m = n - row if n - row < chunk else chunk
+            parts.append(rows(buf, row, m))
+            row += m
             if row < n:
                 job[3] = row
                 continue
             pend.popleft()
-            self._q.put(("".join(parts).encode("ascii"), n, job[2]))
+            self._q.put((b"".join(parts), n, job[2]))
             self._free.append(buf)
 
     # -- any thread ---------------------------------------------------------

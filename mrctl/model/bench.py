@@ -33,11 +33,12 @@ class SimBench:
     ``has_velocity`` false: the DAQ measures displacement only, the velocity
     channel reads NaN (as the force does without a load cell).
     ``trajectory`` (x, v lists by tick, from ``excitation.trajectory``):
-    the shaker's motion computed up front (``mrctl simulate``), else
+    the shaker's motion computed up front (``mrctl simulate``: a block of
+    ticks at a time, :meth:`set_trajectory`), else
     ``excitation.position``/``velocity`` at each tick's time."""
 
     __slots__ = ("excitation", "plant", "sensors", "dt", "k", "kp", "I_cmd", "t", "x", "v", "F",
-                 "has_load_cell", "has_velocity", "_xs", "_vs")
+                 "has_load_cell", "has_velocity", "_xs", "_vs", "_k0")
 
     def __init__(
         self,
@@ -63,6 +64,14 @@ class SimBench:
         self.t = self.x = self.v = self.F = 0.0
         self._xs: list[float] | None = None if trajectory is None else trajectory[0]
         self._vs: list[float] = [] if trajectory is None else trajectory[1]
+        self._k0 = 0
+
+    def set_trajectory(self, xs: list[float], vs: list[float], k0: int) -> None:
+        """The shaker's motion for ticks k0, k0 + 1, … (the next block of an
+        offline run); the ticks it moves to next must lie in it."""
+        self._xs = xs
+        self._vs = vs
+        self._k0 = k0
 
     def begin_tick(self, k: int) -> None:
         """Move to tick k; ticks skipped since the last command run on the held command."""
@@ -75,7 +84,7 @@ class SimBench:
     def _motion(self, k: int, t: float) -> tuple[float, float]:
         xs = self._xs
         if xs is not None:
-            return xs[k], self._vs[k]
+            return xs[k - self._k0], self._vs[k - self._k0]
         return float(self.excitation.position(t)), float(self.excitation.velocity(t))
 
     def command(self, I_A: float) -> None:

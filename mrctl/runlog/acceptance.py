@@ -109,7 +109,15 @@ def offline_verdict(cols: Mapping[str, np.ndarray], summary: Mapping[str, Any], 
                     dt_s: float) -> dict[str, Any]:
     """The verdict of an offline run (``mrctl simulate``) on what it has:
     faults, forced 0 A, tracking; no real clock, so no skips or gaps."""
-    figs = row_figures(cols, dt_s) if len(cols["t"]) else {}
+    return offline_judgement(row_figures(cols, dt_s) if len(cols["t"]) else {}, summary, bounds, dt_s)
+
+
+def offline_judgement(row_figs: Mapping[str, float], summary: Mapping[str, Any], bounds: Mapping[str, Any],
+                      dt_s: float) -> dict[str, Any]:
+    """:func:`offline_verdict` from the run's :func:`row_figures`, however
+    they were computed (``mrctl simulate`` accumulates them block by block:
+    :mod:`mrctl.runlog.blockmetrics`)."""
+    figs = dict(row_figs)
     figs.pop("longest_gap_s", None)
     figs["force_nrmse"] = summary.get("force_nrmse")
     return judge(figs, bounds, dt_s)

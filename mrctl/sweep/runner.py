@@ -38,6 +38,7 @@ from mrctl.sweep.point import prewarm, run_point, run_points
 from mrctl.sweep.points import Unresolved
 from mrctl.sweep.spec import Sweep
 from mrctl.sweep.table import ResultsTable, columns
+from mrctl.util.progress import make_bar
 
 #: wall-clock bound on reaching a scheduler and hearing who it is (s)
 SCHEDULER_TIMEOUT_S = 10.0
@@ -213,35 +214,6 @@ def run_dask(tasks: Iterable[dict[str, Any]], client: Any, batch: int = 1) -> It
         client.cancel([f for f in futures if not f.done()])
 
 
-class _Progress:
-    """tqdm when installed (rate, time left), else a line every 5 s on stderr."""
-
-    def __init__(self, total: int, initial: int, enabled: bool) -> None:
-        self.bar = None
-        self.total, self.n, self.t0, self.last = total, initial, time.monotonic(), 0.0
-        self.enabled = enabled
-        if not enabled:
-            return
-        try:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, initial=initial, unit="pt", dynamic_ncols=True, file=sys.stderr)
-        except ImportError:
-            pass
-
-    def update(self) -> None:
-        self.n += 1
-        if self.bar is not None:
-            self.bar.update(1)
-        elif self.enabled and time.monotonic() - self.last > 5.0:
-            self.last = time.monotonic()
-            print(f"sweep: {self.n}/{self.total} points", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def run_sweep(sweep: Sweep, out: str | os.PathLike[str], scheduler: Any = None, workers: int | None = None,
               progress: bool = True) -> dict[str, int]:
     """Run every point not yet in ``out``; counts by status (this run's points), plus ``skipped``.
@@ -261,7 +233,7 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], scheduler: Any = None, 
     total = sweep.size()
     rows = None
     complete = False
-    bar = _Progress(total, 0, progress)
+    bar = make_bar(total, "sweep", progress, unit="pt", every_s=5.0)
     values: dict[int, dict[str, Any]] = {}  # the values of the points in flight
 
     def tasks() -> Iterator[dict[str, Any]]:

@@ -34,7 +34,7 @@ from mrctl.offline.identify.bbmodel import (
 )
 from mrctl.offline.identify.guards import Support
 from mrctl.offline.identify.laws import _langevin_np
-from mrctl.offline.identify.progress import make_bar
+from mrctl.util.progress import make_bar
 
 __all__ = ["BroadbandFit", "fit_broadband", "predict", "WARMUP_S"]
 

@@ -32,7 +32,7 @@ from mrctl.offline.identify.guards import Support, check_laws, theta_problems
 from mrctl.offline.identify.laws import bench_at, fit_laws, table_set, theta_from_params
 from mrctl.offline.identify.model import THETA_NAMES
 from mrctl.offline.identify.prep import Span, prepare
-from mrctl.offline.identify.progress import make_bar
+from mrctl.util.progress import make_bar
 from mrctl.offline.identify.records import read_records
 from mrctl.offline.identify.runs import load_runs
 from mrctl.offline.identify.sine import find_segments, fit_levels, predict_segment
