@@ -179,7 +179,7 @@ def deviations(sc: Scenario, r: dict[str, Any], hold_ticks: int = 5, slew_step_A
             out.append("recovered although latched")
     if sc.expect_latch and not _latches(r) and not sc.expect_exit:
         out.append("did not latch")
-    if not sc.expect_latch and sc.safety.get("auto_resume", True) and _latches(r):
+    if not sc.expect_latch and not sc.expect_exit and sc.safety.get("auto_resume", True) and _latches(r):
         out.append(f"latched ({_after_latch(r)})")
     return out
 
