@@ -43,7 +43,7 @@ __all__ = ["BenchConfig", "bench_schema", "load_bench_config", "validate_bench",
 DEFAULT_I_MAX_A = 2.0
 DEFAULT_WATCHDOG_MS = 50
 
-_SENSOR_KEYS = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")
+_SENSOR_KEYS = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N", "F_offset_N")
 
 
 def bench_schema(base_dir: Path) -> dict[str, Any]:

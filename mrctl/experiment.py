@@ -61,7 +61,7 @@ def make_excitation(c: Node) -> Any:
 def make_sensors(s: Node, seed: int | None = None) -> Sensors | None:
     """Sensor model of a ``plant.sensors`` section, or None when it would be
     the identity (the fast path)."""
-    keys = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")
+    keys = ("x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N", "F_offset_N")
     if not any(s.get(k) for k in keys):
         return None
     return Sensors(s.get("seed", 0) if seed is None else seed, *(s.get(k) for k in keys))

@@ -220,6 +220,8 @@ def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, A
                 "x_noise_m": Num(default=0.0, min=0.0, doc="std dev of displacement noise (m)"),
                 "v_noise_mps": Num(default=0.0, min=0.0, doc="std dev of velocity noise (m/s)"),
                 "F_noise_N": Num(default=0.0, min=0.0, doc="std dev of load-cell noise (N)"),
+                "F_offset_N": Num(default=0.0, min=-1e5, max=1e5,
+                                  doc="the load cell's zero error (N): an uncalibrated cell reads this at no force"),
                 "x_lsb_m": Num(default=0.0, min=0.0, doc="displacement quantisation step (m), 0 = none"),
                 "v_lsb_mps": Num(default=0.0, min=0.0, doc="velocity quantisation step (m/s)"),
                 "F_lsb_N": Num(default=0.0, min=0.0, doc="force quantisation step (N)"),

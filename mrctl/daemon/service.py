@@ -70,9 +70,9 @@ from mrctl.errors import BadInput, ExitCode, LinkFailure, LogIncomplete, MrctlEr
 from mrctl.experiment import Experiment, build, check_channels, link_channels
 from mrctl.io.base import Link, LinkError, Status
 from mrctl.runlog import files
-from mrctl.runlog.acceptance import format_verdict, judge, row_figures
+from mrctl.runlog.acceptance import format_verdict, judge, row_figures, tracking_judged
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
-from mrctl.runlog.metrics import format_summary
+from mrctl.runlog.metrics import format_summary, load_cell_offset
 from mrctl.util.journal import CRIT, ERR, NOTICE, WARNING, Journal
 from mrctl.util.jsonutil import jsonable
 from mrctl.util.options import check_duration
@@ -458,15 +458,18 @@ class Service:
             "skipped_share": skipped / (ticks + skipped) if ticks + skipped else 0.0,
             "longest_gap_s": st.max_gap_ns / 1e9,
         }
+        lc: dict[str, float] = {}  # the load cell's zero error, from the rows
         if cols is not None and len(cols.get("t", ())):
             figs["longest_zero_stretch_s"] = row_figures(cols, dt)["longest_zero_stretch_s"]
+            lc = load_cell_offset(cols, dt, 1 if self.exp.config.backend.type == "sim" else 0,
+                                  float(self.exp.params.F_offset))
         else:
             cfg = self.sup.config
             bad = max(0, c.longest_bad_run - cfg.hold_ticks)
             figs["longest_zero_stretch_s"] = (bad + (cfg.resume_good_ticks if c.faults_entered else 0)) * dt
             figs["zero_stretch_estimated"] = True
         figs["latched_s"] = c.ticks_latched * dt
-        figs["force_nrmse"] = track.get("force_nrmse") if track else None
+        figs.update(tracking_judged({**(track or {}), **lc}, self.exp.excitation.settle_s))
         v = judge({k: v for k, v in figs.items() if k not in ("ticks", "zero_stretch_estimated")},
                   acceptance_bounds(self.exp.config), dt)
         v["figures"]["ticks"] = ticks

@@ -114,6 +114,10 @@ class Law:
     #: extra channels (``Measurement.channels`` keys) the law reads; a link
     #: that does not provide them is refused at start-up (a plugin may set it per instance)
     channels: ClassVar[tuple[str, ...]] = ()
+    #: False for a semi-active law, whose demanded force is clipped or saturated by design
+    #: (skyhook, groundhook, LQR, the on-off laws): a run's force tracking and its share at
+    #: I_max are then not judged by default (docs/config.md, acceptance)
+    tracks_force: ClassVar[bool] = True
 
     @classmethod
     def from_config(cls, cfg: Any, ctx: LawContext) -> "Law":

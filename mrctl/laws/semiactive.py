@@ -47,6 +47,8 @@ _I_OFF = Num(default=0.0, min=0.0, doc="current when off (A)")
 class Skyhook(DemandLaw):
     """Clipped continuous skyhook: F_des = c_sky·v_s where v_s·v > 0, else 0."""
 
+    tracks_force = False  # semi-active: saturation and clipping are its nature
+
     name = "skyhook"
     summary = "F_des = c_sky·v_sprung where the damper can give it (ride comfort); channel v_sprung"
     params = {"c_sky": Num(min=0.0, max=1e5, doc="skyhook damping (N·s/m)")}
@@ -68,6 +70,8 @@ class Skyhook(DemandLaw):
 class Groundhook(DemandLaw):
     """Clipped continuous groundhook: F_des = −c_gnd·v_u where v_u·v < 0, else 0."""
 
+    tracks_force = False  # semi-active: saturation and clipping are its nature
+
     name = "groundhook"
     summary = "F_des = −c_gnd·v_unsprung where the damper can give it (road holding); channel v_unsprung"
     params = {"c_gnd": Num(min=0.0, max=1e5, doc="groundhook damping (N·s/m)")}
@@ -88,6 +92,8 @@ class Groundhook(DemandLaw):
 @mypyc_attr(allow_interpreted_subclasses=True)
 class _OnOff(CurrentLaw):
     """I_on where the law's condition holds, else I_off; no demand."""
+
+    tracks_force = False  # semi-active: saturation and clipping are its nature
 
     params = {"I_on_A": _I_ON, "I_off_A": _I_OFF}
 
@@ -181,6 +187,8 @@ def lqr_gain(qc: QuarterCarParams, q_acc: float, q_susp: float, q_tyre: float, r
 @mypyc_attr(allow_interpreted_subclasses=True)
 class LQR(DemandLaw):
     """Optimal force of the quarter car (Dyke et al. 1996's primary controller)."""
+
+    tracks_force = False  # semi-active: saturation and clipping are its nature
 
     name = "lqr"
     summary = ("F_des = −K·[x_s − x_u, v_s, x_u − x_r, v_u], K the quarter car's LQR gain; "

@@ -104,7 +104,7 @@ class Sensors:
     Zero noise and zero LSB give exact readings. Uses :mod:`random` (plain
     floats, reproducible per seed) rather than numpy, because it runs per tick."""
 
-    __slots__ = ("rng", "x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N")
+    __slots__ = ("rng", "x_noise_m", "v_noise_mps", "F_noise_N", "x_lsb_m", "v_lsb_mps", "F_lsb_N", "F_offset_N")
 
     def __init__(
         self,
@@ -115,6 +115,7 @@ class Sensors:
         x_lsb_m: float = 0.0,
         v_lsb_mps: float = 0.0,
         F_lsb_N: float = 0.0,
+        F_offset_N: float = 0.0,
     ) -> None:
         self.rng = random.Random(seed)
         self.x_noise_m = x_noise_m
@@ -123,6 +124,8 @@ class Sensors:
         self.x_lsb_m = x_lsb_m
         self.v_lsb_mps = v_lsb_mps
         self.F_lsb_N = F_lsb_N
+        #: the load cell's zero error (N): what its amplifier reads at no force (an uncalibrated cell)
+        self.F_offset_N = F_offset_N
 
     def _read(self, value: float, sigma: float, lsb: float) -> float:
         if sigma > 0.0:
@@ -138,4 +141,6 @@ class Sensors:
         return self._read(v, self.v_noise_mps, self.v_lsb_mps)
 
     def F(self, F: float) -> float:
+        if self.F_offset_N != 0.0:  # no addition at all when there is none: -0.0 stays -0.0
+            F += self.F_offset_N
         return self._read(F, self.F_noise_N, self.F_lsb_N)

@@ -30,7 +30,7 @@ from mrctl.config import ConfigError
 from mrctl.core.offline import OfflineLoop
 from mrctl.experiment import Experiment
 from mrctl.laws.base import LawFault, Measurement
-from mrctl.runlog.blockmetrics import FigureSet, RideFigures, RowFigures, TrackingFigures
+from mrctl.runlog.blockmetrics import FigureSet, LoadCellFigures, RideFigures, RowFigures, TrackingFigures
 from mrctl.runlog.format import RUN_COLUMNS, RUN_UNITS
 
 #: The simulation's own arrays (:attr:`SimResult.columns`): the plant's x, v,
@@ -109,7 +109,7 @@ def offline_figures(exp: Experiment, channels: tuple[str, ...]) -> FigureSet:
     every simulation's summary (:mod:`mrctl.runlog.blockmetrics`)."""
     settle = exp.excitation.settle_s
     return FigureSet([TrackingFigures(settle, exp.I_max), *([RideFigures(settle)] if "a_sprung" in channels else []),
-                      RowFigures(exp.dt, x="x_meas", fault=None, k=None)])
+                      RowFigures(exp.dt, x="x_meas", fault=None, k=None), LoadCellFigures()])
 
 
 def simulate_blocks(exp: Experiment, duration_s: float, on_block: BlockSink | None = None, *,

@@ -38,7 +38,8 @@ def simulate_verdict(exp: Experiment, res: SimResult) -> tuple[dict[str, Any], i
     (:func:`mrctl.runlog.acceptance.offline_judgement` of the run's row
     figures) and the exit code it means: 1 for a law fault, 5 for a degraded
     run, else 0."""
-    verdict = offline_judgement(res.row_figures, res.summary, bounds(exp.config), 1.0 / exp.config.rate_hz)
+    verdict = offline_judgement(res.row_figures, res.summary, bounds(exp.config), 1.0 / exp.config.rate_hz,
+                                exp.excitation.settle_s)
     code = ExitCode.FAILURE if res.fault is not None else (
         ExitCode.DEGRADED if verdict["verdict"] == "degraded" else ExitCode.OK)
     return verdict, int(code)

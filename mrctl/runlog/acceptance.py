@@ -29,6 +29,8 @@ _CHECKS: tuple[tuple[str, str, str, str], ...] = (
     ("longest_zero_stretch_s", "max_zero_stretch_s", "longest stretch at forced 0 A", "s"),
     ("force_nrmse", "max_force_nrmse", "force NRMSE", "%"),
     ("latched_s", "max_latched_s", "time latched (0 A until mrctl arm)", "s"),
+    ("share_at_I_max", "max_share_at_I_max", "ticks at I_max (of the settled window)", "%"),
+    ("load_cell_offset", "max_load_cell_offset", "load-cell zero error (of the demanded force's range)", "%"),
 )
 
 
@@ -109,17 +111,30 @@ def offline_verdict(cols: Mapping[str, np.ndarray], summary: Mapping[str, Any], 
                     dt_s: float) -> dict[str, Any]:
     """The verdict of an offline run (``mrctl simulate``) on what it has:
     faults, forced 0 A, tracking; no real clock, so no skips or gaps."""
-    return offline_judgement(row_figures(cols, dt_s) if len(cols["t"]) else {}, summary, bounds, dt_s)
+    return offline_judgement(row_figures(cols, dt_s) if len(cols["t"]) else {}, summary, bounds, dt_s,
+                             float(summary.get("window_start_s", 0.0)))
+
+
+def tracking_judged(track: Mapping[str, Any] | None, settle_s: float) -> dict[str, Any]:
+    """The tracking figures the verdict judges: the force NRMSE and the share
+    at I_max, only over a settled window (a run shorter than its settling
+    time is all start-up transient: not judged on them), and the load cell's
+    zero error."""
+    t = track or {}
+    settled = float(t.get("window_start_s", math.nan)) >= settle_s - 1e-9
+    return {"force_nrmse": t.get("force_nrmse") if settled else None,
+            "share_at_I_max": t.get("share_at_I_max") if settled else None,
+            "load_cell_offset": t.get("load_cell_offset")}
 
 
 def offline_judgement(row_figs: Mapping[str, float], summary: Mapping[str, Any], bounds: Mapping[str, Any],
-                      dt_s: float) -> dict[str, Any]:
+                      dt_s: float, settle_s: float = 0.0) -> dict[str, Any]:
     """:func:`offline_verdict` from the run's :func:`row_figures`, however
     they were computed (``mrctl simulate`` accumulates them block by block:
     :mod:`mrctl.runlog.blockmetrics`)."""
     figs = dict(row_figs)
     figs.pop("longest_gap_s", None)
-    figs["force_nrmse"] = summary.get("force_nrmse")
+    figs.update(tracking_judged(summary, settle_s))
     return judge(figs, bounds, dt_s)
 
 

@@ -313,6 +313,42 @@ class RowFigures:
         return out
 
 
+class LoadCellFigures:
+    """:func:`mrctl.runlog.metrics.load_cell_offset` on a simulated bench,
+    block by block: the mean of the load cell's reading (``reading``, the
+    force of the tick before) against the plant's ``force``, and that as a
+    share of the demanded force's range (every row)."""
+
+    def __init__(self, force: str = "F", reading: str = "F_rx", demand: str = "F_des") -> None:
+        self.names = (force, reading, demand)
+        self.sum = ExactSum()
+        self.n = 0
+        self.d_min = math.inf
+        self.d_max = -math.inf
+        self._prev = math.nan  # the last force of the block before
+
+    def add(self, block: Block) -> None:
+        F, R, D = (np.asarray(block[c], float) for c in self.names)
+        if not len(F):
+            return
+        e = R - np.concatenate(([self._prev], F[:-1]))
+        ok = np.isfinite(e)
+        if ok.any():
+            self.sum.add(float(np.add.reduce(e[ok])))
+            self.n += int(np.count_nonzero(ok))
+        d = D[np.isfinite(D)]
+        if len(d):
+            self.d_min, self.d_max = min(self.d_min, float(np.min(d))), max(self.d_max, float(np.max(d)))
+        self._prev = float(F[-1])
+
+    def result(self) -> dict[str, float]:
+        if self.n < 2:
+            return {}
+        off = self.sum.value() / self.n
+        p2p = self.d_max - self.d_min
+        return {"load_cell_offset_N": off, "load_cell_offset": abs(off) / p2p if p2p > 0 else math.nan}
+
+
 class FigureSet:
     """Several figures fed the same blocks; their results in one dict (later ones win a shared key)."""
 

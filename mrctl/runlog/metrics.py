@@ -83,3 +83,50 @@ def format_summary(s: Mapping[str, float], I_max: float) -> str:
         f"largest current step between ticks: {s['max_current_step_A']:.4f} A\n"
         f"ticks at 0 A: {100 * s['share_at_zero']:.1f} %   at I_max ({I_max:g} A): {100 * s['share_at_I_max']:.1f} %"
     )
+
+
+#: the shortest stretch at rest before the motion that measures a load cell's zero (s)
+REST_MIN_S = 0.1
+#: displacement that counts as motion from the run's first reading: 20 um, above an LVDT's noise
+REST_X_M = 2e-5
+#: the end of the stretch at rest left out: the shaker is starting before x has moved REST_X_M
+REST_MARGIN_S = 0.05
+
+
+def load_cell_offset(cols: Mapping[str, np.ndarray], dt_s: float, delay_ticks: int = 0,
+                     F_offset_N: float = 0.0) -> dict[str, float]:
+    """The load cell's zero error (N) and its share of the demanded force's
+    range, where the run can tell it; {} where it cannot.
+
+    On a simulated bench (``F_true`` logged) it is the mean of the reading
+    against the force it read (``delay_ticks`` earlier: the in-process bench's
+    load cell reads the previous tick's). On hardware it is the mean reading
+    over the stretch at rest before the motion (at least :data:`REST_MIN_S`,
+    the displacement within :data:`REST_X_M` of its first reading, less its
+    last :data:`REST_MARGIN_S`) less the
+    damper's own static force ``F_offset_N`` (its accumulator's, from the
+    parameter set); a run that moves from its first tick has no such stretch."""
+    F = np.asarray(cols["F"], float)
+    F_des = np.asarray(cols["F_des"], float)
+    ok = np.isfinite(F_des)
+    p2p = float(np.ptp(F_des[ok])) if ok.sum() >= 2 else math.nan
+    F_true = cols.get("F_true")
+    if F_true is not None and len(F_true) and math.isfinite(float(np.asarray(F_true)[-1])):
+        Ft = np.asarray(F_true, float)
+        d = int(delay_ticks)
+        diff = F[d:] - Ft[:len(Ft) - d] if d else F - Ft
+    else:
+        x = np.asarray(cols["x"], float)
+        if not len(x) or not math.isfinite(float(x[0])):
+            return {}
+        moved = np.flatnonzero(~(np.abs(x - x[0]) <= REST_X_M))
+        n = int(moved[0]) if len(moved) else len(x)
+        n -= int(round(REST_MARGIN_S / dt_s))  # the motion starts before x has moved 20 um
+        if n * dt_s < REST_MIN_S:
+            return {}
+        diff = F[:n] - F_offset_N
+    diff = diff[np.isfinite(diff)]
+    if len(diff) < 2:
+        return {}
+    off = float(np.mean(diff))
+    return {"load_cell_offset_N": off, "load_cell_offset": abs(off) / p2p if p2p > 0 else math.nan}
