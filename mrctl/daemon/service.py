@@ -55,6 +55,7 @@ from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s
 from mrctl.config.acceptance import bounds as acceptance_bounds
+from mrctl.config.saved import saved_config
 from mrctl.daemon.logcheck import LogWatch, close_log, verdict_exit
 from mrctl.daemon.loop import FixedRateLoop
 from mrctl.daemon.monitor import Monitor, live_line
@@ -74,7 +75,6 @@ from mrctl.runlog.acceptance import format_verdict, judge, row_figures
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
 from mrctl.runlog.metrics import format_summary
 from mrctl.util.journal import CRIT, ERR, NOTICE, WARNING, Journal
-from mrctl.util.jsonutil import jsonable
 from mrctl.util.options import check_duration
 
 # kept as names: tests and hil_sim compare against them
@@ -420,7 +420,7 @@ class Service:
         assert exp is not None and link is not None
         return {
             "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(),
-            "host": platform.node(), "config_file": str(Path(self.opts.config_path).resolve()), "config": jsonable(exp.config),
+            "host": platform.node(), "config_file": str(Path(self.opts.config_path).resolve()), "config": saved_config(exp.config),
             "parameters": exp.params.as_dict(), "backend": link.describe(), "law": exp.config.inverse.law,
             "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz, "settle_s": exp.excitation.settle_s,
             # the in-process bench's load cell reads the previous tick's force; hardware: taken as simultaneous
