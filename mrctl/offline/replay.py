@@ -4,7 +4,8 @@ A run log is a valid excitation file (``excitation: {type: file}`` reads its
 t, x, v and ignores the rest), so a replay is the experiment of the log's
 sidecar (or a CONFIG given beside it) with its excitation replaced by the
 log itself, its duration the log's, its settling window the logged run's
-(the sidecar's ``settle_s``: both are judged over the same window), and
+(where the sidecar says its figures start: both are judged over the same
+window), and
 optionally another inverse law: the same motion, a different controller,
 offline.
 
@@ -82,7 +83,7 @@ def replay_config(log: str | Path, config: str | Path | None = None, law: str | 
         data, notes = readable_config(data)
         for note in notes:
             print(f"mrctl: --replay {p.name}: {note}", file=sys.stderr)
-        settle = side.get("settle_s")
+        settle = _window_start(side)
     if not isinstance(data, dict):
         raise BadInput(f"{config}: not an experiment mapping")
     data = copy.deepcopy(data)
@@ -95,6 +96,19 @@ def replay_config(log: str | Path, config: str | Path | None = None, law: str | 
     data["name"] = f"{data.get('name') or p.stem} (replay of {p.name})"
     with quoting(values=not quiet):
         return validate_experiment(data, base, source, fence=fence)
+
+
+def _window_start(side: dict[str, Any]) -> Any:
+    """Where the logged run's figures start, on the replay's clock (which starts
+    at 0 where the log may start a tick or a skipped deadline later): the
+    sidecar's window if it recorded one (``mrctl run``: ``summary.tracking``,
+    ``mrctl simulate``: ``summary``), else its ``settle_s``."""
+    summary = side.get("summary") if isinstance(side.get("summary"), dict) else {}
+    for where in (summary.get("tracking"), summary):
+        start = where.get("window_start_s") if isinstance(where, dict) else None
+        if isinstance(start, (int, float)) and not isinstance(start, bool) and math.isfinite(start) and start > 0:
+            return float(start)
+    return side.get("settle_s")
 
 
 def load_with_law(config: str | Path, law: str, *, allow_outside: bool = False) -> Node:
