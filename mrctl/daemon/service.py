@@ -130,6 +130,9 @@ class Service:
         self.exit_current_A = math.nan  # what the way out commanded (0.0 unless it failed)
         self._zero_error: str | None = "not attempted"
         self._total_ticks: int | None = None
+        self.requested_s: float | None = None  # --duration, else the config's; None: until stopped
+        self.interrupted: str | None = None  # SIGINT/SIGTERM that stopped the loop
+        self._at_stop: tuple[int, int] | None = None  # (ticks, skipped deadlines) when it came
         self.verdict: dict[str, Any] | None = None  # the run's acceptance verdict, once it ended
         self._log_fh: Any = None  # the run log, created before the link opens, until the recorder takes it
         self.journal = Journal(opts.err, opts.log_priorities)
@@ -202,7 +205,7 @@ class Service:
         override = check_duration(o.duration_s, "--duration")
         exp = self.exp = build(load_experiment(o.config_path, allow_outside=o.allow_outside_paths))
         self.loaded = exp.config
-        duration = override if override is not None else exp.config.duration_s
+        duration = self.requested_s = override if override is not None else exp.config.duration_s
         if o.out:
             files.check_log_path(o.out, o.force, o.mkdir)
         self._stream = stream_settings(exp.config, o.stream_url, o.stream_every, o.stream_columns)
@@ -399,7 +402,7 @@ class Service:
         mon.start()
         stack.callback(mon.stop)
         for sig in signals.STOP_SIGNALS:
-            signal.signal(sig, lambda s, f: loop.stop())
+            signal.signal(sig, lambda s, f: self._stop_by(s, loop))
         signal.signal(signal.SIGHUP, lambda s, f: mon.reload_event.set())
         if signals.take_hup():  # a SIGHUP during start-up, maybe after the config was read
             mon.reload_event.set()
@@ -427,6 +430,26 @@ class Service:
             "load_cell_delay_ticks": 1 if exp.config.backend.type == "sim" else 0,
         }
 
+    def _stop_by(self, signum: int, loop: FixedRateLoop) -> None:
+        """SIGINT/SIGTERM in the loop: stop after this tick, and remember which
+        and where (the verdict judges the ticks before it: a deadline missed
+        while the process was being stopped is not the run's)."""
+        if self.interrupted is None:
+            self.interrupted = signal.Signals(signum).name
+            self._at_stop = (loop.stats.ticks, loop.stats.skipped_deadlines)
+        loop.stop()
+
+    def _duration(self) -> dict[str, Any]:
+        """The sidecar's duration: asked (``--duration``, else the config's;
+        None: until stopped), run (ticks and skipped deadlines on the loop's
+        clock) and the signal that stopped it (None: it ran its course)."""
+        assert self.loop is not None
+        st = self.loop.stats
+        return {"requested_duration_s": self.requested_s,
+                "actual_duration_s": (st.ticks + st.skipped_deadlines) / self.loop.rate_hz if self.loop.rate_hz
+                else None,
+                "interrupted": self.interrupted}
+
     # -- acceptance (docs/config.md: acceptance) ------------------------------------
     def acceptance(self, cols: dict[str, Any] | None = None, track: dict[str, float] | None = None) -> dict[str, Any]:
         """The run judged against its ``acceptance`` bounds, from the counters
@@ -439,6 +462,8 @@ class Service:
         c = self.sup.counters()
         st = self.loop.stats
         ticks, skipped = st.ticks, st.skipped_deadlines
+        if self._at_stop is not None:  # stopped by the user: judged up to the signal
+            skipped = min(skipped, self._at_stop[1])
         figs: dict[str, Any] = {
             "ticks": ticks,
             "fault_share": c.ticks_in_fault / ticks if ticks else 0.0,
@@ -581,7 +606,7 @@ class Service:
                                   I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,
                                   warn=lambda m: self.warn(m, ERR),
                                   format_tracking=lambda t: format_summary(t, self.exp.I_max),
-                                  verdict=self._final_verdict)
+                                  verdict=self._final_verdict, extra=self._duration())
         else:
             exit_code = verdict_exit(self._final_verdict(None, None), exit_code)
         if self.faults is not None:
