@@ -462,3 +462,30 @@ def test_a_bad_calibration_file_is_a_clear_error(tmp_path, capsys) -> None:
     err = capsys.readouterr().err
     assert "calibration (" in err and "channels.z: unknown channel" in err and "driver.tau_s" in err, err
     assert "Traceback" not in err
+
+
+def test_calibrate_on_the_shipped_bench_at_rest_and_the_run_says_what_it_applied(tmp_path) -> None:
+    """No hand-made bench file: hil_sim --at-rest holds the shipped bench's shaker
+    still; calibrate writes EXP.cal.yaml beside the experiment and prints the
+    line that takes it; the run's start-up line names the file and its offsets."""
+    hil, port = _start(tmp_path, BENCH, "--at-rest")
+    exp = _exp_for(tmp_path, port)
+    try:
+        res = _mrctl("calibrate", str(exp))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    cal = tmp_path / "exp.cal.yaml"
+    assert cal.is_file() and "calibration: exp.cal.yaml" in res.stdout
+    x_offset = yaml.safe_load(cal.read_text())["channels"]["x"]["offset_V"]
+    w = yaml.safe_load(BENCH.read_text())["labjack_t7"]
+    assert x_offset == pytest.approx(w["x"]["offset_V"], rel=0.02)  # at rest: the offset, not the stroke's mean
+    hil, port = _start(tmp_path, BENCH)
+    exp = _exp_for(tmp_path, port, calibration="exp.cal.yaml", duration_s=1.0)
+    try:
+        res = _mrctl("run", str(exp), "--no-log", "--status-socket", str(tmp_path / "s.sock"))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    line = next(ln for ln in res.stdout.splitlines() if ln.startswith("calibration:"))
+    assert str(cal.resolve()) in line and f"x offset {x_offset:.5f} V" in line and "applied" in line

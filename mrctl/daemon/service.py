@@ -75,6 +75,7 @@ from mrctl.runlog.acceptance import format_verdict, judge, row_figures
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
 from mrctl.runlog.metrics import format_summary
 from mrctl.util.journal import CRIT, ERR, NOTICE, WARNING, Journal
+from mrctl.util.files import Fence
 from mrctl.util.options import check_duration
 
 # kept as names: tests and hil_sim compare against them
@@ -215,6 +216,11 @@ class Service:
             raise BadInput(f"backend: {exc}") from None
         self.say(f"mrctl {__version__}: {exp.name}, law {exp.config.inverse.law}, {exp.config.rate_hz:g} Hz, "
                  f"{'%.3f s' % duration if duration else 'until stopped'}; backend {link.describe()}")
+        if exp.config.get("calibration"):
+            from mrctl.config.calibration import describe_calibration
+
+            self.say(describe_calibration(exp.config.calibration, Path(o.config_path).parent,
+                                          Fence.around(Path(o.config_path).parent, o.allow_outside_paths)))
         with signals.deferred():  # a stop waits until the lock's release is registered
             self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
         if o.out:
