@@ -112,6 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "the pty itself has no baud rate")
     ap.add_argument("--duration", type=_positive_float, default=None, metavar="S",
                     help="stop after S seconds (overrides duration_s)")
+    ap.add_argument("--at-rest", action="store_true",
+                    help="the shaker holds still at x = 0 whatever the bench file says: the damper at rest "
+                         "that mrctl calibrate measures (docs/hardware.md)")
     ap.add_argument("--seed", type=_nonneg_int, default=None, help="sensor-noise seed (overrides seed)")
     ap.add_argument("--truth", type=Path, default=None, metavar="FILE.csv",
                     help="write the per-tick ground-truth log here (+ FILE.json summary at exit)")
@@ -143,7 +146,7 @@ def _load_config(args: argparse.Namespace):
     from hil_sim.config import ConfigError, load_bench_config, validate_bench
     from hil_sim.faults import check_transport
 
-    kw = dict(seed=args.seed, duration_s=args.duration, faults=args.fault)
+    kw = dict(seed=args.seed, duration_s=args.duration, faults=args.fault, at_rest=args.at_rest)
     try:
         if args.config is not None:
             cfg = load_bench_config(args.config, **kw)

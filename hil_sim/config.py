@@ -144,13 +144,16 @@ class BenchConfig:
 
 def validate_bench(data: Any, base_dir: Path, source: str | None = None,
                    seed: int | None = None, duration_s: float | None = None,
-                   faults: list[str] | None = None) -> BenchConfig:
+                   faults: list[str] | None = None, at_rest: bool = False) -> BenchConfig:
     """Validate parsed YAML (+ CLI overrides); raises ConfigError listing every problem.
 
     ``faults``: ``--fault`` texts (``KIND@AT_S+FOR_S[,param=value]``), added to
-    the YAML's ``faults`` list."""
+    the YAML's ``faults`` list; ``at_rest`` (``--at-rest``): the shaker holds
+    still at x = 0, the bench ``mrctl calibrate`` needs, from any bench file."""
     if data is None:
         data = {}
+    if at_rest and isinstance(data, dict):
+        data = {**data, "excitation": {"type": "sine", "amplitude_m": 0.0, "frequency_hz": 1.0}}
     if not isinstance(data, dict):
         raise ConfigError([f"config: must be a mapping, got {type(data).__name__}"], source)
     node, errors = validate_fields(bench_schema(base_dir), data, "")
@@ -199,8 +202,10 @@ def validate_bench(data: Any, base_dir: Path, source: str | None = None,
 
 
 def load_bench_config(path: str | Path, seed: int | None = None,
-                      duration_s: float | None = None, faults: list[str] | None = None) -> BenchConfig:
+                      duration_s: float | None = None, faults: list[str] | None = None,
+                      at_rest: bool = False) -> BenchConfig:
     """Load and validate a bench YAML file (CLI overrides applied on top)."""
     p = Path(path)
-    return validate_bench(load_yaml(p), p.parent, str(p), seed=seed, duration_s=duration_s, faults=faults)
+    return validate_bench(load_yaml(p), p.parent, str(p), seed=seed, duration_s=duration_s, faults=faults,
+                          at_rest=at_rest)
 

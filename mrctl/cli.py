@@ -109,6 +109,19 @@ def out_path(args: argparse.Namespace, default: str | None = None, inputs: list[
     return out
 
 
+def _stop_on_sigterm() -> None:
+    """SIGTERM ends a command that runs until stopped (sweep, exporter, tap)
+    as Ctrl-C does: a KeyboardInterrupt it turns into exit 0 (docs/cli.md)."""
+    import signal
+    import threading
+
+    def stop(signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)
+
+
 def _say(args: argparse.Namespace, msg: str) -> None:
     """An informational line (what was written): not with -q."""
     if not getattr(args, "quiet", False):
@@ -335,7 +348,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     fmt = "json" if args.json else args.format
     path = _status_path(args)
     try:
-        st = query_status(path)  # StatusError (exit 1) with a clear message
+        st = query_status(path)  # StatusError (exit 3) with a clear message
     except StatusError:
         if fmt == "prometheus":  # the textfile collector still learns that nothing answered
             from mrctl.daemon.prometheus import prometheus_text
@@ -381,6 +394,7 @@ def cmd_tap(args: argparse.Namespace) -> int:
             raise BadInput(f"--trigger: {exc}") from None
     if args.pre and args.trigger is None:
         raise BadInput("--pre: only with --trigger")
+    _stop_on_sigterm()
     try:
         res = tap(_status_path(args), sys.stdout.buffer, args.n, columns, args.trigger, args.pre)
     except KeyboardInterrupt:
@@ -390,9 +404,9 @@ def cmd_tap(args: argparse.Namespace) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     short = args.n is not None and res.rows < args.n
-    if res.end != "complete" and (short or res.end.startswith("dropped")):
+    if res.end != "complete" and (short or res.end.startswith("dropped")):  # the daemon ended or dropped us
         _err(f"tap: {res.rows} rows, then {res.end}")
-        return EXIT_FAILURE
+        return int(ExitCode.LINK)
     return EXIT_OK
 
 
@@ -400,6 +414,7 @@ def cmd_exporter(args: argparse.Namespace) -> int:
     from mrctl.daemon.exporter import start
 
     path = _status_path(args)
+    _stop_on_sigterm()
     server, thread = start(args.listen, path, args.instance)
     host, port = server.server_address[:2]
     shown = f"[{host}]" if ":" in str(host) else host  # an IPv6 address is bracketed in a URL
@@ -508,6 +523,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     src = Path(args.config)
     args.out = out_path(args, str(src.with_name(src.stem + ".results.csv")))
+    _stop_on_sigterm()
     return run_sweep_command(args)
 
 
@@ -715,9 +731,10 @@ def finish_parser(ap: argparse.ArgumentParser) -> None:
     subcommand added without its own epilog)."""
     for action in ap._actions:
         if isinstance(action, argparse._SubParsersAction):
-            for sp in action.choices.values():
+            for name, sp in action.choices.items():
                 if not sp.epilog or "exit codes:" not in sp.epilog:
-                    sp.epilog = f"{sp.epilog}\n\n{EXIT_CODES}" if sp.epilog else EXIT_CODES
+                    codes = exit_codes_text(name)
+                    sp.epilog = f"{sp.epilog}\n\n{codes}" if sp.epilog else codes
                 if sp.formatter_class is argparse.HelpFormatter:
                     sp.formatter_class = argparse.RawDescriptionHelpFormatter
 
@@ -751,7 +768,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(exc, "signum", None) is not None:  # a stop before the service began: nothing was touched
             _err(f"stopped by {exc.name} during start-up: nothing ran")  # type: ignore[attr-defined]
             return EXIT_OK
-        _err("interrupted")
+        if command in ("sweep", "tap", "exporter"):  # runs until stopped: the user stopped it (docs/cli.md)
+            _err("stopped before it began: nothing written")
+            return EXIT_OK
+        _err("interrupted: nothing written")
         return int(ExitCode.INTERRUPTED)
     except ModuleNotFoundError as exc:  # an optional dependency not caught where it is imported
         root = (exc.name or "").split(".")[0]

@@ -35,8 +35,8 @@ _PATTERNS = ("config/**/*.yaml", "systemd/*.service", "systemd/*.conf", "docs/*.
 
 #: what the copied README says first: its links to docs/ work in DIR, what is not shipped is named
 _README_NOTE = ("> Copied by `mrctl examples` from the installed mrctl {version}: the links to `docs/` open the\n"
-                "> reference installed with it (also `mrctl docs TOPIC`); `bench/` and `examples/`, named below,\n"
-                "> are in the source repository, not in the package.\n\n")
+                "> reference installed with it (also `mrctl docs TOPIC`); `bench/`, `examples/`, `firmware/` and\n"
+                "> `tests/`, named below, are in the source repository (the source tree), not in the package.\n\n")
 
 
 def _data() -> Path:

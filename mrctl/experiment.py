@@ -37,7 +37,9 @@ def _excitation_file(c: Node) -> excitation_mod.Sampled:
     """t, x and v if there (a run log is one: its other columns are ignored,
     its missing samples skipped)."""
     data = load_series(c.path, ("t", "x"), optional=("v",), gaps_ok=True)
-    return excitation_mod.Sampled(data["t"], data["x"], data.get("v"))
+    out = excitation_mod.Sampled(data["t"], data["x"], data.get("v"))
+    out.settle_s = float(c.get("settle_s") or 0.0)
+    return out
 
 
 #: excitation.type → profile

@@ -569,3 +569,30 @@ def test_estop_on_the_t7s_dio_latches_the_run_until_mrctl_arm_then_ramps(tmp_pat
     assert np.diff(np.concatenate(([0.0], I))).max() <= 50.0 / rate + 1e-9  # the slew limit per tick
     assert side["summary"]["safety"]["latches"] == 1 and side["summary"]["safety"]["arms"] == 1
     assert any("time latched" in r for r in side["verdict_reasons"])
+
+
+def test_calibrate_on_the_shipped_bench_at_rest_and_the_run_says_what_it_applied(tmp_path) -> None:
+    """No hand-made bench file: hil_sim --at-rest holds the shipped bench's shaker
+    still; calibrate writes EXP.cal.yaml beside the experiment and prints the
+    line that takes it; the run's start-up line names the file and its offsets."""
+    hil, port = _start(tmp_path, BENCH, "--at-rest")
+    exp = _exp_for(tmp_path, port)
+    try:
+        res = _mrctl("calibrate", str(exp))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    cal = tmp_path / "exp.cal.yaml"
+    assert cal.is_file() and "calibration: exp.cal.yaml" in res.stdout
+    x_offset = yaml.safe_load(cal.read_text())["channels"]["x"]["offset_V"]
+    w = yaml.safe_load(BENCH.read_text())["labjack_t7"]
+    assert x_offset == pytest.approx(w["x"]["offset_V"], rel=0.02)  # at rest: the offset, not the stroke's mean
+    hil, port = _start(tmp_path, BENCH)
+    exp = _exp_for(tmp_path, port, calibration="exp.cal.yaml", duration_s=1.0)
+    try:
+        res = _mrctl("run", str(exp), "--no-log", "--status-socket", str(tmp_path / "s.sock"))
+    finally:
+        hil.stop()
+    assert res.returncode == 0, res.stderr
+    line = next(ln for ln in res.stdout.splitlines() if ln.startswith("calibration:"))
+    assert str(cal.resolve()) in line and f"x offset {x_offset:.5f} V" in line and "applied" in line

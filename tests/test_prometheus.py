@@ -87,7 +87,7 @@ def test_status_format_prometheus_on_the_command_line(tmp_path, capsys):
         srv.close()
     fams = _parse(capsys.readouterr().out)
     assert _value(fams, "mrctl_ticks", "mrctl_ticks_total") == 12345
-    assert main(["status", "--socket", path, "--format", "prometheus"]) == 1  # nobody there: exit 1, and up 0
+    assert main(["status", "--socket", path, "--format", "prometheus"]) == 3  # nobody there: exit 3 (the link), and up 0
     cap = capsys.readouterr()
     assert _value(_parse(cap.out), "mrctl_up") == 0 and "no mrctl running" in cap.err
 

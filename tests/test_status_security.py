@@ -114,4 +114,4 @@ def test_status_reply_it_did_not_expect_is_a_clean_error(tmp_path, capsys, paylo
     if payload.startswith(b"{"):
         assert code == 0 and "soon" in cap.out  # a dict: shown as it is, whatever the types
     else:
-        assert code == 1 and "not a status reply" in cap.err
+        assert code == 3 and "not a status reply" in cap.err

@@ -182,7 +182,7 @@ def test_tap_refused_request_is_a_clean_error(tmp_path, capsys):
     try:
         assert main(["tap", "--socket", path, "-n", "5", "--columns", "t,nope"]) == 2  # checked before asking
         assert main(["tap", "--socket", path, "-n", "5", "--pre", "3"]) == 2
-        assert main(["tap", "--socket", str(tmp_path / "none.sock"), "-n", "5"]) == 1
+        assert main(["tap", "--socket", str(tmp_path / "none.sock"), "-n", "5"]) == 3  # nothing running: the link-failure code
     finally:
         srv.close()
     err = capsys.readouterr().err
@@ -293,7 +293,7 @@ def test_tap_against_a_daemon_that_never_answers_times_out(tmp_path):
         r = subprocess.run([sys.executable, "-m", "mrctl", "tap", "--socket", path, "-n", "5"],
                     capture_output=True, text=True, timeout=30)
         assert time.monotonic() - t0 < 15
-        assert r.returncode == 1, (r.returncode, r.stderr)
+        assert r.returncode == 3, (r.returncode, r.stderr)
         assert "no answer within 2 s" in r.stderr and "Traceback" not in r.stderr
     finally:
         srv.close()

@@ -23,7 +23,7 @@ from mrctl.util.files import Fence
 from mrctl.util.schema import ConfigError, Custom, Node, Num, Section, Str, key_repr, read_named_yaml, short_repr, \
     validate_fields
 
-__all__ = ["CALIBRATION_VERSION", "calibration_schema", "merge_calibration"]
+__all__ = ["CALIBRATION_VERSION", "calibration_schema", "merge_calibration", "describe_calibration"]
 
 CALIBRATION_VERSION = 1
 _ROLES = ("x", "v", "F", "current_monitor")
@@ -122,3 +122,21 @@ def merge_calibration(data: dict[str, Any], base_dir: Path, fence: Fence | None 
         elif isinstance(params, dict):
             params.setdefault("tau_input", cal.driver.tau_s)
     return out, errors
+
+
+def describe_calibration(ref: str, base_dir: Path, fence: Fence | None = None) -> str:
+    """The start-up line of a run that takes ``calibration: ref``: the file
+    applied (resolved against the experiment's folder) and what it set, so a
+    wrong or stale file shows before the first tick."""
+    path = (Path(ref) if Path(ref).is_absolute() else base_dir / ref).resolve()
+    cal, errors = read_named_yaml(ref, base_dir, fence if fence is not None else Fence.around(base_dir),
+                                  "calibration", _read)
+    if cal is None:
+        return f"calibration: {path}: " + "; ".join(errors)
+    parts = [f"{role} offset {node.offset_V:.5f} V" for role, node in (cal.channels or {}).items()
+             if node.offset_V is not None]
+    if cal.noise.x_m is not None:
+        parts.append(f"x noise {cal.noise.x_m * 1e6:.2f} um")
+    if cal.driver.tau_s is not None:
+        parts.append(f"driver tau {cal.driver.tau_s * 1e3:.2f} ms")
+    return f"calibration: {path} applied ({', '.join(parts) or 'nothing in it'})"

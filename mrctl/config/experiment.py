@@ -125,7 +125,10 @@ def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, A
                       "sweep_s": Num(min=0.0, min_exclusive=True, doc="sweep time (s); f1 is held afterwards")},
             "file": {"path": Custom(file_check(base_dir, fence),
                                     doc="CSV with columns t,x (s, m) and optionally v (m/s); other columns are "
-                                        "ignored, so a run log replays (rows with NaN x or v are skipped)")},
+                                        "ignored, so a run log replays (rows with NaN x or v are skipped)"),
+                     "settle_s": Num(default=0.0, min=0.0, max=1e6,
+                                     doc="start-up transient left out of the tracking figures (s); a replay "
+                                         "takes the logged run's, so both are judged over one window")},
             **road_excitations(),
         }, doc="shaker motion on the simulated bench (plant.bench: quarter_car: the road)"),
         **law_unions(base_dir, fence),

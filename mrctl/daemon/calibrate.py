@@ -302,7 +302,20 @@ def run_from_args(args: Any, load: Any) -> int:
     for role, ch in cal.get("channels", {}).items():
         print(f"  {role}: offset {ch['offset_V']:.5f} V, noise {ch['noise_V'] * 1e3:.3f} mV rms")
     print(f"wrote {p}")
+    print(f"the experiment takes it with  calibration: {calibration_ref(p, Path(args.config))}  (a path relative "
+          f"to the experiment's folder, as every file it names)")
     return 0
+
+
+def calibration_ref(cal: Path, experiment: Path) -> str:
+    """What ``experiment`` writes as ``calibration:`` to take ``cal``: a path
+    relative to the experiment's folder (where every file it names resolves),
+    absolute when they share nothing but the root."""
+    here, there = experiment.resolve().parent, cal.resolve()
+    try:
+        return os.path.relpath(there, here) if os.path.commonpath([here, there]) != "/" else str(there)
+    except ValueError:
+        return str(there)
 
 
 def write_calibration(path: str | os.PathLike[str], cal: dict[str, Any], force: bool = False) -> Path:

@@ -92,14 +92,17 @@ def verdict_exit(v: dict[str, Any], exit_code: int) -> int:
 def close_log(rec: Any, out: str, summary: dict[str, Any], exit_code: int, messages: list[str], *,
               I_max: float, settle_s: float, say: Callable[[str], None], warn: Callable[[str], None],
               format_tracking: Callable[[dict[str, float]], str],
-              verdict: Callable[[dict[str, Any] | None, dict[str, float] | None], dict[str, Any]] | None = None) -> int:
+              verdict: Callable[[dict[str, Any] | None, dict[str, float] | None], dict[str, Any]] | None = None,
+              extra: dict[str, Any] | None = None) -> int:
     """Drain the recorder, judge the log, write the final sidecar once;
     returns the exit code (4 if anything was lost and nothing worse happened,
     5 if the run broke an acceptance bound and nothing worse happened).
 
     ``verdict(cols, tracking)`` judges the run from its rows (None when the
     log cannot be read) and its tracking figures
-    (:func:`mrctl.runlog.acceptance.judge`'s dict)."""
+    (:func:`mrctl.runlog.acceptance.judge`'s dict); ``extra``: top-level
+    keys of the sidecar (the run's requested and actual duration, the signal
+    that stopped it)."""
     st = rec.close(write_sidecar=False)
     lost = st["dropped_rows"]
     if st["error"] or lost:
@@ -111,7 +114,7 @@ def close_log(rec: Any, out: str, summary: dict[str, Any], exit_code: int, messa
     if track:
         summary["tracking"] = track
         say(format_tracking(track))
-    extra: dict[str, Any] = {}
+    extra = dict(extra or {})
     if verdict is not None:
         v = verdict(cols, track)
         exit_code = verdict_exit(v, exit_code)

@@ -55,6 +55,7 @@ from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s, wire_words
 from mrctl.config.acceptance import bounds as acceptance_bounds
+from mrctl.config.saved import saved_config
 from mrctl.daemon.logcheck import LogWatch, close_log, verdict_exit
 from mrctl.daemon.loop import FixedRateLoop
 from mrctl.daemon.monitor import Monitor, live_line
@@ -74,7 +75,7 @@ from mrctl.runlog.acceptance import format_verdict, judge, row_figures, tracking
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS, sidecar_header
 from mrctl.runlog.metrics import format_summary, load_cell_offset
 from mrctl.util.journal import CRIT, ERR, NOTICE, WARNING, Journal
-from mrctl.util.jsonutil import jsonable
+from mrctl.util.files import Fence
 from mrctl.util.options import check_duration
 
 # kept as names: tests and hil_sim compare against them
@@ -130,6 +131,9 @@ class Service:
         self.exit_current_A = math.nan  # what the way out commanded (0.0 unless it failed)
         self._zero_error: str | None = "not attempted"
         self._total_ticks: int | None = None
+        self.requested_s: float | None = None  # --duration, else the config's; None: until stopped
+        self.interrupted: str | None = None  # SIGINT/SIGTERM that stopped the loop
+        self._at_stop: tuple[int, int] | None = None  # (ticks, skipped deadlines) when it came
         self.verdict: dict[str, Any] | None = None  # the run's acceptance verdict, once it ended
         self._log_fh: Any = None  # the run log, created before the link opens, until the recorder takes it
         self.journal = Journal(opts.err, opts.log_priorities)
@@ -202,7 +206,7 @@ class Service:
         override = check_duration(o.duration_s, "--duration")
         exp = self.exp = build(load_experiment(o.config_path, allow_outside=o.allow_outside_paths))
         self.loaded = exp.config
-        duration = override if override is not None else exp.config.duration_s
+        duration = self.requested_s = override if override is not None else exp.config.duration_s
         if o.out:
             files.check_log_path(o.out, o.force, o.mkdir)
         self._stream = stream_settings(exp.config, o.stream_url, o.stream_every, o.stream_columns)
@@ -212,6 +216,11 @@ class Service:
             raise BadInput(f"backend: {exc}") from None
         self.say(f"mrctl {__version__}: {exp.name}, law {exp.config.inverse.law}, {exp.config.rate_hz:g} Hz, "
                  f"{'%.3f s' % duration if duration else 'until stopped'}; backend {link.describe()}")
+        if exp.config.get("calibration"):
+            from mrctl.config.calibration import describe_calibration
+
+            self.say(describe_calibration(exp.config.calibration, Path(o.config_path).parent,
+                                          Fence.around(Path(o.config_path).parent, o.allow_outside_paths)))
         with signals.deferred():  # a stop waits until the lock's release is registered
             self._own_device(stack, link)  # before a byte goes out: a second daemon is refused here
         if o.out:
@@ -412,7 +421,7 @@ class Service:
         mon.start()
         stack.callback(mon.stop)
         for sig in signals.STOP_SIGNALS:
-            signal.signal(sig, lambda s, f: loop.stop())
+            signal.signal(sig, lambda s, f: self._stop_by(s, loop))
         signal.signal(signal.SIGHUP, lambda s, f: mon.reload_event.set())
         if signals.take_hup():  # a SIGHUP during start-up, maybe after the config was read
             mon.reload_event.set()
@@ -433,12 +442,32 @@ class Service:
         assert exp is not None and link is not None
         return {
             "mrctl_version": __version__, "build": tick_build(), "python": platform.python_version(),
-            "host": platform.node(), "config_file": str(Path(self.opts.config_path).resolve()), "config": jsonable(exp.config),
+            "host": platform.node(), "config_file": str(Path(self.opts.config_path).resolve()), "config": saved_config(exp.config),
             "parameters": exp.params.as_dict(), "backend": link.describe(), "law": exp.config.inverse.law,
             "I_max_A": exp.I_max, "rate_hz": exp.config.rate_hz, "settle_s": exp.excitation.settle_s,
             # the in-process bench's load cell reads the previous tick's force; hardware: taken as simultaneous
             "load_cell_delay_ticks": 1 if exp.config.backend.type == "sim" else 0,
         }
+
+    def _stop_by(self, signum: int, loop: FixedRateLoop) -> None:
+        """SIGINT/SIGTERM in the loop: stop after this tick, and remember which
+        and where (the verdict judges the ticks before it: a deadline missed
+        while the process was being stopped is not the run's)."""
+        if self.interrupted is None:
+            self.interrupted = signal.Signals(signum).name
+            self._at_stop = (loop.stats.ticks, loop.stats.skipped_deadlines)
+        loop.stop()
+
+    def _duration(self) -> dict[str, Any]:
+        """The sidecar's duration: asked (``--duration``, else the config's;
+        None: until stopped), run (ticks and skipped deadlines on the loop's
+        clock) and the signal that stopped it (None: it ran its course)."""
+        assert self.loop is not None
+        st = self.loop.stats
+        return {"requested_duration_s": self.requested_s,
+                "actual_duration_s": (st.ticks + st.skipped_deadlines) / self.loop.rate_hz if self.loop.rate_hz
+                else None,
+                "interrupted": self.interrupted}
 
     # -- acceptance (docs/config.md: acceptance) ------------------------------------
     def acceptance(self, cols: dict[str, Any] | None = None, track: dict[str, float] | None = None) -> dict[str, Any]:
@@ -452,6 +481,8 @@ class Service:
         c = self.sup.counters()
         st = self.loop.stats
         ticks, skipped = st.ticks, st.skipped_deadlines
+        if self._at_stop is not None:  # stopped by the user: judged up to the signal
+            skipped = min(skipped, self._at_stop[1])
         figs: dict[str, Any] = {
             "ticks": ticks,
             "fault_share": c.ticks_in_fault / ticks if ticks else 0.0,
@@ -597,7 +628,7 @@ class Service:
                                   I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,
                                   warn=lambda m: self.warn(m, ERR),
                                   format_tracking=lambda t: format_summary(t, self.exp.I_max),
-                                  verdict=self._final_verdict)
+                                  verdict=self._final_verdict, extra=self._duration())
         else:
             exit_code = verdict_exit(self._final_verdict(None, None), exit_code)
         if self.faults is not None:

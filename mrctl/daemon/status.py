@@ -38,14 +38,15 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from mrctl.errors import MrctlError
+from mrctl.errors import LinkFailure
 from mrctl.util.files import check_private_dir, per_user_dir, private_dir
 from mrctl.util.jsonutil import jsonable
 
 
-class StatusError(MrctlError, OSError):
-    """No usable answer on the status socket (exit 1); an OSError for callers
-    that poll (hil_sim's harnesses)."""
+class StatusError(LinkFailure, OSError):
+    """No usable answer on the status socket: nothing running, or not mrctl
+    (exit 3, the link-failure code: the link to the daemon); an OSError for
+    callers that poll (hil_sim's harnesses)."""
 
 
 def default_status_socket(check: bool = False) -> str:

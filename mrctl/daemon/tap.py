@@ -344,7 +344,7 @@ class TapResult:
 def tap(path: str, out: BinaryIO, rows: int | None = None, columns: Sequence[str] | None = None,
         trigger: str | None = None, pre: int = 0, connect: Callable[[str], socket.socket] | None = None) -> TapResult:
     """Ask the daemon at ``path`` for rows and write the CSV to ``out`` as it
-    comes. Raises :class:`mrctl.daemon.status.StatusError` (exit 1) if there
+    comes. Raises :class:`mrctl.daemon.status.StatusError` (exit 3) if there
     is no daemon or it refuses; KeyboardInterrupt passes through (the
     caller ends cleanly)."""
     from mrctl.daemon.status import StatusError, connect_status

@@ -155,6 +155,7 @@ def _window_text(m: dict[str, float], settle_used: bool) -> str:
 def _summary_line(m: dict[str, Any], settle_used: bool) -> str:
     window = _window_text(m, settle_used)
     nrmse = "n/a (flat F_des)" if math.isnan(m["nrmse"]) else f"{100.0 * m['nrmse']:.2f} %"
+    nrmse += " of the plant's F_true" if m.get("force_from") == "F_true" else " of the load cell's F"
     top = f"I = I_max ({m['I_max']:g} A)" if m.get("I_max") is not None else "I = run's max (I_max unknown)"
     return (f"force NRMSE {nrmse}   ·   max |ΔI| {m['max_dI']:.3f} A   ·   "
             f"I = 0: {100.0 * m['share_zero']:.1f} %   ·   {top}: {100.0 * m['share_max']:.1f} %"
@@ -295,13 +296,18 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
     if not paths:
         raise ReportError("no run to report on")
     loaded = []
-    for p in paths:
-        cols = load_run(p)
+    read = [(p, load_run(p)) for p in paths]
+    # like with like: the plant's own force only when every run has it (simulated benches),
+    # else every run's load cell (a run on hardware beside its replay)
+    quantity = "F_true" if all("F_measured" in cols for _, cols in read) else "F"
+    for p, cols in read:
+        if quantity == "F" and "F_measured" in cols:
+            cols["F"] = cols.pop("F_measured")
         cols.update(_load_extras(p))
         facts = _run_facts(p)
         st = settle if settle is not None else (facts["settle"] if facts["settle"] is not None else DEFAULT_SETTLE_S)
         m: dict[str, Any] = summarize(cols, st, facts["I_max"])
-        m.update(I_max=facts["I_max"], path=str(p), verdict=facts["verdict"],
+        m.update(I_max=facts["I_max"], path=str(p), verdict=facts["verdict"], force_from=quantity,
                  verdict_reasons=facts["verdict_reasons"],
                  label=f"{p.name} ({facts['law']})" if facts["law"] else p.name)
         m["quarter_car"] = all(c in cols for c in _QC_COLUMNS)
@@ -349,7 +355,7 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
         if single:  # actual first and lighter, desired on top and dark-dashed: when tracking
             # is good the two coincide, and the reference must stay visible
             act = dict(color=colour, lw=0.9, alpha=0.8, zorder=2,
-                       label="true $F$ (simulated plant)" if "F_measured" in cols else "actual $F$")
+                       label="true $F$ (simulated plant)" if "F_measured" in cols else "load-cell $F$")
             des = dict(color="black", lw=1.3, ls=(0, (4, 2)), zorder=3, label="desired $F_{des}$")
             line = dict(color=colour, lw=1.0, zorder=2)
         else:  # each run in its colour and line style; a demand that differs from the first run's gets a line
@@ -398,6 +404,8 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
             ax.axvspan(t_lo, min(t_settle, t_hi), color="0.88", zorder=0, lw=0, label="settling")
     for q, ax in axes.items():
         what, ylabel = PANELS[q]
+        if q == "force":  # which force every run is drawn and judged on
+            what += ": the plant's $F_{true}$" if quantity == "F_true" else ": the load cell's $F$"
         letter = "abcdefghij"[panels.index(q)]
         if q in ("fv", "fx"):
             window = (f" ({_window_text(loaded[0][1], loaded[0][1]['t_start'] > loaded[0][0]['t'][0])})"

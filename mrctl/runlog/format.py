@@ -77,7 +77,7 @@ FAULT_BITS: tuple[tuple[str, int, str], ...] = (
 
 #: ``mrctl`` exit codes (README, mrctl/errors.py).
 EXIT_CODES: dict[str, str] = {
-    "0": "success (also when stopped by SIGINT/SIGTERM)",
+    "0": "success (a command that runs until stopped: also when stopped by SIGINT/SIGTERM)",
     "1": "internal error, or a control law that failed",
     "2": "bad input (config, option, --out, a file it names, a missing optional dependency)",
     "3": "link failure (cannot open, infeasible rate, driver lost, device owned by another mrctl)",
@@ -86,9 +86,72 @@ EXIT_CODES: dict[str, str] = {
 }
 
 
-def exit_codes_text() -> str:
-    """The exit-code table as ``--help`` epilogs print it."""
-    return "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
+_STOPPED = "stopped by SIGINT/SIGTERM"
+_INTERRUPTED = "Ctrl-C (SIGINT) before it finished: nothing written (SIGTERM: the system's default, 143)"
+_INTERNAL = "internal error (a bug: the message says where)"
+
+#: what each code means for each command (docs/cli.md's table, each command's --help,
+#: tests/test_exit_codes.py drives every entry). A command that runs until stopped
+#: (run, sweep, tap, exporter) exits 0 when the user stops it; a one-shot command
+#: interrupted has no result, and says so with 130.
+COMMAND_EXITS: dict[str, dict[int, str]] = {
+    "run": {0: f"ran its duration, or {_STOPPED} (during start-up too: nothing left behind); the verdict "
+               "judges the ticks before the signal, so deadlines missed while stopping never give 5",
+            1: "a control law failed (raised, NaN, too slow: docs/laws.md), or " + _INTERNAL,
+            2: "bad input: the config, an option, --out, a file the config names",
+            3: "link failure: cannot open, too slow for the rate, driver lost, device owned by another mrctl",
+            4: "run log incomplete: rows lost, disk full (the sidecar records what)",
+            5: "degraded: an acceptance bound broken (stderr and the sidecar's verdict name it)"},
+    "simulate": {0: "done, the verdict ok", 1: "a control law failed (the run ends at 0 A), or " + _INTERNAL,
+                 2: "bad input: the config, an option, --out, a run log to replay",
+                 4: "the run log could not be written", 5: "degraded: an acceptance bound broken",
+                 130: _INTERRUPTED},
+    "sweep": {0: f"every point has its row (failed points included), or {_STOPPED}: the table is valid and "
+                 "the same command resumes it", 1: _INTERNAL,
+              2: "bad input: the sweep file, an option, --out, a missing extra",
+              3: "the Dask scheduler (--scheduler) cannot be reached"},
+    "report": {0: "the figure written", 1: _INTERNAL,
+               2: "bad input: a run or table that cannot be read, an option, --out, matplotlib missing",
+               130: _INTERRUPTED},
+    "identify": {0: "the parameters written", 1: _INTERNAL,
+                 2: "bad input: runs or a dataset that cannot be read or fitted, an unphysical fit, an option",
+                 130: _INTERRUPTED},
+    "calibrate": {0: "the calibration written", 1: _INTERNAL, 2: "bad input: the config, an option, --out",
+                  3: "link failure: the device cannot be opened or is owned by another mrctl", 130: _INTERRUPTED},
+    "check": {0: "the file is valid (and the link can sustain the rate)", 1: _INTERNAL,
+              2: "invalid (every error listed with its key path), or the link cannot sustain the rate"},
+    "status": {0: "the daemon answered", 1: _INTERNAL, 2: "bad input: an option",
+               3: "nothing running on that socket, or not mrctl answering"},
+    "ls": {0: "listed (none running is an empty list)", 1: _INTERNAL},
+    "tap": {0: f"the rows asked for, or {_STOPPED}, or the reader closed the pipe", 1: _INTERNAL,
+            2: "bad input: an option, a column, a trigger",
+            3: "nothing running, the tap refused, or the daemon ended or dropped the tap before the rows came"},
+    "arm": {0: "re-armed, or nothing to re-arm", 1: _INTERNAL,
+            3: "refused (its cause is still there), or nothing running"},
+    "exporter": {0: _STOPPED, 1: _INTERNAL,
+                 2: "bad input: --listen, or prometheus-client missing (pip install 'mrctl[metrics]')"},
+    "examples": {0: "copied", 1: _INTERNAL, 2: "DIR already holds the files (--force replaces them), or is not "
+                                                "a directory"},
+    "docs": {0: "printed", 1: _INTERNAL, 2: "no such topic"},
+}
+
+
+def exit_codes_text(command: str | None = None) -> str:
+    """The exit-code table as ``--help`` epilogs print it; ``command``: what
+    each code means for that command, after the general table."""
+    text = "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
+    if command in COMMAND_EXITS:
+        text += f"\n\nmrctl {command} exits:\n" + "\n".join(
+            f"  {k:<3}  {v}" for k, v in COMMAND_EXITS[command].items())
+    return text
+
+
+def command_exits_markdown() -> str:
+    """docs/cli.md's table: each command's codes and what they mean there."""
+    rows = ["| command | code | when |", "|---|---|---|"]
+    for cmd, codes in COMMAND_EXITS.items():
+        rows += [f"| `{cmd}` | {code} | {what} |" for code, what in codes.items()]
+    return "\n".join(rows)
 
 
 def describe_columns(columns: tuple[str, ...] = RUN_COLUMNS) -> dict[str, Any]:

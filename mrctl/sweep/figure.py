@@ -62,10 +62,39 @@ def summarise(cols: list[str], rows: list[dict[str, str]], metric: str, bound: f
         parts = []
         for k, a in arrays.items():
             good = np.isfinite(a)
-            frac = float(np.mean(good & (np.where(good, a, np.inf) <= bound))) if a.size else math.nan
-            parts.append(f"{' '.join(k) or 'all'} {100 * frac:.0f} %")
+            n_ok = int(np.sum(good & (np.where(good, a, np.inf) <= bound)))
+            parts.append(f"{' '.join(k) or 'all'} {n_ok} of {a.size} points ({100 * n_ok / max(1, a.size):.0f} %)")
         lines.append(f"{metric} ≤ {bound:g}: " + ", ".join(parts))
     return grid, rand, arrays, lines
+
+
+#: print resolution of the sweep figures (a paper's figure: 200 dpi or more)
+DPI = 200
+#: Okabe & Ito's colour-blind-safe palette, black first
+OKABE_ITO = ("#000000", "#E69F00", "#56B4E9", "#009E73", "#0072B2", "#D55E00", "#CC79A7", "#F0E442")
+LINE_STYLES = ("-", "--", "-.", ":")
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+#: units of the key paths a sweep varies most, for axis labels
+_KEY_UNITS = {"demand.c_des": "N·s/m", "plant.driver_tau_s": "s", "safety.I_max": "A", "rate_hz": "Hz",
+              "excitation.amplitude_m": "m", "excitation.frequency_hz": "Hz", "inverse.law": ""}
+
+
+def metric_label(metric: str) -> str:
+    """An axis label for ``metric``: its meaning (mrctl.sweep.metrics.METRIC_DOCS) and name."""
+    from mrctl.sweep.metrics import METRIC_DOCS
+
+    doc = METRIC_DOCS.get(metric)
+    return f"{metric}: {doc.split(' (')[0] if '(' in doc and not doc.startswith('RMS(') else doc}" if doc else metric
+
+
+def key_label(key: str) -> str:
+    """An axis label for a key path: the path and its unit, where the path says it (``_s``, ``_A``, ...)."""
+    unit = _KEY_UNITS.get(key)
+    if unit is None:
+        tail = key.rsplit(".", 1)[-1]
+        unit = next((u for suffix, u in (("_s", "s"), ("_A", "A"), ("_m", "m"), ("_hz", "Hz"), ("_N", "N"),
+                                         ("_mps", "m/s")) if tail.endswith(suffix)), "")
+    return f"{key} ({unit})" if unit else key
 
 
 def make_sweep_report(path: str, out: str, metric: str = "force_nrmse", bound: float = 0.01,
@@ -83,17 +112,24 @@ def make_sweep_report(path: str, out: str, metric: str = "force_nrmse", bound: f
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    label_of = metric_label(metric)
     if rand:
         fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
-        for k, a in arrays.items():
+        drawn: list[tuple[str, np.ndarray]] = []
+        for n, (k, a) in enumerate(arrays.items()):
             good = np.sort(a[np.isfinite(a)])
             label = " ".join(k) or "all"
-            frac = float(np.mean(np.isfinite(a) & (np.nan_to_num(a, nan=np.inf) <= bound)))
-            ax1.step(good, np.arange(1, good.size + 1) / max(1, a.size), where="post",
-                     label=f"{label} ({100 * frac:.0f} % ≤ {bound:g})")
+            n_ok = int(np.sum(np.isfinite(a) & (np.nan_to_num(a, nan=np.inf) <= bound)))
+            same = next((other for other, b in drawn if np.array_equal(b, good)), None)
+            text = f"{label}: {n_ok} of {a.size} ≤ {bound:g}" + (f" (identical to {same})" if same else "")
+            # overlapping laws stay visible: each its colour, line style and markers
+            ax1.step(good, np.arange(1, good.size + 1) / max(1, a.size), where="post", color=OKABE_ITO[n % 8],
+                     ls=LINE_STYLES[n % len(LINE_STYLES)], lw=1.4, marker=MARKERS[n % len(MARKERS)],
+                     markevery=max(1, good.size // 8) if good.size else 1, ms=5, label=text)
+            drawn.append((label, good))
         ax1.axvline(bound, color="k", lw=0.8, ls="--")
         ax1.set_xscale("log")
-        ax1.set_xlabel(metric)
+        ax1.set_xlabel(label_of)
         ax1.set_ylabel("fraction of points")
         ax1.legend(fontsize=8)
         ax1.grid(alpha=0.3)
@@ -101,40 +137,53 @@ def make_sweep_report(path: str, out: str, metric: str = "force_nrmse", bound: f
         ax2.set_xticks(range(1, len(arrays) + 1), [" ".join(k) or "all" for k in arrays], rotation=20, fontsize=8)
         ax2.axhline(bound, color="k", lw=0.8, ls="--")
         ax2.set_yscale("log")
-        ax2.set_ylabel(f"{metric} (box: quartiles, whiskers 5-95 %)")
+        ax2.set_ylabel(f"{label_of}\n(box: quartiles, whiskers 5-95 %)")
     elif len(grid) >= 2:
         xa, ya, rest = grid[0], grid[1], grid[2:]
         xs = sorted({k[0] for k in arrays}, key=_sort_key)
         ys = sorted({k[1] for k in arrays}, key=_sort_key)
         groups = sorted({k[2:] for k in arrays}, key=lambda g: [_sort_key(x) for x in g])[:MAX_PANELS]
-        fig, axs = plt.subplots(1, len(groups), figsize=(4.5 * len(groups) + 1, 4), squeeze=False)
-        for ax, g in zip(axs[0], groups):
+        fig, axs = plt.subplots(1, len(groups), figsize=(4.5 * len(groups) + 1.5, 4), squeeze=False,
+                                layout="constrained")
+        maps = []
+        for g in groups:
             m = np.full((len(ys), len(xs)), np.nan)
             for (i, y), (j, x) in itertools.product(enumerate(ys), enumerate(xs)):
                 a = arrays.get((x, y, *g))
                 if a is not None and np.isfinite(a).any():
                     m[i, j] = float(np.nanmedian(a))
-            im = ax.imshow(m, origin="lower", aspect="auto", cmap="viridis")
+            maps.append(m)
+        finite = [v for m in maps for v in m[np.isfinite(m)].tolist()]
+        from matplotlib.colors import Normalize
+
+        norm = Normalize(min(finite), max(finite)) if finite else Normalize(0.0, 1.0)  # one scale, every panel
+        cmap = plt.get_cmap("viridis")
+        im = None
+        for ax, g, m in zip(axs[0], groups, maps):
+            im = ax.imshow(m, origin="lower", aspect="auto", cmap=cmap, norm=norm)
             for (i, j), v in np.ndenumerate(m):
-                ax.text(j, i, "fail" if math.isnan(v) else f"{v:.3g}", ha="center", va="center", fontsize=7,
-                        color="w")
+                r, gr, b, _ = cmap(norm(v)) if not math.isnan(v) else (1.0, 1.0, 1.0, 1.0)
+                light = 0.2126 * r + 0.7152 * gr + 0.0722 * b > 0.5  # dark text on a light cell
+                ax.text(j, i, "fail" if math.isnan(v) else f"{v:.3g}", ha="center", va="center", fontsize=8,
+                        color="black" if light else "white")
             ax.set_xticks(range(len(xs)), xs, fontsize=8)
             ax.set_yticks(range(len(ys)), ys, fontsize=8)
-            ax.set_xlabel(xa)
-            ax.set_ylabel(ya)
-            ax.set_title(", ".join(f"{a}={v}" for a, v in zip(rest, g)), fontsize=9)
-            fig.colorbar(im, ax=ax, label=metric)
+            ax.set_xlabel(key_label(xa))
+            ax.set_ylabel(key_label(ya))
+            ax.set_title(", ".join(f"{key_label(a)} = {v}" for a, v in zip(rest, g)), fontsize=9)
+        fig.colorbar(im, ax=list(axs[0]), label=f"{label_of} (median per cell)")
     else:
         fig, ax = plt.subplots(figsize=(6, 4))
         keys = list(arrays)
         ax.plot(range(len(keys)), [float(np.nanmedian(a)) if np.isfinite(a).any() else np.nan
                                    for a in arrays.values()], "o-")
         ax.set_xticks(range(len(keys)), [" ".join(k) for k in keys], rotation=20, fontsize=8)
-        ax.set_xlabel(grid[0] if grid else "")
-        ax.set_ylabel(metric)
+        ax.set_xlabel(key_label(grid[0]) if grid else "")
+        ax.set_ylabel(label_of)
         ax.grid(alpha=0.3)
-    fig.suptitle((title or Path(path).name) + "\n" + "; ".join(lines), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out)
+    fig.suptitle((title or Path(path).name) + "\n" + "\n".join(lines), fontsize=9)
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
+    fig.savefig(out, dpi=DPI)
     plt.close(fig)
     return lines

@@ -61,9 +61,11 @@ def _batches(tasks: Iterable[dict[str, Any]], size: int) -> Iterator[list[dict[s
 
 
 class SweepInterrupted(MrctlError):
-    """Ctrl-C: the table holds the points done; re-running resumes."""
+    """Ctrl-C or SIGTERM: the table holds the points done; re-running resumes.
+    Exit 0, as every command the user stops (docs/cli.md, "Exit codes"): the
+    user asked for it and the table is valid."""
 
-    exit_code = ExitCode.INTERRUPTED
+    exit_code = ExitCode.OK
 
 
 _PR_SET_PDEATHSIG = 1

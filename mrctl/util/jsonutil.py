@@ -37,7 +37,7 @@ def jsonable(obj: Any, nonfinite: str = "repr") -> Any:
         return {str(k): jsonable(v, nonfinite) for k, v in obj.items()}
     if isinstance(obj, (list, tuple, set, frozenset, deque)):
         return [jsonable(v, nonfinite) for v in obj]
-    for method in ("to_dict", "as_dict"):  # config Node, LuGreParams, SafetyCounters
+    for method in ("to_dict", "as_dict", "to_mapping"):  # config Node, LuGreParams, SafetyCounters, RegisterMap
         if callable(getattr(obj, method, None)):
             return jsonable(getattr(obj, method)(), nonfinite)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
