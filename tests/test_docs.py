@@ -46,3 +46,11 @@ def test_sweep_reference_is_current():
     text = (DOCS / "sweeps.md").read_text()
     block = text.split("<!-- BEGIN GENERATED: mrctl.sweep.sweep_markdown -->\n", 1)[1].split("\n<!-- END GENERATED -->")[0]
     assert block == sweep_markdown(), "docs/sweeps.md is stale: run python -m mrctl.sweep"
+
+
+def test_the_exit_code_table_of_every_command_is_current():
+    from mrctl.runlog.format import command_exits_markdown
+
+    text = (ROOT / "docs" / "cli.md").read_text()
+    block = text.split("<!-- BEGIN GENERATED: mrctl.runlog.format.command_exits_markdown -->\n", 1)[1]
+    assert block.split("\n<!-- END GENERATED -->")[0] == command_exits_markdown()

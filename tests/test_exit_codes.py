@@ -71,7 +71,8 @@ def _internal(command: str, argv: list[str]):
 
 for _cmd, _argv in {"run": [str(FIG5)], "simulate": [str(FIG5)], "sweep": ["s.yaml"], "report": ["r.csv"],
                     "identify": ["r.csv"], "calibrate": [str(FIG5)], "check": [str(FIG5)], "status": [], "ls": [],
-                    "tap": [], "arm": [], "exporter": [], "examples": ["d"], "docs": []}.items():
+                    "tap": [], "arm": [], "exporter": [], "examples": ["d"], "docs": [],
+                    "device": ["disarm", str(FIG5)]}.items():
     DRIVEN[(_cmd, 1)] = _internal(_cmd, _argv)
 
 
@@ -93,7 +94,7 @@ def _interrupted(command: str, where: str, argv: Callable[[Path], list[str]]):
     return driver
 
 
-DRIVEN[("simulate", 130)] = _interrupted("simulate", "mrctl.offline.simulate_log.simulate",
+DRIVEN[("simulate", 130)] = _interrupted("simulate", "mrctl.offline.simulate_log.simulate_blocks",
                                          lambda d: [str(FIG5), "--out", str(d / "x.csv")])
 DRIVEN[("report", 130)] = _interrupted("report", "mrctl.offline.report.build_figure",
                                        lambda d: [str(_sim(d)), "--out", str(d / "x.png")])
@@ -170,7 +171,7 @@ def _run_4(tmp_path, capsys, monkeypatch):
 @drives("run", 5)
 def _run_5(tmp_path, capsys, monkeypatch):
     cfg = _fig5(tmp_path, acceptance={"max_force_nrmse": 1e-6})
-    assert main(["run", str(cfg), "--duration", "1.3", "--out", str(tmp_path / "r.csv"), "-q",
+    assert main(["run", str(cfg), "--duration", "2.5", "--out", str(tmp_path / "r.csv"), "-q",
                  "--socket", str(tmp_path / "r.sock")]) == 5
     assert "acceptance.max_force_nrmse" in capsys.readouterr().err
 
@@ -188,17 +189,22 @@ def _simulate_2(tmp_path, capsys, monkeypatch):
 
 @drives("simulate", 4)
 def _simulate_4(tmp_path, capsys, monkeypatch):
-    import mrctl.offline.simulate_log as slog
+    # the file size limit stands in for a full disk (EFBIG where ENOSPC would be): the log
+    # streams while the loop runs (tests/test_simulate_stream.py), so a later block fails
+    import subprocess
+    import sys
 
-    def full(*a, **k):
-        raise OSError(errno.ENOSPC, "No space left on device")
-    monkeypatch.setattr(slog, "write_csv", full)
-    assert main(["simulate", str(FIG5), "--duration", "0.2", "--out", str(tmp_path / "x.csv")]) == 4
+    code = ("import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (3_000_000, 3_000_000)); "
+            "from mrctl.cli import main; sys.exit(main(sys.argv[1:]))")
+    res = subprocess.run([sys.executable, "-c", code, "simulate", str(FIG5), "--duration", "100",
+                          "--out", str(tmp_path / "x.csv")], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 4, res.stderr
 
 
 @drives("simulate", 5)
 def _simulate_5(tmp_path, capsys, monkeypatch):
-    assert main(["simulate", str(_fig5(tmp_path, acceptance={"max_force_nrmse": 1e-6})), "--duration", "1.3"]) == 5
+    assert main(["simulate", str(_fig5(tmp_path, acceptance={"max_force_nrmse": 1e-6})), "--duration", "2.5"]) == 5
 
 
 # -- sweep ----------------------------------------------------------------------------------------------------------
@@ -454,3 +460,40 @@ def test_the_code(command, code, tmp_path, capsys, monkeypatch, request):
     extra = {"daemon": request.getfixturevalue("daemon")} if "daemon" in driver.__code__.co_varnames[
         :driver.__code__.co_argcount] else {}
     driver(tmp_path, capsys, monkeypatch, **extra)
+
+
+# -- device ----------------------------------------------------------------------------------------------------------
+T7 = ROOT / "config" / "experiments" / "labjack_t7.yaml"
+
+
+def _t7(tmp_path: Path, port: int) -> Path:
+    data = yaml.safe_load(T7.read_text())
+    data["backend"]["port"] = port
+    p = tmp_path / "t7.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+@drives("device", 0)
+def _device_0(tmp_path, capsys, monkeypatch):
+    from hil_sim.testing.harness import HilSim
+
+    monkeypatch.setenv("MRCTL_LOCK_DIR", str(tmp_path / "locks"))
+    hil = HilSim("--config", str(ROOT / "config" / "hil_labjack_t7_bench.yaml"), "--device", "labjack_t7",
+                 "--transport", "modbus-tcp", "--bind", "127.0.0.1:0", workdir=tmp_path)
+    try:
+        port = int(hil.field("bind").rpartition(":")[2])
+        assert main(["device", "disarm", str(_t7(tmp_path, port))]) == 0
+    finally:
+        hil.stop()
+
+
+@drives("device", 2)
+def _device_2(tmp_path, capsys, monkeypatch):
+    assert main(["device", "disarm", str(FIG5)]) == 2  # the in-process bench: no device preset
+
+
+@drives("device", 3)
+def _device_3(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("MRCTL_LOCK_DIR", str(tmp_path / "locks"))
+    assert main(["device", "disarm", str(_t7(tmp_path, 1))]) == 3  # nothing listens on port 1

@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 
+from pathlib import Path
+
 from mrctl.config import validate_experiment
 from mrctl.util.jsonutil import jsonable
 from mrctl.model.params import TABLE_I
@@ -26,7 +28,7 @@ def test_types_and_nonfinite_policies():
 def test_config_node_is_serialised():
     cfg = validate_experiment({"version": 1, "excitation": {"type": "sine", "amplitude_m": 0.01, "frequency_hz": 1},
                                "demand": {"type": "viscous", "c_des": 500}, "inverse": {"law": "paper"},
-                               "safety": {"I_max": 0.6, "v_range_mps": [-1, 1]}, "rt": {"cpus": [0]}}, None)
+                               "safety": {"I_max": 0.6, "v_range_mps": [-1, 1]}, "rt": {"cpus": [0]}}, Path("."))
     out = jsonable(cfg)
     json.dumps(out, allow_nan=False)
     assert out["rt"]["cpus"] == [0] and out["safety"]["v_range_mps"] == [-1.0, 1.0]

@@ -500,7 +500,7 @@ class Service:
             figs["longest_zero_stretch_s"] = (bad + (cfg.resume_good_ticks if c.faults_entered else 0)) * dt
             figs["zero_stretch_estimated"] = True
         figs["latched_s"] = c.ticks_latched * dt
-        figs.update(tracking_judged({**(track or {}), **lc}, self.exp.excitation.settle_s))
+        figs.update(tracking_judged({**(track or {}), **lc}, self.exp.excitation.settle_s, dt))
         v = judge({k: v for k, v in figs.items() if k not in ("ticks", "zero_stretch_estimated")},
                   acceptance_bounds(self.exp.config), dt)
         v["figures"]["ticks"] = ticks

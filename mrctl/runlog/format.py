@@ -130,6 +130,9 @@ COMMAND_EXITS: dict[str, dict[int, str]] = {
             3: "refused (its cause is still there), or nothing running"},
     "exporter": {0: _STOPPED, 1: _INTERNAL,
                  2: "bad input: --listen, or prometheus-client missing (pip install 'mrctl[metrics]')"},
+    "device": {0: "done (disarm: the device's watchdog off in its flash, read back)", 1: _INTERNAL,
+               2: "bad input: the config, an option, a backend without a device preset",
+               3: "link failure: the device cannot be opened, refuses the write, or is owned by another mrctl"},
     "examples": {0: "copied", 1: _INTERNAL, 2: "DIR already holds the files (--force replaces them), or is not "
                                                 "a directory"},
     "docs": {0: "printed", 1: _INTERNAL, 2: "no such topic"},
