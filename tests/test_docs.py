@@ -51,6 +51,6 @@ def test_sweep_reference_is_current():
 def test_the_exit_code_table_of_every_command_is_current():
     from mrctl.runlog.format import command_exits_markdown
 
-    text = (ROOT / "docs" / "cli.md").read_text()
+    text = (DOCS / "cli.md").read_text()
     block = text.split("<!-- BEGIN GENERATED: mrctl.runlog.format.command_exits_markdown -->\n", 1)[1]
     assert block.split("\n<!-- END GENERATED -->")[0] == command_exits_markdown()
