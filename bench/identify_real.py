@@ -8,8 +8,8 @@ skipped with the reason. Per dataset:
 - broadband (NEES): held-out force NRMSE per record for the shipped model
   and for the comparisons the docs quote: without the inertia term, without
   the input lag (the command applied at once), and both; fitted τ;
-- constant input (Labcontrol): per record and level, with the offset and
-  stiffness and without; per level the median and range over its records,
+- constant input (Labcontrol): per record and level (with its stroke and
+  frequency), with the offset and stiffness and without; per level the median and range over its records,
   with the per-level Θ and with the final laws (6)–(11);
 - the time of the shipped fit: median of ``--repeat`` runs, with the
   machine it ran on (identification is single-threaded numpy).
@@ -154,10 +154,12 @@ def constant_input(path: Path, ds, repeat: int, out: dict) -> object:
         return None
     no_off = {(s.record, s.level): s.nrmse for s in (plain.holdout if plain else [])}
     print(f"\n{ds.name} (constant input; held-out force NRMSE per record, the second half of its steady cycles)")
-    print(f"  {'record':<16} {'level':>7} {'offset':>8} {'written':>8} {'paper':>8} {'table':>8} {'no offset':>10}")
+    print(f"  {'record':<16} {'level':>7} {'stroke':>8} {'freq':>6} {'offset':>8} {'written':>8} {'paper':>8} "
+          f"{'table':>8} {'no offset':>10}")
     for s in res.holdout:
         nf = no_off.get((s.record, s.level))
-        print(f"  {s.record:<16} {s.level:7.4g} {100 * s.nrmse:7.2f}% {100 * s.nrmse_laws:7.2f}% "
+        print(f"  {s.record:<16} {s.level:7.4g} {1e3 * s.stroke_m:5.1f} mm {s.frequency_hz:6.3f} "
+              f"{100 * s.nrmse:7.2f}% {100 * s.nrmse_laws:7.2f}% "
               f"{100 * s.nrmse_paper:7.2f}% {100 * (s.nrmse_table or float('nan')):7.2f}% "
               + (f"{100 * nf:9.2f}%" if nf is not None else f"{'refused' if perr else '-':>10}"))
     levels = sorted({s.level for s in res.holdout})
@@ -234,6 +236,12 @@ def main() -> int:
             except ImportError:
                 pass
             print(f"  wrote {fig} ({fig.stat().st_size // 1024} kB)")
+            if ds.protocol == "constant_input":
+                from mrctl.offline.identify_figure import make_conditions_figure
+
+                cfig = fig.with_name(f"{ds.name}-conditions.png")
+                make_conditions_figure(res, cfig, dpi=80, force=True)
+                print(f"  wrote {cfig} ({cfig.stat().st_size // 1024} kB)")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2, default=float) + "\n")
     return 0

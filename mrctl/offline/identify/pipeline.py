@@ -172,7 +172,8 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
             for part, sel in (("holdout", lambda s: s.h1 > s.f1), ("fit", lambda s: s.cycles_fit > 0)):
                 mm, pp, tt, vv = [], [], [], []
                 pl: dict[str, list[np.ndarray]] = {name: [] for name in candidates}
-                for s in [s for s in segs if s.record == rec and s.level == lv and sel(s)]:
+                mine = [s for s in segs if s.record == rec and s.level == lv and sel(s)]
+                for s in mine:
                     sp = spans[s.span]
                     start = s.f1 if part == "holdout" else s.f0
                     m, p = predict_segment(sp, s, lf.theta, lf.offset_N, lf.k_x, start)
@@ -189,7 +190,9 @@ def _constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, boo
                 M, P = np.concatenate(mm), np.concatenate(pp)
                 by_laws = {name: _nrmse(M, np.concatenate(q)) for name, q in pl.items()}
                 sc = Score(rec, float(lf.level), _nrmse(M, P), int(M.size), by_laws["paper"], part=part,
-                           nrmse_paper=by_laws["paper"], nrmse_table=by_laws.get("table"))
+                           nrmse_paper=by_laws["paper"], nrmse_table=by_laws.get("table"),
+                           stroke_m=float(np.median([s.stroke_m for s in mine])),
+                           frequency_hz=1.0 / float(np.median([s.period_s for s in mine])))
                 (hold if part == "holdout" else train).append(sc)
                 traces.append(Trace(rec, float(lf.level), np.concatenate(tt), np.concatenate(vv), M, P, part=part))
     loo = _leave_level_out(spans, segs, fits, use, sup, "holdout" if hold else "fit")

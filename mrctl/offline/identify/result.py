@@ -40,10 +40,17 @@ class Score:
     part: str = "holdout"  # "holdout" or "fit"
     nrmse_paper: float | None = None  # with the paper's laws (6)-(11) (constant input)
     nrmse_table: float | None = None  # with laws: table (constant input, >= 2 levels)
+    #: the test condition (constant input): the steady stroke, peak to peak (m), and the frequency (Hz)
+    #: of the scored cycles (the median over the record's segments at the level)
+    stroke_m: float | None = None
+    frequency_hz: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"record": self.record, "level": _r(self.level) if self.level is not None else None,
                              "nrmse": _r(self.nrmse, 5), "samples": self.samples}
+        for key in ("stroke_m", "frequency_hz"):
+            if getattr(self, key) is not None:
+                d[key] = _r(getattr(self, key), 5)
         for key in ("nrmse_laws", "nrmse_paper", "nrmse_table"):
             if getattr(self, key) is not None:
                 d[key] = _r(getattr(self, key), 5)
