@@ -159,6 +159,16 @@ class LuGreParams:
     The damper's force is then F = F_LuGre(z, v, I_d) + F_offset + k_x·x,
     where I_d follows the command with time constant ``tau_input``.
 
+    Optional terms (docs/identification.md, "Model terms"), off at 0, where
+    a set without them computes bit for bit what it did before:
+    ``sigma1_vd`` (m/s), σ1(v) = σ1·exp(−(v/v_d)²) (Canudas de Wit 1995);
+    ``tau_input_fall`` (s), the input lag while the input falls (a driver
+    that forces the current up and lets it decay through the coil);
+    ``k_hys_pos``, ``k_hys_neg`` (N/m), ``x_hys`` (m), a hysteretic (Dahl)
+    stiffness: ż_h = v − |v|·z_h/x_hys, force k_hys·z_h, k_hys by the sign
+    of v (≥ 0: pos): a force growing with the distance since the last
+    reversal, unlike in the two directions (accumulator, valves).
+
     ``table`` (None by default: the paper's laws) replaces laws (6)–(11) by
     a :class:`ThetaTable` (``laws: table`` in a parameters file); the thirteen
     constants are then still the paper-law fit of the same levels, which the
@@ -181,6 +191,11 @@ class LuGreParams:
     F_offset: float = 0.0  # N, constant force (accumulator preload, load-cell zero)
     k_x: float = 0.0  # N/m, stiffness on displacement
     tau_input: float = 0.0  # s, first-order lag of the input the damper feels
+    sigma1_vd: float = 0.0  # m/s, sigma1(v) = sigma1·exp(-(v/vd)²); 0: off (sigma1 constant)
+    tau_input_fall: float = 0.0  # s, the input lag while the input falls; 0: tau_input (symmetric)
+    k_hys_pos: float = 0.0  # N/m, hysteretic (Dahl) stiffness while v >= 0
+    k_hys_neg: float = 0.0  # N/m, ... while v < 0
+    x_hys: float = 0.0  # m, its saturation length (z_h -> ±x_hys); > 0 when either stiffness is
     table: ThetaTable | None = None  # laws: table (None: the paper's laws 6-11)
 
     def __reduce__(self) -> tuple[type[LuGreParams], tuple[Any, ...]]:
@@ -246,12 +261,28 @@ class LuGreParams:
         return Fc + (self.Fs(I) - Fc) * math.exp(-r * r)
 
     # -- bookkeeping ---------------------------------------------------------
+    @property
+    def has_hysteresis(self) -> bool:
+        """Whether the hysteretic (Dahl) stiffness is on."""
+        return self.k_hys_pos != 0.0 or self.k_hys_neg != 0.0
+
+    def tau_fall(self) -> float:
+        """The input lag while the input falls (s): ``tau_input_fall``, or ``tau_input`` when 0."""
+        return self.tau_input_fall if self.tau_input_fall > 0.0 else self.tau_input
+
+    def extras(self) -> dict[str, float]:
+        """The optional model terms that are on (non-zero), by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)[16:21] if getattr(self, f.name) != 0.0}
+
     def as_dict(self) -> dict[str, Any]:
-        """The sixteen constants by name; with a table also ``laws`` and ``table``
-        (what :func:`params_from_mapping` and a parameters file read back)."""
+        """The sixteen constants by name, the optional terms that are on; with a
+        table also ``laws`` and ``table`` (what :func:`params_from_mapping`
+        and a parameters file read back). A set without the optional terms
+        gives exactly the sixteen keys it always has."""
         out: dict[str, Any] = {}
         for f in fields(self)[:16]:
             out[f.name] = getattr(self, f.name)
+        out.update(self.extras())
         if self.table is not None:
             out["laws"] = "table"
             out["table"] = self.table.as_dict()
@@ -272,9 +303,14 @@ class LuGreParams:
         return tuple(f.name for f in fields(cls))[13:16]
 
     @classmethod
+    def extra_names(cls) -> tuple[str, ...]:
+        """The optional model terms: sigma1_vd, tau_input_fall, k_hys_pos, k_hys_neg, x_hys."""
+        return tuple(f.name for f in fields(cls))[16:21]
+
+    @classmethod
     def all_names(cls) -> tuple[str, ...]:
         """Every number a parameters file may set (``laws``/``table`` aside)."""
-        return tuple(f.name for f in fields(cls))[:16]
+        return tuple(f.name for f in fields(cls))[:21]
 
     def check_range(self, I_max: float, samples: int = 201, I_min: float = 0.0, unit: str = "A") -> list[str]:
         """Problems that make the model meaningless on [I_min, I_max] (empty if fine).
@@ -291,6 +327,7 @@ class LuGreParams:
                 return problems
         if not self.tau_input >= 0.0:
             problems.append(f"tau_input must be >= 0 s, got {self.tau_input:g}")
+        problems.extend(extra_problems(self))
         span = I_max - I_min
         for name, fn in (("sigma0", self.sigma0), ("Fs", self.Fs), ("vs", self.vs), ("Fc", self.Fc)):
             worst = min(fn(I_min + span * k / (samples - 1)) for k in range(samples))
@@ -324,7 +361,23 @@ def params_from_mapping(data: Any) -> LuGreParams:
         if not math.isfinite(float(value)):
             raise ValueError(f"{key}: must be finite, got {value!r}")
         values[key] = float(value)
-    return replace(TABLE_I.with_overrides(**values), table=table)
+    out = replace(TABLE_I.with_overrides(**values), table=table)
+    problems = extra_problems(out)
+    if problems:
+        raise ValueError("; ".join(problems))
+    return out
+
+
+def extra_problems(p: LuGreParams) -> list[str]:
+    """What makes the optional terms meaningless (empty if fine), each naming its key."""
+    out: list[str] = []
+    for name, what in (("sigma1_vd", "m/s"), ("tau_input_fall", "s"), ("x_hys", "m")):
+        if not getattr(p, name) >= 0.0:
+            out.append(f"{name}: must be >= 0 {what} (0: off), got {getattr(p, name):g}")
+    if p.has_hysteresis and not p.x_hys > 0.0:
+        out.append(f"x_hys: must be > 0 m when k_hys_pos or k_hys_neg is set (the hysteretic stiffness "
+                   f"saturates at k_hys·x_hys), got {p.x_hys:g}")
+    return out
 
 
 def table_from_mapping(laws: Any, data: Any) -> ThetaTable | None:

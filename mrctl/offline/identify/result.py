@@ -165,7 +165,7 @@ def summary_dict(res: IdentificationResult) -> dict[str, Any]:
         "F_offset_N": _r(p.F_offset),
         "k_x_N_per_m": _r(p.k_x),
         "inertia_kg": _r(res.inertia_kg),
-        "parameters": {k: _r(getattr(p, k)) for k in p.all_names()},
+        "parameters": {k: _r(v) for k, v in p.as_dict().items() if k not in ("laws", "table")},
         "laws": p.laws,
         "laws_choice": _plain(res.details.get("laws_choice")),
         "settings": _plain(res.settings),
@@ -191,8 +191,7 @@ def result_bytes(res: IdentificationResult, out: str | Path) -> list[tuple[Path,
         "input": res.input,
         "input_range": [float(res.input_range[0]), float(res.input_range[1])],
     }
-    values = p.as_dict()
-    doc.update({k: float(values[k]) for k in p.all_names()})
+    doc.update({k: float(v) for k, v in p.as_dict().items() if k not in ("laws", "table")})  # the optional terms when on
     if p.table is not None:  # the written laws: the per-level table (the 13 constants stay, for the inverse laws)
         doc["laws"] = "table"
         doc["table"] = {k: [_r(x, 8) for x in col] for k, col in p.table.as_dict().items()}
