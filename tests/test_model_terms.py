@@ -20,7 +20,8 @@ from mrctl.laws.base import Measurement
 from mrctl.laws.closed import ClosedLoopInverse
 from mrctl.laws.inverse import PaperInverse, SmoothInverse
 from mrctl.model.lugre import LuGreModel, force
-from mrctl.model.params import TABLE_I, LuGreParams, params_from_mapping
+from mrctl.model.mapping import params_from_mapping
+from mrctl.model.params import TABLE_I, LuGreParams
 from mrctl.model.plant import DamperPlant, DriverLag
 
 DT = 1e-3

@@ -21,7 +21,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from mrctl.model.params import LuGreParams, params_from_mapping, table_from_mapping
+from mrctl.model.mapping import params_from_mapping, table_from_mapping
+from mrctl.model.params import LuGreParams
 from mrctl.util.schema import ConfigError, load_yaml, short_repr
 
 __all__ = ["INPUT_KINDS", "ParamsFile", "read_params_file", "load_params_file", "params_check",

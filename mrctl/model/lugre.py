@@ -73,7 +73,8 @@ class LuGreModel:
     bristle damping's weight exp(−(v/v_d)²) in the force, and the
     hysteretic stiffness's state ``zh`` (m), advanced with z by the same
     exact step, its force k_hys·zh in :meth:`force` (:meth:`hys_force`
-    alone). Off, each costs one comparison and changes no bit.
+    alone; a table's per-level stiffness at the present current). Off, each
+    costs one comparison and changes no bit.
     """
 
     __slots__ = ("p", "z", "v_prev", "substeps", "_I", "_Fc", "_s0", "_s1", "_s2", "_Fs", "_vs",
@@ -133,6 +134,9 @@ class LuGreModel:
             self._s1 = table.value(3, I)
             self._s2 = table.value(4, I)
             self._vs = table.value(5, I)
+            if table.has_hys():  # the hysteretic stiffness per level, at this input
+                self._kp = table.value(8, I)
+                self._kn = table.value(9, I)
             return
         Bc = p.Bc
         x = I / Bc if Bc != 0.0 else math.inf

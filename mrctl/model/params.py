@@ -30,6 +30,8 @@ def langevin(x: float) -> float:
 TABLE_NAMES: Final = ("Fc", "Fs", "sigma0", "sigma1", "sigma2", "vs")
 #: optional per-level bench terms of a table (both or neither), after TABLE_NAMES
 TABLE_BENCH_NAMES: Final = ("F_offset", "k_x")
+#: optional per-level hysteretic stiffness of a table (both or neither, with the bench terms), after them
+TABLE_HYS_NAMES: Final = ("k_hys_pos", "k_hys_neg")
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,7 +50,10 @@ class ThetaTable:
     tuple per name of :data:`TABLE_NAMES`, as long as ``u``, SI units, and
     optionally two more, :data:`TABLE_BENCH_NAMES`: the force offset (N) and
     stiffness (N/m) per level, which then replace the set's constant
-    ``F_offset`` and ``k_x`` (a real bench's per-level fits differ in them).
+    ``F_offset`` and ``k_x`` (a real bench's per-level fits differ in them),
+    and after them optionally :data:`TABLE_HYS_NAMES`: the hysteretic
+    stiffness per direction (N/m) per level, replacing ``k_hys_pos`` and
+    ``k_hys_neg`` (the set's ``x_hys`` is its length).
     """
 
     u: tuple[float, ...]
@@ -72,9 +77,10 @@ class ThetaTable:
                 out.append(f"table.input: must be strictly increasing (monotone), but [{k - 1}] = "
                            f"{self.u[k - 1]:g} and [{k}] = {self.u[k]:g}")
                 break
-        names = TABLE_NAMES + TABLE_BENCH_NAMES
-        if len(self.values) != len(TABLE_NAMES) and len(self.values) != len(names):
-            out.append(f"table: needs {', '.join(TABLE_NAMES)} (and optionally both {', '.join(TABLE_BENCH_NAMES)})")
+        names = TABLE_NAMES + TABLE_BENCH_NAMES + TABLE_HYS_NAMES
+        if len(self.values) not in (6, 8, 10):
+            out.append(f"table: needs {', '.join(TABLE_NAMES)} (and optionally both {', '.join(TABLE_BENCH_NAMES)}, "
+                       f"then both {', '.join(TABLE_HYS_NAMES)})")
             return out
         for j in range(len(self.values)):
             name = names[j]
@@ -123,7 +129,11 @@ class ThetaTable:
 
     def has_bench(self) -> bool:
         """Whether the table holds the per-level F_offset and k_x."""
-        return len(self.values) == len(TABLE_NAMES) + len(TABLE_BENCH_NAMES)
+        return len(self.values) >= 8
+
+    def has_hys(self) -> bool:
+        """Whether the table holds the per-level hysteretic stiffness (k_hys_pos, k_hys_neg)."""
+        return len(self.values) == 10
 
     def bench_force(self, I: float, x: float) -> float:
         """F_offset(I) + k_x(I)·x (N), the per-level bench terms interpolated."""
@@ -132,7 +142,7 @@ class ThetaTable:
     def as_dict(self) -> dict[str, list[float]]:
         """The ``table:`` mapping of a parameters file."""
         out: dict[str, list[float]] = {"input": list(self.u)}
-        names = TABLE_NAMES + TABLE_BENCH_NAMES
+        names = TABLE_NAMES + TABLE_BENCH_NAMES + TABLE_HYS_NAMES
         for j in range(len(self.values)):
             out[names[j]] = list(self.values[j])
         return out
@@ -263,8 +273,8 @@ class LuGreParams:
     # -- bookkeeping ---------------------------------------------------------
     @property
     def has_hysteresis(self) -> bool:
-        """Whether the hysteretic (Dahl) stiffness is on."""
-        return self.k_hys_pos != 0.0 or self.k_hys_neg != 0.0
+        """Whether the hysteretic (Dahl) stiffness is on (its constants, or a table's per-level values)."""
+        return self.k_hys_pos != 0.0 or self.k_hys_neg != 0.0 or (self.table is not None and self.table.has_hys())
 
     def tau_fall(self) -> float:
         """The input lag while the input falls (s): ``tau_input_fall``, or ``tau_input`` when 0."""
@@ -341,79 +351,13 @@ class LuGreParams:
 TABLE_I = LuGreParams()
 
 
-def params_from_mapping(data: Any) -> LuGreParams:
-    """Build a parameter set from a mapping of spec names, Table I filling gaps.
-
-    Raises ``ValueError`` naming the offending key; the config layer turns it
-    into a user-facing error with the file and key path."""
-    if not isinstance(data, dict):
-        raise ValueError(f"parameters must be a mapping of {', '.join(LuGreParams.all_names())}")
-    known = set(LuGreParams.all_names())
-    values: dict[str, float] = {}
-    table = table_from_mapping(data.get("laws", "paper"), data.get("table"))
-    for key, value in data.items():
-        if key in ("laws", "table"):
-            continue
-        if key not in known:
-            raise ValueError(f"{key}: unknown parameter (expected one of {', '.join(LuGreParams.all_names())})")
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{key}: must be a number, got {value!r}")
-        if not math.isfinite(float(value)):
-            raise ValueError(f"{key}: must be finite, got {value!r}")
-        values[key] = float(value)
-    out = replace(TABLE_I.with_overrides(**values), table=table)
-    problems = extra_problems(out)
-    if problems:
-        raise ValueError("; ".join(problems))
-    return out
-
-
 def extra_problems(p: LuGreParams) -> list[str]:
     """What makes the optional terms meaningless (empty if fine), each naming its key."""
     out: list[str] = []
     for name, what in (("sigma1_vd", "m/s"), ("tau_input_fall", "s"), ("x_hys", "m")):
         if not getattr(p, name) >= 0.0:
             out.append(f"{name}: must be >= 0 {what} (0: off), got {getattr(p, name):g}")
-    if p.has_hysteresis and not p.x_hys > 0.0:
+    if p.has_hysteresis and not p.x_hys > 0.0:  # the constants or a table's columns
         out.append(f"x_hys: must be > 0 m when k_hys_pos or k_hys_neg is set (the hysteretic stiffness "
                    f"saturates at k_hys·x_hys), got {p.x_hys:g}")
     return out
-
-
-def table_from_mapping(laws: Any, data: Any) -> ThetaTable | None:
-    """``laws:`` and ``table:`` of a parameters mapping: None for the paper's
-    laws, else a checked :class:`ThetaTable`. ``ValueError`` lists every
-    problem with its key path (the input strictly increasing, Θ finite and,
-    σ1 aside, > 0)."""
-    if laws == "paper" or laws is None:
-        if data is not None:
-            raise ValueError("table: given but laws is not 'table' (set laws: table, or drop the table)")
-        return None
-    if laws != "table":
-        raise ValueError(f"laws: {laws!r} not allowed (paper: laws (6)-(11); table: interpolated per-level values)")
-    if not isinstance(data, dict):
-        raise ValueError("table: laws: table needs a mapping with input and " + ", ".join(TABLE_NAMES)
-                         + " (lists of numbers, one per level)")
-    problems: list[str] = []
-    for key in data:
-        if key != "input" and key not in TABLE_NAMES and key not in TABLE_BENCH_NAMES:
-            problems.append(f"table.{key}: unknown (expected input, {', '.join(TABLE_NAMES + TABLE_BENCH_NAMES)})")
-    bench = [k for k in TABLE_BENCH_NAMES if k in data]
-    if len(bench) == 1:
-        problems.append(f"table.{bench[0]}: give both {' and '.join(TABLE_BENCH_NAMES)}, or neither")
-    cols: list[tuple[float, ...]] = []
-    for key in ("input",) + TABLE_NAMES + (TABLE_BENCH_NAMES if len(bench) == 2 else ()):
-        raw = data.get(key)
-        if not isinstance(raw, list) or not all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) for x in raw):
-            problems.append(f"table.{key}: must be a list of numbers (one per level)")
-            cols.append(())
-        else:
-            cols.append(tuple(float(x) for x in raw))
-    if problems:
-        raise ValueError("; ".join(problems))
-    table = ThetaTable(cols[0], tuple(cols[1:]))
-    problems = table.problems()
-    if problems:
-        raise ValueError("; ".join(problems))
-    return table

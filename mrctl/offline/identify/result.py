@@ -95,6 +95,12 @@ class IdentificationResult:
         return self.params.tau_input
 
 
+def nrmse(meas: np.ndarray, pred: np.ndarray) -> float:
+    """RMS(pred − meas) over the peak-to-peak of meas (NaN where it is flat)."""
+    ptp = float(np.ptp(meas)) if meas.size else 0.0
+    return float(np.sqrt(np.mean((pred - meas) ** 2)) / ptp) if ptp > 0 else float("nan")
+
+
 def _r(x: float | None, digits: int = 6) -> Any:
     if x is None:
         return None
