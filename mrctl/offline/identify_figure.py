@@ -138,6 +138,18 @@ def _theta_panels(fig, gs, row0: int, width: int, res: IdentificationResult, lev
             ax.legend(fontsize="x-small", loc="best")
 
 
+def _terms_text(p) -> str:
+    """The optional model terms that are on, for the figure's title ('' without them)."""
+    parts = []
+    if p.tau_input_fall > 0.0:
+        parts.append(f"falling {1e3 * p.tau_input_fall:.3g} ms")
+    if p.sigma1_vd > 0.0:
+        parts.append(f"σ1(v) v_d {1e3 * p.sigma1_vd:.3g} mm/s")
+    if p.has_hysteresis:
+        parts.append(f"hysteretic stiffness x_hys {1e3 * p.x_hys:.3g} mm")
+    return (", " + ", ".join(parts)) if parts else ""
+
+
 def _conditioned(res: IdentificationResult) -> list:
     """The held-out scores that carry a test condition (stroke and frequency)."""
     return [s for s in res.holdout if s.level is not None and s.stroke_m is not None and s.frequency_hz is not None]
@@ -289,8 +301,9 @@ def make_identification_figure(res: IdentificationResult, out_path: str | os.Pat
     head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
     bench = ("per level (table)" if p.table is not None and p.table.has_bench()
              else f"F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m")
+    terms = _terms_text(p)
     fig.suptitle(f"{head}, laws: {p.laws}\n{bench}, tau_input {1e3 * p.tau_input:.3g} ms"
-                 f"{extra}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
+                 f"{extra}{terms}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
                                       if res.protocol == "constant_input" else "the fitted model on data the fit "
                                       "never saw"), fontsize="large")
     return _save(fig, out_path, ext, force, write)

@@ -42,7 +42,7 @@ def constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, bool
     x_hys, hys_grid = 0.0, {}
     if use["hysteresis"]:  # its length from the fits without it, then every level again with it
         x_hys, hys_grid = choose_x_hys(spans, fits, use)
-        fits = fit_levels(spans, segs, use=use, method=method, x_hys=x_hys)
+        fits = fit_levels(spans, segs, use=use, method=method, x_hys=x_hys, before=fits)
     unit = INPUT_KINDS[ds.input]
     problems = []
     for lf in fits:

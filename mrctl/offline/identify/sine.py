@@ -277,10 +277,12 @@ def choose_x_hys(spans: list[Span], fits: list[LevelFit], use: dict[str, bool]) 
 
 
 def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], method: str = "trf",
-               bar=None, x_hys: float = 0.0) -> list[LevelFit]:
+               bar=None, x_hys: float = 0.0, before: list[LevelFit] | None = None) -> list[LevelFit]:
     """One fit per input level over its segments' fit cycles (``segs`` from
     :func:`find_segments`, which refuses a record with none); with ``x_hys``
-    the hysteretic stiffness per direction among the linear terms."""
+    the hysteretic stiffness per direction among the linear terms, and
+    ``before`` the same levels' fits without it, each a start beside the
+    grid's best."""
     groups = _cluster_levels([s for s in segs if s.cycles_fit > 0])
     fits = []
     for level in sorted(groups):
@@ -296,7 +298,10 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
             if sp.x is not None:
                 xall.append(sp.x[s.f0:s.f1])
         X = None if Xs[0] is None else np.vstack(Xs)
-        theta, prob, p, _notes, nfev, theta0, _starts = _fit_one_current(windows, method, starts_max=4, X=X)
+        prev = None if before is None else next((np.array([f.theta[k] for k in THETA_NAMES]) for f in before
+                                                  if f.level == level), None)
+        theta, prob, p, _notes, nfev, theta0, _starts = _fit_one_current(windows, method, starts_max=4, X=X,
+                                                                         theta_start=prev)
         rec = prob.rec
         Fm = _model_batch(theta[None, :], rec)[0]
         beta = rec.linear_terms(Fm)
