@@ -273,6 +273,8 @@ def format_summary(res: IdentificationResult) -> str:
     lines.append(f"bench terms: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input "
                  f"{1e3 * p.tau_input:.3g} ms" + (f", inertia {res.inertia_kg:.3g} kg (measurement term, not in "
                                                   "the set)" if res.inertia_kg else ""))
+    if p.extras():
+        lines.append("model terms: " + ", ".join(f"{k}={v:.5g}" for k, v in p.extras().items()))
     lines.append("parameters: " + ", ".join(f"{k}={getattr(p, k):.5g}" for k in p.names()))
     for w in res.warnings:
         lines.append(f"warning: {w}")
