@@ -59,8 +59,8 @@ def lag_gains(tau_s: float, horizon_s: float, dt: float) -> tuple[float, float]:
 
 _LAG_PARAMS = {
     "lag_s": Num(default=None, optional=True, min=0.0, max=1.0,
-                 doc="coil lag to compensate (s); null = the parameter set's tau_input (and tau_input_fall while "
-                     "the current falls), 0 = none"),
+                 doc="coil lag to compensate (s); null = the parameter set's tau_input + tau_field (tau_input_fall "
+                     "+ tau_field while the current falls), 0 = none"),
     "lag_horizon_s": Num(default=0.003, min=0.0, min_exclusive=True, max=1.0,
                          doc="with a lag: command what brings the coil to its target this long after (s)"),
 }
@@ -224,7 +224,9 @@ class SmoothInverse(_ModelBasedLaw):
             raise ValueError("eps_N_per_A must be >= 0")
         if not max_slew_A_per_s > 0.0:
             raise ValueError("max_slew_A_per_s must be > 0")
-        tau = params.tau_input if lag_s is None else lag_s
+        # the set's lag from the command to the field: the driver's, then the damper's own (tau_field), taken
+        # as one first-order lag of their sum (the same mean delay)
+        tau = params.tau_input + params.tau_field if lag_s is None else lag_s
         if not (tau >= 0.0 and lag_horizon_s > 0.0):
             raise ValueError("lag_s must be >= 0 and lag_horizon_s > 0")
         self.eps2 = float(eps_N_per_A) ** 2
@@ -232,7 +234,7 @@ class SmoothInverse(_ModelBasedLaw):
         #: coil lag compensated (s), and its per-tick gains (lag_gains); while the coil's current
         #: falls, the set's tau_input_fall (lag_s given: the same both ways)
         self.lag_s = float(tau)
-        self.lag_fall_s = float(params.tau_fall() if lag_s is None else tau)
+        self.lag_fall_s = float(params.tau_fall() + params.tau_field if lag_s is None else tau)
         self._a1, self._inv_ah = lag_gains(self.lag_s, lag_horizon_s, self.dt)
         self._a1f, self._inv_ahf = lag_gains(self.lag_fall_s, lag_horizon_s, self.dt)
         self.I_coil = 0.0  # the coil's current at the last tick, as the lag model has it

@@ -177,7 +177,9 @@ class LuGreParams:
     ``k_hys_pos``, ``k_hys_neg`` (N/m), ``x_hys`` (m), a hysteretic (Dahl)
     stiffness: ż_h = v − |v|·z_h/x_hys, force k_hys·z_h, k_hys by the sign
     of v (≥ 0: pos): a force growing with the distance since the last
-    reversal, unlike in the two directions (accumulator, valves).
+    reversal, unlike in the two directions (accumulator, valves);
+    ``tau_field`` (s), the damper's own lag from its coil current to the
+    field (eddy currents in the housing), after the driver's ``tau_input``.
 
     ``table`` (None by default: the paper's laws) replaces laws (6)–(11) by
     a :class:`ThetaTable` (``laws: table`` in a parameters file); the thirteen
@@ -206,6 +208,7 @@ class LuGreParams:
     k_hys_pos: float = 0.0  # N/m, hysteretic (Dahl) stiffness while v >= 0
     k_hys_neg: float = 0.0  # N/m, ... while v < 0
     x_hys: float = 0.0  # m, its saturation length (z_h -> ±x_hys); > 0 when either stiffness is
+    tau_field: float = 0.0  # s, the damper's own lag from its current to the field, after tau_input's; 0: none
     table: ThetaTable | None = None  # laws: table (None: the paper's laws 6-11)
 
     def __reduce__(self) -> tuple[type[LuGreParams], tuple[Any, ...]]:
@@ -282,7 +285,7 @@ class LuGreParams:
 
     def extras(self) -> dict[str, float]:
         """The optional model terms that are on (non-zero), by name."""
-        return {f.name: getattr(self, f.name) for f in fields(self)[16:21] if getattr(self, f.name) != 0.0}
+        return {f.name: getattr(self, f.name) for f in fields(self)[16:22] if getattr(self, f.name) != 0.0}
 
     def as_dict(self) -> dict[str, Any]:
         """The sixteen constants by name, the optional terms that are on; with a
@@ -314,13 +317,13 @@ class LuGreParams:
 
     @classmethod
     def extra_names(cls) -> tuple[str, ...]:
-        """The optional model terms: sigma1_vd, tau_input_fall, k_hys_pos, k_hys_neg, x_hys."""
-        return tuple(f.name for f in fields(cls))[16:21]
+        """The optional model terms: sigma1_vd, tau_input_fall, k_hys_pos, k_hys_neg, x_hys, tau_field."""
+        return tuple(f.name for f in fields(cls))[16:22]
 
     @classmethod
     def all_names(cls) -> tuple[str, ...]:
         """Every number a parameters file may set (``laws``/``table`` aside)."""
-        return tuple(f.name for f in fields(cls))[:21]
+        return tuple(f.name for f in fields(cls))[:22]
 
     def check_range(self, I_max: float, samples: int = 201, I_min: float = 0.0, unit: str = "A") -> list[str]:
         """Problems that make the model meaningless on [I_min, I_max] (empty if fine).
@@ -354,7 +357,7 @@ TABLE_I = LuGreParams()
 def extra_problems(p: LuGreParams) -> list[str]:
     """What makes the optional terms meaningless (empty if fine), each naming its key."""
     out: list[str] = []
-    for name, what in (("sigma1_vd", "m/s"), ("tau_input_fall", "s"), ("x_hys", "m")):
+    for name, what in (("sigma1_vd", "m/s"), ("tau_input_fall", "s"), ("x_hys", "m"), ("tau_field", "s")):
         if not getattr(p, name) >= 0.0:
             out.append(f"{name}: must be >= 0 {what} (0: off), got {getattr(p, name):g}")
     if p.has_hysteresis and not p.x_hys > 0.0:  # the constants or a table's columns

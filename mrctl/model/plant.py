@@ -57,9 +57,11 @@ class DamperPlant:
 
     The input lag is ``driver_tau_s`` when given (the same rising and
     falling), else the parameter set's ``tau_input`` and ``tau_input_fall``:
-    a bench key may impose a lag on a set that has none."""
+    a bench key may impose a lag on a set that has none. The set's
+    ``tau_field`` lags the field behind the driver's current (``I_applied``,
+    what a current monitor reads): the damper feels ``I_field``."""
 
-    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx", "_table")
+    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx", "_table", "field", "I_field")
 
     def __init__(self, params: LuGreParams, dt: float, driver_tau_s: float | None = None) -> None:
         self.model = LuGreModel(params)
@@ -67,6 +69,8 @@ class DamperPlant:
                        else DriverLag(driver_tau_s, dt))
         self.dt = dt
         self.I_applied = 0.0
+        self.I_field = 0.0  # the current the field follows, as the damper feels it
+        self.field: DriverLag | None = DriverLag(params.tau_field, dt) if params.tau_field > 0.0 else None
         self.F = 0.0
         self._started = False
         self._Fo = params.F_offset
@@ -86,7 +90,7 @@ class DamperPlant:
 
     def tick(self, v: float, I_cmd: float, x: float = 0.0) -> float:
         if self._started:
-            self.model.advance(v, self.I_applied, self.dt)
+            self.model.advance(v, self.I_field, self.dt)
         else:
             self._started = True
             self.model.v_prev = v
@@ -94,6 +98,10 @@ class DamperPlant:
         I = I_cmd if driver.alpha == 1.0 and driver.alpha_fall == 1.0 else driver.update(I_cmd)
         driver.I = I
         self.I_applied = I
+        field = self.field
+        if field is not None:  # the damper's own lag behind the driver's current
+            I = field.update(I)
+        self.I_field = I
         F = self.model.force(v, I)
         table = self._table
         if table is not None:  # laws: table with per-level F_offset and k_x

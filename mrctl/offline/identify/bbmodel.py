@@ -20,7 +20,9 @@ Parameter vector (:data:`PHYS`): Fc's eq (6) as F0, Ac, Bc; every linear law
 (a linear law positive at both ends is positive between them); then
 F_offset, k_x, tau_input and the load-cell inertia m; then the optional
 terms of :class:`~mrctl.model.params.LuGreParams`, each off at 0:
-sigma1_vd, tau_input_fall (0: tau_input), k_hys_pos, k_hys_neg, x_hys.
+sigma1_vd, tau_input_fall (0: tau_input), k_hys_pos, k_hys_neg, x_hys,
+tau_field (a second lag after the first; simulated, not fitted: force
+alone cannot tell it from the driver's).
 A falling lag apart from the rising one makes the input path nonlinear
 (which lag acts depends on the state): :func:`felt_input` solves it as a
 time-varying first-order recursion by the same scan, a few passes until
@@ -45,7 +47,7 @@ __all__ = ["PHYS", "EXTRAS", "LINEAR_LAWS", "LINEAR_IN_F", "linear_columns", "Sp
 #: the linear laws (7)–(11), each as (value at u_lo, value at u_hi)
 LINEAR_LAWS = ("sigma0", "sigma1", "sigma2", "Fs", "vs")
 #: the optional model terms, after the bench terms (LuGreParams' names)
-EXTRAS = ("sigma1_vd", "tau_input_fall", "k_hys_pos", "k_hys_neg", "x_hys")
+EXTRAS = ("sigma1_vd", "tau_input_fall", "k_hys_pos", "k_hys_neg", "x_hys", "tau_field")
 PHYS: tuple[str, ...] = ("F0", "Ac", "Bc") + tuple(f"{k}_{e}" for k in LINEAR_LAWS for e in ("lo", "hi")) + (
     "F_offset", "k_x", "tau_input", "m") + EXTRAS
 IDX = {k: j for j, k in enumerate(PHYS)}
@@ -136,10 +138,11 @@ def simulate(P: np.ndarray, sp: SpanData, u_lo: float, u_hi: float, parts: dict 
     row's ż and normalised input s (for :func:`linear_columns`)."""
     P = np.atleast_2d(P)
     m, n = P.shape[0], sp.v.size
-    lags = P[:, [IDX["tau_input"], IDX["tau_input_fall"]]]
+    lags = P[:, [IDX["tau_input"], IDX["tau_input_fall"], IDX["tau_field"]]]
     ud = np.empty((m, n))
-    for tau, tf in np.unique(lags, axis=0):
-        ud[(lags[:, 0] == tau) & (lags[:, 1] == tf)] = felt_input(sp.u, float(tau), sp.h, float(tf))
+    for tau, tf, tfield in np.unique(lags, axis=0):
+        rows = (lags[:, 0] == tau) & (lags[:, 1] == tf) & (lags[:, 2] == tfield)
+        ud[rows] = felt_input(felt_input(sp.u, float(tau), sp.h, float(tf)), float(tfield), sp.h)  # driver, field
     s0, s1, s2, Fc, Fs, vs = _laws(P, ud, u_lo, u_hi)
     # advance k-1 → k with the input applied at k-1 (shifted by one sample)
     s0p = np.concatenate((s0[:, :1], s0[:, :-1]), axis=1)

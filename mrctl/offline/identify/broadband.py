@@ -233,7 +233,7 @@ def fit_broadband(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_h
     dur = min(sp.v.size for sp in spans) * h
     a_amp = max(float(max(np.percentile(np.abs(sp.a), 99.5) for sp in spans)), 1e-9)
     bounds = _bounds(sup, u_hi - u_lo, Fmax, min(0.2, dur / 10.0), a_amp)
-    fixed = {k for flag, names in OPTIONAL.items() if not use.get(flag) for k in names}
+    fixed = {k for flag, names in OPTIONAL.items() if not use.get(flag) for k in names} | {"tau_field"}  # never
     if not use["lag"]:
         fixed.add("tau_input_fall")
     free = [k for k in PHYS if not ((k == "F_offset" and not use["offset"]) or (k == "k_x" and not use["stiffness"])
