@@ -53,7 +53,7 @@ CASES: list[tuple[str, dict[str, Any], dict[str, Any], dict[str, Any] | None]] =
 
 #: Table I with every optional term on, for the ``_parameters: extras`` cases
 EXTRA_PARAMS: dict[str, Any] = {"sigma1_vd": 0.04, "tau_input": 0.004, "tau_input_fall": 0.012,
-                                "k_hys_pos": 150.0, "k_hys_neg": 600.0, "x_hys": 0.004}
+                                "k_hys_pos": 150.0, "k_hys_neg": 600.0, "x_hys": 0.004, "tau_field": 0.006}
 
 #: a table set for the ``_parameters: table`` cases: Θ through 4 levels, with bench terms
 TABLE_PARAMS: dict[str, Any] = {"laws": "table", "table": {
