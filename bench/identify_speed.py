@@ -28,7 +28,7 @@ Parts:
    level's data-derived start, σ1 = ±3·Fc/max|v|), one optimiser run each, no
    grid, no restarts, counting runs that reach the best Q (within 0.1 %).
    The fit windows are the pipeline's own: records → ``prepare`` →
-   ``find_segments`` as ``pipeline._constant_input`` calls them, each
+   ``find_segments`` as ``levels.constant_input`` calls them, each
    level's windows and linear terms (offset, stiffness) as
    ``sine.fit_levels`` builds them, checked against the result (samples,
    and the fit NRMSE recomputed from Q);

@@ -45,7 +45,15 @@ CASES: list[tuple[str, dict[str, Any], dict[str, Any], dict[str, Any] | None]] =
     ("smooth_table", {"type": "viscous", "c_des": 500.0}, {"law": "smooth", "_parameters": "table"}, None),
     ("closed_table", {"type": "viscous", "c_des": 500.0}, {"law": "closed", "_parameters": "table"}, None),
     ("paper_table", {"type": "viscous", "c_des": 500.0}, {"law": "paper", "_parameters": "table"}, None),
+    # the optional model terms (σ1(v), a rise and a fall lag, the hysteretic stiffness) in the laws
+    ("paper_extras", {"type": "viscous", "c_des": 500.0}, {"law": "paper", "_parameters": "extras"}, None),
+    ("smooth_extras", {"type": "viscous", "c_des": 500.0}, {"law": "smooth", "_parameters": "extras"}, None),
+    ("closed_extras", {"type": "viscous", "c_des": 500.0}, {"law": "closed", "_parameters": "extras"}, None),
 ]
+
+#: Table I with every optional term on, for the ``_parameters: extras`` cases
+EXTRA_PARAMS: dict[str, Any] = {"sigma1_vd": 0.04, "tau_input": 0.004, "tau_input_fall": 0.012,
+                                "k_hys_pos": 150.0, "k_hys_neg": 600.0, "x_hys": 0.004, "tau_field": 0.006}
 
 #: a table set for the ``_parameters: table`` cases: Θ through 4 levels, with bench terms
 TABLE_PARAMS: dict[str, Any] = {"laws": "table", "table": {
@@ -143,7 +151,7 @@ def _experiment(demand: dict[str, Any], inverse: dict[str, Any], sensing: dict[s
     from mrctl.experiment import build
 
     inverse = dict(inverse)
-    params: Any = TABLE_PARAMS if inverse.pop("_parameters", None) == "table" else "table1"
+    params: Any = {"table": TABLE_PARAMS, "extras": EXTRA_PARAMS}.get(inverse.pop("_parameters", None), "table1")
     data: dict[str, Any] = {
         "version": 1, "name": "builds", "duration_s": 1.0, "rate_hz": 1000, "parameters": params,
         "excitation": {"type": "sine", "amplitude_m": 0.01, "frequency_hz": 1.0},

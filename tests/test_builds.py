@@ -92,6 +92,28 @@ def test_simulate_writes_the_same_csv_in_both_builds(tmp_path, config, capsys):
     assert json.loads((tmp_path / "pure.json").read_text())["build"] == PURE
 
 
+@pytest.mark.parametrize("law", ["smooth", "closed", "paper"])
+def test_simulate_with_the_optional_model_terms_writes_the_same_csv_in_both_builds(tmp_path, law):
+    """A set with every optional term (σ1(v), rise and fall lags, the hysteretic
+    stiffness) in the plant and the law: fig5_robust's motion, both builds."""
+    import yaml
+
+    from builds_replay import EXTRA_PARAMS
+
+    data = yaml.safe_load((ROOT / "config" / "experiments" / "fig5_robust.yaml").read_text())
+    data["parameters"] = dict(EXTRA_PARAMS)
+    data["inverse"] = {"law": law}
+    data.pop("plant", None)  # the plant's input lags are the set's (fig5_robust imposes none)
+    exp = tmp_path / "extras.yaml"
+    exp.write_text(yaml.safe_dump(data))
+    res = _pure("-m", "mrctl.cli", "simulate", str(exp), "--out", str(tmp_path / "pure.csv"), "--duration", "2")
+    assert res.returncode == 0, res.stderr
+    assert main(["simulate", str(exp), "--out", str(tmp_path / "this.csv"), "--duration", "2"]) == 0
+    assert (tmp_path / "pure.csv").read_bytes() == (tmp_path / "this.csv").read_bytes()
+    side = json.loads((tmp_path / "this.json").read_text())
+    assert side["parameters"]["k_hys_neg"] == EXTRA_PARAMS["k_hys_neg"]  # the terms reached the run
+
+
 def test_the_law_model_and_controller_tests_pass_interpreted():
     """CI runs the compiled build; these tests again on the interpreted one."""
     files = ["test_lugre.py", "test_inverse.py", "test_closed.py", "test_observer.py", "test_safety.py",

@@ -86,6 +86,22 @@ def test_held_out_scores_per_record_and_level(result):
     for s in result.holdout:
         # 0.3 N noise on 60-400 N peak-to-peak: at the noise floor, with the per-level Θ and with the laws
         assert s.nrmse < 0.006 and s.nrmse_laws < 0.01, s
+        # the condition each score holds for: file a at 2 Hz / 16 mm, file b at 1.5 Hz / 20 mm peak to peak
+        freq, stroke = (2.0, 0.016) if s.record == "a" else (1.5, 0.020)
+        assert s.frequency_hz == pytest.approx(freq, rel=0.01) and s.stroke_m == pytest.approx(stroke, rel=0.02), s
+
+
+def test_conditions_figure(result, tmp_path):
+    from mrctl.errors import BadInput
+    from mrctl.offline.identify_figure import FigureError, make_conditions_figure
+
+    png = tmp_path / "c.png"
+    make_conditions_figure(result, png)
+    assert png.read_bytes().startswith(b"\x89PNG")
+    with pytest.raises(BadInput, match="refusing"):  # never written over
+        make_conditions_figure(result, png)
+    with pytest.raises(FigureError, match="unknown figure format"):
+        make_conditions_figure(result, tmp_path / "c.txt")
 
 
 def test_without_the_offset_the_fit_is_refused_not_written(sine_dir, tmp_path, capsys):
@@ -124,7 +140,8 @@ def test_cli_dataset_json_and_figure(sine_dir, tmp_path, capsys):
     assert "level (A)" in text and "with laws" in text and f"wrote {png}" in text
     summary = json.loads(out.with_suffix(".json").read_text())
     assert summary["protocol"] == "constant_input" and summary["input"] == "current"
-    assert len(summary["holdout"]) == 6 and {"record", "level", "nrmse"} <= set(summary["holdout"][0])
+    assert len(summary["holdout"]) == 6
+    assert {"record", "level", "nrmse", "stroke_m", "frequency_hz"} <= set(summary["holdout"][0])
     assert png.read_bytes().startswith(b"\x89PNG")
 
 

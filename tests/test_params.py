@@ -6,7 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mrctl.model.params import TABLE_I, LuGreParams, langevin, params_from_mapping
+from mrctl.model.mapping import params_from_mapping
+from mrctl.model.params import TABLE_I, LuGreParams, langevin
 
 
 def test_sanity_values_from_spec():

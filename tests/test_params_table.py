@@ -21,7 +21,8 @@ import pytest
 from identify_synth import TRUTH, sine_levels_record
 from mrctl.config.params import params_check, read_params_file
 from mrctl.model.lugre import LuGreModel, force
-from mrctl.model.params import TABLE_I, TABLE_NAMES, ThetaTable, params_from_mapping
+from mrctl.model.mapping import params_from_mapping
+from mrctl.model.params import TABLE_I, TABLE_NAMES, ThetaTable
 from mrctl.model.plant import DamperPlant
 from mrctl.util.schema import ConfigError
 

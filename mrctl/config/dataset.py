@@ -23,20 +23,9 @@ from pathlib import Path
 from typing import Any
 
 from mrctl.config.params import INPUT_KINDS
-from mrctl.util.files import Fence, fence_root
-from mrctl.util.schema import (
-    Bool,
-    ConfigError,
-    Custom,
-    Node,
-    Num,
-    Section,
-    Str,
-    check_num,
-    load_yaml,
-    schema_markdown as _markdown,
-    validate_fields,
-)
+from mrctl.util.files import Fence, fence_root, not_regular
+from mrctl.util.schema import Bool, ConfigError, Custom, Node, Num, Section, Str, check_num, load_yaml, validate_fields
+from mrctl.util.schema import schema_markdown as _markdown
 
 __all__ = ["DATASET_VERSION", "PROTOCOLS", "COLUMN_ROLES", "MAX_RATE_HZ", "dataset_schema", "validate_dataset",
            "load_dataset", "data_fence", "dataset_markdown"]
@@ -265,7 +254,16 @@ def dataset_schema(base_dir: Path, root: Path | None = None) -> dict[str, Any]:
             "inertia": Bool(default=False,
                             doc="broadband: fit a moving mass m between load cell and piston (force = damper + "
                                 "m·a); a measurement term, reported, not part of the parameter set"),
-        }, doc="terms around the LuGre laws"),
+            "lag_fall": Bool(default=False,
+                             doc="broadband: fit the lag of a falling input apart from the rising one "
+                                 "(tau_input_fall; needs lag)"),
+            "sigma1_v": Bool(default=False,
+                             doc="broadband: fit sigma1(v) = sigma1·exp(-(v/vd)²), bristle damping that fades "
+                                 "in sliding (sigma1_vd)"),
+            "hysteresis": Bool(default=False,
+                               doc="fit the hysteretic (Dahl) stiffness, a stiffness per direction of motion "
+                                   "(k_hys_pos, k_hys_neg, x_hys)"),
+        }, doc="terms around the LuGre laws (docs/identification.md, Model terms)"),
         "fit": Section({
             "starts": Num(default=3, integer=True, min=1, max=20,
                           doc="broadband: optimiser starts (input lags spread over 2-25 ms)"),
@@ -309,6 +307,10 @@ def _cross_checks(node: Node) -> list[str]:
         for i, f in enumerate(files):
             if f.level is None and not f.levels and cols.get("input") is None:
                 errors.append(f"files[{i}]: no input level: give level, levels, or columns.input")
+    errors += [f"model.{k}: broadband only (fitted from broadband or switched-input records); set model.{k}: false"
+               for k in ("lag_fall", "sigma1_v") if node.protocol == "constant_input" and node.model.get(k)]
+    if node.model.get("lag_fall") and not node.model.lag:
+        errors.append("model.lag_fall: needs model.lag (the falling lag is the rising one's other half)")
     if node.protocol == "constant_input" and node.model.inertia:
         errors.append("model.inertia: not identifiable from constant_input records (a steady sine's m·a is "
                       "in phase with the stiffness k_x·x); set model.inertia: false, or fit broadband records")

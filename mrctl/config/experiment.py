@@ -215,8 +215,8 @@ def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, A
                                      "null = the law's set. Set it to test a law with identified parameters "
                                      "against a known damper"),
             "driver_tau_s": Num(default=None, optional=True, min=0.0, max=1.0,
-                                doc="input lag of the simulated damper (s), 0 = ideal; null = the plant "
-                                    "parameter set's tau_input"),
+                                doc="input lag of the simulated damper's driver (s), 0 = ideal; null = the plant "
+                                    "parameter set's tau_input (its tau_field, the field's own lag, follows)"),
             **bench_fields(),
             "sensors": Section({
                 "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),

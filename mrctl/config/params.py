@@ -21,7 +21,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from mrctl.model.params import TABLE_BENCH_NAMES, TABLE_NAMES, LuGreParams, params_from_mapping, table_from_mapping
+from mrctl.model.mapping import params_from_mapping, table_from_mapping
+from mrctl.model.params import TABLE_BENCH_NAMES, TABLE_HYS_NAMES, TABLE_NAMES, LuGreParams
 from mrctl.util.files import Fence
 from mrctl.util.schema import ConfigError, key_repr, load_yaml, read_named_yaml, short_repr
 
@@ -81,7 +82,7 @@ def _set_errors(values: dict[Any, Any], path: str = "") -> list[str]:
                               "interpolated per-level values)")
         elif k == "table":
             if isinstance(v, dict):
-                allowed = ("input",) + TABLE_NAMES + TABLE_BENCH_NAMES
+                allowed = ("input",) + TABLE_NAMES + TABLE_BENCH_NAMES + TABLE_HYS_NAMES
                 errors += [f"{pre}table.{key_repr(t)}: unknown (expected {', '.join(allowed)})" for t in v
                            if t not in allowed]
         elif k not in names:

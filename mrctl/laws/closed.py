@@ -273,7 +273,8 @@ class ClosedLoopInverse(SmoothInverse):
         Ic = m.I_cmd
         if not Ic >= 0.0:  # NaN: fall back on what this law sent
             Ic = self.I_prev
-        a1, Ia0 = self._a1, self._I_coil0
+        Ia0 = self._I_coil0
+        a1 = self._a1 if Ic >= Ia0 else self._a1f  # the driver's rise or fall: monotone while Ic is held
         if dk <= 1:
             return Ia0 + a1 * (Ic - Ia0), 1
         return Ic + (Ia0 - Ic) * (1.0 - a1) ** dk, dk
@@ -379,6 +380,8 @@ class ClosedLoopInverse(SmoothInverse):
         else:
             z = self._first(v)
         zdot = self.model.zdot(v, Ia)
+        if self._vd:
+            zdot *= self.model.damping_weight(v)
         (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
         D = s0A * z + s1A * zdot + s2A * v
         # the reversal detector and the table's feed-forward for the coming ticks
@@ -423,6 +426,8 @@ class ClosedLoopInverse(SmoothInverse):
         self._lg = lg
         self.ff = ff
         F_t = F_des - Fb - self.d - ff
+        if self._hys:  # the hysteretic stiffness's force at this tick, held over the horizon
+            F_t -= self.model.hys_force(v)
         num = D * (F_t - (s0B * z + s1B * zdot + s2B * v))
         den = D * D
         if self.horizon:
@@ -431,7 +436,7 @@ class ClosedLoopInverse(SmoothInverse):
             den += d2
         eps2 = self.eps2
         It = (num + eps2 * Ia) / (den + eps2) if den + eps2 > 0.0 else Ia
-        I = Ia + (It - Ia) * self._inv_ah
+        I = Ia + (It - Ia) * (self._inv_ah if It >= Ia else self._inv_ahf)
         Ip = m.I_cmd if m.I_cmd >= 0.0 else self.I_prev
         step = self.max_step_A
         sat = 0
@@ -451,6 +456,6 @@ class ClosedLoopInverse(SmoothInverse):
         self._sat = sat
         self.I_prev = I
         self._I_coil0 = Ia
-        self.I_coil = Ia + self._a1 * (I - Ia)
+        self.I_coil = Ia + (self._a1 if I >= Ia else self._a1f) * (I - Ia)
         self._Fb, self._Fd = Fb, F_des
         return I

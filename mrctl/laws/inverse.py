@@ -59,7 +59,8 @@ def lag_gains(tau_s: float, horizon_s: float, dt: float) -> tuple[float, float]:
 
 _LAG_PARAMS = {
     "lag_s": Num(default=None, optional=True, min=0.0, max=1.0,
-                 doc="coil lag to compensate (s); null = the parameter set's tau_input, 0 = none"),
+                 doc="coil lag to compensate (s); null = the parameter set's tau_input + tau_field (tau_input_fall "
+                     "+ tau_field while the current falls), 0 = none"),
     "lag_horizon_s": Num(default=0.003, min=0.0, min_exclusive=True, max=1.0,
                          doc="with a lag: command what brings the coil to its target this long after (s)"),
 }
@@ -90,6 +91,10 @@ class _ModelBasedLaw(InverseLaw):
         # per-level bench terms when the table has them (None: the paper's laws)
         self._table: ThetaTable | None = params.table
         self._tbench = params.table is not None and params.table.has_bench()
+        # the optional terms: σ1's weight exp(-(v/v_d)²) on ż, the hysteretic stiffness's force
+        # (independent of I: subtracted from the demand, as the bench terms are)
+        self._vd = params.sigma1_vd > 0.0
+        self._hys = params.has_hysteresis
 
     @classmethod
     def from_config(cls, cfg: Any, ctx: LawContext) -> "_ModelBasedLaw":
@@ -151,6 +156,10 @@ class PaperInverse(_ModelBasedLaw):
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
         zdot = self.model.zdot(v, Ip)
+        if self._vd:
+            zdot *= self.model.damping_weight(v)
+        if self._hys:
+            F_des -= self.model.hys_force(v)
         num = F_des - (s0B * z + s1B * zdot + s2B * v)
         den = s0A * z + s1A * zdot + s2A * v
         if den != 0.0:
@@ -215,14 +224,19 @@ class SmoothInverse(_ModelBasedLaw):
             raise ValueError("eps_N_per_A must be >= 0")
         if not max_slew_A_per_s > 0.0:
             raise ValueError("max_slew_A_per_s must be > 0")
-        tau = params.tau_input if lag_s is None else lag_s
+        # the set's lag from the command to the field: the driver's, then the damper's own (tau_field), taken
+        # as one first-order lag of their sum (the same mean delay)
+        tau = params.tau_input + params.tau_field if lag_s is None else lag_s
         if not (tau >= 0.0 and lag_horizon_s > 0.0):
             raise ValueError("lag_s must be >= 0 and lag_horizon_s > 0")
         self.eps2 = float(eps_N_per_A) ** 2
         self.max_step_A = float(max_slew_A_per_s) * self.dt
-        #: coil lag compensated (s), and its per-tick gains (lag_gains)
+        #: coil lag compensated (s), and its per-tick gains (lag_gains); while the coil's current
+        #: falls, the set's tau_input_fall (lag_s given: the same both ways)
         self.lag_s = float(tau)
+        self.lag_fall_s = float(params.tau_fall() + params.tau_field if lag_s is None else tau)
         self._a1, self._inv_ah = lag_gains(self.lag_s, lag_horizon_s, self.dt)
+        self._a1f, self._inv_ahf = lag_gains(self.lag_fall_s, lag_horizon_s, self.dt)
         self.I_coil = 0.0  # the coil's current at the last tick, as the lag model has it
         self._I_coil0 = 0.0  # ... and before that tick's command
 
@@ -232,10 +246,11 @@ class SmoothInverse(_ModelBasedLaw):
 
     def applied(self, I: float) -> None:
         self.I_prev = I
-        self.I_coil = self._I_coil0 + self._a1 * (I - self._I_coil0)
+        I0 = self._I_coil0
+        self.I_coil = I0 + (self._a1 if I >= I0 else self._a1f) * (I - I0)
 
     def current(self, m: Measurement, F_des: float) -> float:
-        if self._a1 != 1.0:
+        if self._a1 != 1.0 or self._a1f != 1.0:
             return self._current_lagged(m, F_des)
         v = m.v
         Ip = self.I_prev
@@ -243,6 +258,10 @@ class SmoothInverse(_ModelBasedLaw):
         (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ip)  # as in eq (12): ż with the previous current
+        if self._vd:
+            zdot *= self.model.damping_weight(v)
+        if self._hys:
+            F_des -= self.model.hys_force(v)
         B = s0B * z + s1B * zdot + s2B * v
         D = s0A * z + s1A * zdot + s2A * v
         den = D * D + self.eps2
@@ -269,11 +288,15 @@ class SmoothInverse(_ModelBasedLaw):
         (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
         z = self.model.advance(v, Ia, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ia)
+        if self._vd:
+            zdot *= self.model.damping_weight(v)
+        if self._hys:
+            F_des -= self.model.hys_force(v)
         B = s0B * z + s1B * zdot + s2B * v
         D = s0A * z + s1A * zdot + s2A * v
         den = D * D + self.eps2
         It = (D * (F_des - B) + self.eps2 * Ia) / den if den > 0.0 else Ia
-        I = Ia + (It - Ia) * self._inv_ah
+        I = Ia + (It - Ia) * (self._inv_ah if It >= Ia else self._inv_ahf)
         Ip, step = self.I_prev, self.max_step_A
         if I > Ip + step:
             I = Ip + step
@@ -282,7 +305,7 @@ class SmoothInverse(_ModelBasedLaw):
         I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0
         self.I_prev = I
         self._I_coil0 = Ia
-        self.I_coil = Ia + self._a1 * (I - Ia)
+        self.I_coil = Ia + (self._a1 if I >= Ia else self._a1f) * (I - Ia)
         return I
 
 

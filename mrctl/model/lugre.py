@@ -43,12 +43,15 @@ def rate_coefficient(p: LuGreParams, v: float, I: float, Fc: float | None = None
 
 
 def force(p: LuGreParams, z: float, v: float, I: float) -> float:
-    """Damper force F (N), eq (1), with ż from eq (2) at the same (z, v, I)."""
+    """Damper force F (N), eq (1), with ż from eq (2) at the same (z, v, I)
+    (σ1 weighted by exp(−(v/v_d)²) when the set has ``sigma1_vd``)."""
     Fc = p.Fc(I)
     s0 = p.sigma0(I)  # each law, the paper's or the table's (LuGreParams)
     r = v / p.vs(I)
     g = Fc + (p.Fs(I) - Fc) * math.exp(-r * r)
     zdot = v - s0 * abs(v) * z / g
+    if p.sigma1_vd > 0.0:
+        zdot *= math.exp(-(v / p.sigma1_vd) ** 2)
     return s0 * z + p.sigma1(I) * zdot + p.sigma2(I) * v
 
 
@@ -65,9 +68,17 @@ class LuGreModel:
 
     The coefficients for the last current seen (eq 6 costs a tanh) are cached:
     per tick a plant or a law asks twice about the same current.
+
+    The set's optional terms (:class:`LuGreParams`) act here when on: the
+    bristle damping's weight exp(−(v/v_d)²) in the force, and the
+    hysteretic stiffness's state ``zh`` (m), advanced with z by the same
+    exact step, its force k_hys·zh in :meth:`force` (:meth:`hys_force`
+    alone; a table's per-level stiffness at the present current). Off, each
+    costs one comparison and changes no bit.
     """
 
-    __slots__ = ("p", "z", "v_prev", "substeps", "_I", "_Fc", "_s0", "_s1", "_s2", "_Fs", "_vs")
+    __slots__ = ("p", "z", "v_prev", "substeps", "_I", "_Fc", "_s0", "_s1", "_s2", "_Fs", "_vs",
+                 "zh", "_vd2", "_hys", "_xh", "_kp", "_kn")
 
     def __init__(self, params: LuGreParams, z0: float = 0.0, v0: float = 0.0, substeps: int = 1) -> None:
         if substeps < 1:
@@ -76,11 +87,41 @@ class LuGreModel:
         self.z = z0
         self.v_prev = v0
         self.substeps = substeps
+        self.zh = 0.0  # the hysteretic stiffness's state (m)
+        vd = params.sigma1_vd
+        self._vd2 = 1.0 / (vd * vd) if vd > 0.0 else 0.0  # 1/v_d² (0: sigma1 constant)
+        self._hys = params.has_hysteresis
+        self._xh = params.x_hys
+        self._kp = params.k_hys_pos
+        self._kn = params.k_hys_neg
         self._set_current(0.0)
 
     def reset(self, z0: float = 0.0, v0: float = 0.0) -> None:
         self.z = z0
         self.v_prev = v0
+        self.zh = 0.0
+
+    def damping_weight(self, v: float) -> float:
+        """exp(−(v/v_d)²), the share of σ1 acting at velocity v (1.0 with v_d off)."""
+        vd2 = self._vd2
+        return math.exp(-v * v * vd2) if vd2 > 0.0 else 1.0
+
+    def hys_force(self, v: float) -> float:
+        """The hysteretic stiffness's force (N) at the present zh for velocity v (0.0 when off)."""
+        if not self._hys:
+            return 0.0
+        return (self._kn if v < 0.0 else self._kp) * self.zh
+
+    def _advance_hys(self, v0: float, v: float, dt: float) -> None:
+        """zh from the previous tick to this one: ż_h = v − |v|·zh/x_hys, exact for the mid-step velocity."""
+        vm = 0.5 * (v0 + v)
+        xh = self._xh
+        x = abs(vm) * dt / xh
+        if x < _SMALL_AH:
+            self.zh = self.zh * (1.0 - x) + vm * dt * (1.0 - 0.5 * x)
+        else:
+            e = math.exp(-x)
+            self.zh = self.zh * e + (xh if vm > 0.0 else -xh) * (1.0 - e)
 
     def _set_current(self, I: float) -> None:
         p = self.p
@@ -93,6 +134,9 @@ class LuGreModel:
             self._s1 = table.value(3, I)
             self._s2 = table.value(4, I)
             self._vs = table.value(5, I)
+            if table.has_hys():  # the hysteretic stiffness per level, at this input
+                self._kp = table.value(8, I)
+                self._kn = table.value(9, I)
             return
         Bc = p.Bc
         x = I / Bc if Bc != 0.0 else math.inf
@@ -121,6 +165,8 @@ class LuGreModel:
         vs = self._vs
         v0 = self.v_prev
         self.v_prev = v
+        if self._hys:
+            self._advance_hys(v0, v, dt)
         z = self.z
         n = self.substeps
         if n == 1:
@@ -151,7 +197,9 @@ class LuGreModel:
         law's horizon and its finite difference in I: one call and no list
         per tick; each trajectory is bit for bit what ``advance`` then
         ``force`` give tick by tick with ``substeps`` 1 (the laws' models;
-        this one step per tick whatever ``substeps`` says)."""
+        this one step per tick whatever ``substeps`` says), less the
+        hysteretic stiffness's force, which the closed law holds over its
+        horizon (it does not depend on I)."""
         if I != self._I:
             self._set_current(I)
         Fc = self._Fc
@@ -164,6 +212,7 @@ class LuGreModel:
         Fc1 = probe._Fc
         dFs1 = probe._Fs - Fc1
         t0, t1, t2, ws = probe._s0, probe._s1, probe._s2, probe._vs
+        vd2 = self._vd2
         y = z
         for j in range(len(out)):
             v1 = v + dv
@@ -186,10 +235,11 @@ class LuGreModel:
             else:
                 e = math.exp(-x)
                 y = y * e + vm * (1.0 - e) / a
+            w = math.exp(-v1 * v1 * vd2) if vd2 > 0.0 else 1.0  # sigma1's weight (1.0: exact, no bit moves)
             r = v1 / vs
-            out[j] = s0 * z + s1 * (v1 - s0 * av1 * z / (Fc + dFs * math.exp(-r * r))) + s2 * v1
+            out[j] = s0 * z + s1 * ((v1 - s0 * av1 * z / (Fc + dFs * math.exp(-r * r))) * w) + s2 * v1
             r = v1 / ws
-            out1[j] = t0 * y + t1 * (v1 - t0 * av1 * y / (Fc1 + dFs1 * math.exp(-r * r))) + t2 * v1
+            out1[j] = t0 * y + t1 * ((v1 - t0 * av1 * y / (Fc1 + dFs1 * math.exp(-r * r))) * w) + t2 * v1
             v = v1
 
     def zdot(self, v: float, I: float) -> float:
@@ -201,7 +251,8 @@ class LuGreModel:
         return v - self._s0 * abs(v) * self.z / (Fc + (self._Fs - Fc) * math.exp(-r * r))
 
     def force(self, v: float, I: float) -> float:
-        """Force (N) at the present state for velocity v (m/s) and current I (A)."""
+        """Force (N) at the present state for velocity v (m/s) and current I (A),
+        the hysteretic stiffness's included."""
         if I != self._I:
             self._set_current(I)
         Fc = self._Fc
@@ -209,4 +260,10 @@ class LuGreModel:
         z = self.z
         r = v / self._vs
         zdot = v - s0 * abs(v) * z / (Fc + (self._Fs - Fc) * math.exp(-r * r))
-        return s0 * z + self._s1 * zdot + self._s2 * v
+        vd2 = self._vd2
+        if vd2 > 0.0:
+            zdot *= math.exp(-v * v * vd2)
+        F = s0 * z + self._s1 * zdot + self._s2 * v
+        if self._hys:
+            F += (self._kn if v < 0.0 else self._kp) * self.zh
+        return F

@@ -30,6 +30,8 @@ def langevin(x: float) -> float:
 TABLE_NAMES: Final = ("Fc", "Fs", "sigma0", "sigma1", "sigma2", "vs")
 #: optional per-level bench terms of a table (both or neither), after TABLE_NAMES
 TABLE_BENCH_NAMES: Final = ("F_offset", "k_x")
+#: optional per-level hysteretic stiffness of a table (both or neither, with the bench terms), after them
+TABLE_HYS_NAMES: Final = ("k_hys_pos", "k_hys_neg")
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,7 +50,10 @@ class ThetaTable:
     tuple per name of :data:`TABLE_NAMES`, as long as ``u``, SI units, and
     optionally two more, :data:`TABLE_BENCH_NAMES`: the force offset (N) and
     stiffness (N/m) per level, which then replace the set's constant
-    ``F_offset`` and ``k_x`` (a real bench's per-level fits differ in them).
+    ``F_offset`` and ``k_x`` (a real bench's per-level fits differ in them),
+    and after them optionally :data:`TABLE_HYS_NAMES`: the hysteretic
+    stiffness per direction (N/m) per level, replacing ``k_hys_pos`` and
+    ``k_hys_neg`` (the set's ``x_hys`` is its length).
     """
 
     u: tuple[float, ...]
@@ -72,9 +77,10 @@ class ThetaTable:
                 out.append(f"table.input: must be strictly increasing (monotone), but [{k - 1}] = "
                            f"{self.u[k - 1]:g} and [{k}] = {self.u[k]:g}")
                 break
-        names = TABLE_NAMES + TABLE_BENCH_NAMES
-        if len(self.values) != len(TABLE_NAMES) and len(self.values) != len(names):
-            out.append(f"table: needs {', '.join(TABLE_NAMES)} (and optionally both {', '.join(TABLE_BENCH_NAMES)})")
+        names = TABLE_NAMES + TABLE_BENCH_NAMES + TABLE_HYS_NAMES
+        if len(self.values) not in (6, 8, 10):
+            out.append(f"table: needs {', '.join(TABLE_NAMES)} (and optionally both {', '.join(TABLE_BENCH_NAMES)}, "
+                       f"then both {', '.join(TABLE_HYS_NAMES)})")
             return out
         for j in range(len(self.values)):
             name = names[j]
@@ -123,7 +129,11 @@ class ThetaTable:
 
     def has_bench(self) -> bool:
         """Whether the table holds the per-level F_offset and k_x."""
-        return len(self.values) == len(TABLE_NAMES) + len(TABLE_BENCH_NAMES)
+        return len(self.values) >= 8
+
+    def has_hys(self) -> bool:
+        """Whether the table holds the per-level hysteretic stiffness (k_hys_pos, k_hys_neg)."""
+        return len(self.values) == 10
 
     def bench_force(self, I: float, x: float) -> float:
         """F_offset(I) + k_x(I)·x (N), the per-level bench terms interpolated."""
@@ -132,7 +142,7 @@ class ThetaTable:
     def as_dict(self) -> dict[str, list[float]]:
         """The ``table:`` mapping of a parameters file."""
         out: dict[str, list[float]] = {"input": list(self.u)}
-        names = TABLE_NAMES + TABLE_BENCH_NAMES
+        names = TABLE_NAMES + TABLE_BENCH_NAMES + TABLE_HYS_NAMES
         for j in range(len(self.values)):
             out[names[j]] = list(self.values[j])
         return out
@@ -159,6 +169,18 @@ class LuGreParams:
     The damper's force is then F = F_LuGre(z, v, I_d) + F_offset + k_x·x,
     where I_d follows the command with time constant ``tau_input``.
 
+    Optional terms (docs/identification.md, "Model terms"), off at 0, where
+    a set without them computes bit for bit what it did before:
+    ``sigma1_vd`` (m/s), σ1(v) = σ1·exp(−(v/v_d)²) (Canudas de Wit 1995);
+    ``tau_input_fall`` (s), the input lag while the input falls (a driver
+    that forces the current up and lets it decay through the coil);
+    ``k_hys_pos``, ``k_hys_neg`` (N/m), ``x_hys`` (m), a hysteretic (Dahl)
+    stiffness: ż_h = v − |v|·z_h/x_hys, force k_hys·z_h, k_hys by the sign
+    of v (≥ 0: pos): a force growing with the distance since the last
+    reversal, unlike in the two directions (accumulator, valves);
+    ``tau_field`` (s), the damper's own lag from its coil current to the
+    field (eddy currents in the housing), after the driver's ``tau_input``.
+
     ``table`` (None by default: the paper's laws) replaces laws (6)–(11) by
     a :class:`ThetaTable` (``laws: table`` in a parameters file); the thirteen
     constants are then still the paper-law fit of the same levels, which the
@@ -181,6 +203,12 @@ class LuGreParams:
     F_offset: float = 0.0  # N, constant force (accumulator preload, load-cell zero)
     k_x: float = 0.0  # N/m, stiffness on displacement
     tau_input: float = 0.0  # s, first-order lag of the input the damper feels
+    sigma1_vd: float = 0.0  # m/s, sigma1(v) = sigma1·exp(-(v/vd)²); 0: off (sigma1 constant)
+    tau_input_fall: float = 0.0  # s, the input lag while the input falls; 0: tau_input (symmetric)
+    k_hys_pos: float = 0.0  # N/m, hysteretic (Dahl) stiffness while v >= 0
+    k_hys_neg: float = 0.0  # N/m, ... while v < 0
+    x_hys: float = 0.0  # m, its saturation length (z_h -> ±x_hys); > 0 when either stiffness is
+    tau_field: float = 0.0  # s, the damper's own lag from its current to the field, after tau_input's; 0: none
     table: ThetaTable | None = None  # laws: table (None: the paper's laws 6-11)
 
     def __reduce__(self) -> tuple[type[LuGreParams], tuple[Any, ...]]:
@@ -246,12 +274,28 @@ class LuGreParams:
         return Fc + (self.Fs(I) - Fc) * math.exp(-r * r)
 
     # -- bookkeeping ---------------------------------------------------------
+    @property
+    def has_hysteresis(self) -> bool:
+        """Whether the hysteretic (Dahl) stiffness is on (its constants, or a table's per-level values)."""
+        return self.k_hys_pos != 0.0 or self.k_hys_neg != 0.0 or (self.table is not None and self.table.has_hys())
+
+    def tau_fall(self) -> float:
+        """The input lag while the input falls (s): ``tau_input_fall``, or ``tau_input`` when 0."""
+        return self.tau_input_fall if self.tau_input_fall > 0.0 else self.tau_input
+
+    def extras(self) -> dict[str, float]:
+        """The optional model terms that are on (non-zero), by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)[16:22] if getattr(self, f.name) != 0.0}
+
     def as_dict(self) -> dict[str, Any]:
-        """The sixteen constants by name; with a table also ``laws`` and ``table``
-        (what :func:`params_from_mapping` and a parameters file read back)."""
+        """The sixteen constants by name, the optional terms that are on; with a
+        table also ``laws`` and ``table`` (what :func:`params_from_mapping`
+        and a parameters file read back). A set without the optional terms
+        gives exactly the sixteen keys it always has."""
         out: dict[str, Any] = {}
         for f in fields(self)[:16]:
             out[f.name] = getattr(self, f.name)
+        out.update(self.extras())
         if self.table is not None:
             out["laws"] = "table"
             out["table"] = self.table.as_dict()
@@ -272,9 +316,14 @@ class LuGreParams:
         return tuple(f.name for f in fields(cls))[13:16]
 
     @classmethod
+    def extra_names(cls) -> tuple[str, ...]:
+        """The optional model terms: sigma1_vd, tau_input_fall, k_hys_pos, k_hys_neg, x_hys, tau_field."""
+        return tuple(f.name for f in fields(cls))[16:22]
+
+    @classmethod
     def all_names(cls) -> tuple[str, ...]:
         """Every number a parameters file may set (``laws``/``table`` aside)."""
-        return tuple(f.name for f in fields(cls))[:16]
+        return tuple(f.name for f in fields(cls))[:22]
 
     def check_range(self, I_max: float, samples: int = 201, I_min: float = 0.0, unit: str = "A") -> list[str]:
         """Problems that make the model meaningless on [I_min, I_max] (empty if fine).
@@ -291,6 +340,7 @@ class LuGreParams:
                 return problems
         if not self.tau_input >= 0.0:
             problems.append(f"tau_input must be >= 0 s, got {self.tau_input:g}")
+        problems.extend(extra_problems(self))
         span = I_max - I_min
         for name, fn in (("sigma0", self.sigma0), ("Fs", self.Fs), ("vs", self.vs), ("Fc", self.Fc)):
             worst = min(fn(I_min + span * k / (samples - 1)) for k in range(samples))
@@ -304,63 +354,13 @@ class LuGreParams:
 TABLE_I = LuGreParams()
 
 
-def params_from_mapping(data: Any) -> LuGreParams:
-    """Build a parameter set from a mapping of spec names, Table I filling gaps.
-
-    Raises ``ValueError`` naming the offending key; the config layer turns it
-    into a user-facing error with the file and key path."""
-    if not isinstance(data, dict):
-        raise ValueError(f"parameters must be a mapping of {', '.join(LuGreParams.all_names())}")
-    known = set(LuGreParams.all_names())
-    values: dict[str, float] = {}
-    table = table_from_mapping(data.get("laws", "paper"), data.get("table"))
-    for key, value in data.items():
-        if key in ("laws", "table"):
-            continue
-        if key not in known:
-            raise ValueError(f"{key}: unknown parameter (expected one of {', '.join(LuGreParams.all_names())})")
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{key}: must be a number, got {value!r}")
-        if not math.isfinite(float(value)):
-            raise ValueError(f"{key}: must be finite, got {value!r}")
-        values[key] = float(value)
-    return replace(TABLE_I.with_overrides(**values), table=table)
-
-
-def table_from_mapping(laws: Any, data: Any) -> ThetaTable | None:
-    """``laws:`` and ``table:`` of a parameters mapping: None for the paper's
-    laws, else a checked :class:`ThetaTable`. ``ValueError`` lists every
-    problem with its key path (the input strictly increasing, Θ finite and,
-    σ1 aside, > 0)."""
-    if laws == "paper" or laws is None:
-        if data is not None:
-            raise ValueError("table: given but laws is not 'table' (set laws: table, or drop the table)")
-        return None
-    if laws != "table":
-        raise ValueError(f"laws: {laws!r} not allowed (paper: laws (6)-(11); table: interpolated per-level values)")
-    if not isinstance(data, dict):
-        raise ValueError("table: laws: table needs a mapping with input and " + ", ".join(TABLE_NAMES)
-                         + " (lists of numbers, one per level)")
-    problems: list[str] = []
-    for key in data:
-        if key != "input" and key not in TABLE_NAMES and key not in TABLE_BENCH_NAMES:
-            problems.append(f"table.{key}: unknown (expected input, {', '.join(TABLE_NAMES + TABLE_BENCH_NAMES)})")
-    bench = [k for k in TABLE_BENCH_NAMES if k in data]
-    if len(bench) == 1:
-        problems.append(f"table.{bench[0]}: give both {' and '.join(TABLE_BENCH_NAMES)}, or neither")
-    cols: list[tuple[float, ...]] = []
-    for key in ("input",) + TABLE_NAMES + (TABLE_BENCH_NAMES if len(bench) == 2 else ()):
-        raw = data.get(key)
-        if not isinstance(raw, list) or not all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) for x in raw):
-            problems.append(f"table.{key}: must be a list of numbers (one per level)")
-            cols.append(())
-        else:
-            cols.append(tuple(float(x) for x in raw))
-    if problems:
-        raise ValueError("; ".join(problems))
-    table = ThetaTable(cols[0], tuple(cols[1:]))
-    problems = table.problems()
-    if problems:
-        raise ValueError("; ".join(problems))
-    return table
+def extra_problems(p: LuGreParams) -> list[str]:
+    """What makes the optional terms meaningless (empty if fine), each naming its key."""
+    out: list[str] = []
+    for name, what in (("sigma1_vd", "m/s"), ("tau_input_fall", "s"), ("x_hys", "m"), ("tau_field", "s")):
+        if not getattr(p, name) >= 0.0:
+            out.append(f"{name}: must be >= 0 {what} (0: off), got {getattr(p, name):g}")
+    if p.has_hysteresis and not p.x_hys > 0.0:  # the constants or a table's columns
+        out.append(f"x_hys: must be > 0 m when k_hys_pos or k_hys_neg is set (the hysteretic stiffness "
+                   f"saturates at k_hys·x_hys), got {p.x_hys:g}")
+    return out

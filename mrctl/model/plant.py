@@ -20,18 +20,24 @@ class DriverLag:
 
     Discretised exactly for a command held over one tick:
     I ← I + (I_cmd − I)·(1 − e^{−dt/τ}). τ = 0 is an ideal driver.
+    ``tau_fall_s`` (None: τ) is the time constant while the command is below
+    the applied input: a driver that forces the current up and lets it decay.
     """
 
-    __slots__ = ("alpha", "I")
+    __slots__ = ("alpha", "alpha_fall", "I")
 
-    def __init__(self, tau_s: float, dt: float) -> None:
+    def __init__(self, tau_s: float, dt: float, tau_fall_s: float | None = None) -> None:
         if tau_s < 0.0 or not math.isfinite(tau_s):
             raise ValueError("driver time constant must be finite and >= 0")
         self.alpha = 1.0 if tau_s == 0.0 else 1.0 - math.exp(-dt / tau_s)
+        tf = tau_s if tau_fall_s is None else tau_fall_s
+        if tf < 0.0 or not math.isfinite(tf):
+            raise ValueError("driver fall time constant must be finite and >= 0")
+        self.alpha_fall = 1.0 if tf == 0.0 else (self.alpha if tf == tau_s else 1.0 - math.exp(-dt / tf))
         self.I = 0.0
 
     def update(self, I_cmd: float) -> float:
-        self.I += (I_cmd - self.I) * self.alpha
+        self.I += (I_cmd - self.I) * (self.alpha if I_cmd >= self.I else self.alpha_fall)
         return self.I
 
     def tau_s(self, dt: float) -> float:
@@ -49,16 +55,22 @@ class DamperPlant:
     F_offset + k_x·x. With no lag this is exactly the tick protocol the
     inverse laws assume (see :class:`LuGreModel`).
 
-    The input lag is ``driver_tau_s`` when given, else the parameter set's
-    ``tau_input``: a bench key may impose a lag on a set that has none."""
+    The input lag is ``driver_tau_s`` when given (the same rising and
+    falling), else the parameter set's ``tau_input`` and ``tau_input_fall``:
+    a bench key may impose a lag on a set that has none. The set's
+    ``tau_field`` lags the field behind the driver's current (``I_applied``,
+    what a current monitor reads): the damper feels ``I_field``."""
 
-    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx", "_table")
+    __slots__ = ("model", "driver", "dt", "I_applied", "F", "_started", "_Fo", "_kx", "_table", "field", "I_field")
 
     def __init__(self, params: LuGreParams, dt: float, driver_tau_s: float | None = None) -> None:
         self.model = LuGreModel(params)
-        self.driver = DriverLag(params.tau_input if driver_tau_s is None else driver_tau_s, dt)
+        self.driver = (DriverLag(params.tau_input, dt, params.tau_fall()) if driver_tau_s is None
+                       else DriverLag(driver_tau_s, dt))
         self.dt = dt
         self.I_applied = 0.0
+        self.I_field = 0.0  # the current the field follows, as the damper feels it
+        self.field: DriverLag | None = DriverLag(params.tau_field, dt) if params.tau_field > 0.0 else None
         self.F = 0.0
         self._started = False
         self._Fo = params.F_offset
@@ -78,14 +90,18 @@ class DamperPlant:
 
     def tick(self, v: float, I_cmd: float, x: float = 0.0) -> float:
         if self._started:
-            self.model.advance(v, self.I_applied, self.dt)
+            self.model.advance(v, self.I_field, self.dt)
         else:
             self._started = True
             self.model.v_prev = v
         driver = self.driver
-        I = I_cmd if driver.alpha == 1.0 else driver.update(I_cmd)
+        I = I_cmd if driver.alpha == 1.0 and driver.alpha_fall == 1.0 else driver.update(I_cmd)
         driver.I = I
         self.I_applied = I
+        field = self.field
+        if field is not None:  # the damper's own lag behind the driver's current
+            I = field.update(I)
+        self.I_field = I
         F = self.model.force(v, I)
         table = self._table
         if table is not None:  # laws: table with per-level F_offset and k_x

@@ -6,8 +6,10 @@ every level (its held-out cycles where it has some, else its fitted ones),
 for broadband the held-out parts of the first records, each with its NRMSE
 in its title; for constant input with two levels or more, the six
 parameters per level (±2 standard errors) with the paper's laws and the
-table (the paper's Fig 3); a last panel lists the held-out NRMSE of every
-record and level under its whole name. The format
+table (the paper's Fig 3) and the held-out NRMSE of every record against
+its stroke and its frequency, one colour per level
+(:func:`make_conditions_figure` draws those two alone); a last panel lists
+the held-out NRMSE of every record and level under its whole name. The format
 follows the file's extension (.png, .pdf, .svg). matplotlib is imported only
 here (``mrctl[plot]``); the identification package never imports this module.
 """
@@ -24,7 +26,7 @@ from mrctl.errors import BadInput
 from mrctl.offline.identify.result import IdentificationResult, Trace
 from mrctl.runlog.files import write_outputs
 
-__all__ = ["make_identification_figure", "score_table", "FORMATS"]
+__all__ = ["make_identification_figure", "make_conditions_figure", "score_table", "FORMATS"]
 
 FORMATS = ("png", "pdf", "svg")
 #: records shown for broadband data; panels per row (constant input shows every level)
@@ -136,6 +138,84 @@ def _theta_panels(fig, gs, row0: int, width: int, res: IdentificationResult, lev
             ax.legend(fontsize="x-small", loc="best")
 
 
+def _terms_text(p) -> str:
+    """The optional model terms that are on, for the figure's title ('' without them)."""
+    parts = []
+    if p.tau_input_fall > 0.0:
+        parts.append(f"falling {1e3 * p.tau_input_fall:.3g} ms")
+    if p.sigma1_vd > 0.0:
+        parts.append(f"σ1(v) v_d {1e3 * p.sigma1_vd:.3g} mm/s")
+    if p.has_hysteresis:
+        parts.append(f"hysteretic stiffness x_hys {1e3 * p.x_hys:.3g} mm")
+    return (", " + ", ".join(parts)) if parts else ""
+
+
+def _conditioned(res: IdentificationResult) -> list:
+    """The held-out scores that carry a test condition (stroke and frequency)."""
+    return [s for s in res.holdout if s.level is not None and s.stroke_m is not None and s.frequency_hz is not None]
+
+
+def _conditions_panels(ax_stroke, ax_freq, res: IdentificationResult) -> None:
+    """Held-out NRMSE against stroke and against frequency, one colour per
+    level: where one Θ per level holds across the conditions and where not.
+    Filled: through the written set; hollow: the level's own fit, where it
+    differs from the written set's."""
+    scores = _conditioned(res)
+    levels = sorted({float(s.level) for s in scores})  # type: ignore[arg-type]
+    colours = [f"C{k % 10}" for k in range(len(levels))]
+    for lv, c in zip(levels, colours):
+        mine = sorted((s for s in scores if s.level == lv), key=lambda s: s.stroke_m)
+        for ax, key, scale in ((ax_stroke, "stroke_m", 1e3), (ax_freq, "frequency_hz", 1.0)):
+            x = np.array([getattr(s, key) for s in mine]) * scale
+            y = np.array([100 * (s.nrmse_laws if s.nrmse_laws is not None else s.nrmse) for s in mine])
+            y0 = np.array([100 * s.nrmse for s in mine])
+            ax.plot(x, y, "o", color=c, ms=6, label=f"{lv:.4g} {res.unit}")
+            differ = np.abs(y - y0) > 1e-3
+            if differ.any():
+                ax.plot(x[differ], y0[differ], "o", mfc="white", mec=c, ms=5)
+    for ax, label in ((ax_stroke, "stroke, peak to peak (mm)"), (ax_freq, "frequency (Hz)")):
+        ax.set(xlabel=label, ylabel="held-out NRMSE (%)", title=f"held-out NRMSE against {label.split(',')[0].split(' (')[0]}")
+        ax.title.set_fontsize("medium")
+        ax.grid(True, lw=0.5, alpha=0.5)
+        ax.set_ylim(bottom=0.0)
+    ax_stroke.legend(fontsize="small", title="level", loc="best")
+
+
+def make_conditions_figure(res: IdentificationResult, out_path: str | os.PathLike[str], dpi: int = 110,
+                           force: bool = False, write: bool = True) -> bytes:
+    """Held-out NRMSE against stroke and frequency per level (constant input),
+    written to ``out_path`` as :func:`make_identification_figure` writes; returns its bytes."""
+    ext = Path(out_path).suffix.lower().lstrip(".")
+    if ext not in FORMATS:
+        raise FigureError(f"{out_path}: unknown figure format {ext or '(none)'!r}; use .png, .pdf or .svg")
+    if not _conditioned(res):
+        raise FigureError("no held-out score with a stroke and a frequency (constant-input records only)")
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise FigureError("matplotlib is needed for figures: pip install 'mrctl[plot]'") from None
+    fig = Figure(figsize=(11.0, 4.2), dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    a1, a2 = fig.subplots(1, 2)
+    _conditions_panels(a1, a2, res)
+    fig.suptitle(f"{res.name}: held-out force NRMSE per record, laws: {res.params.laws}")
+    return _save(fig, out_path, ext, force, write)
+
+
+def _save(fig, out_path: str | os.PathLike[str], ext: str, force: bool, write: bool) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format=ext)
+    if ext == "png":
+        buf = _palette_png(buf)
+    if write:
+        try:
+            write_outputs([(out_path, buf.getvalue())], force)
+        except OSError as exc:
+            raise FigureError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
+    return buf.getvalue()
+
+
 def _palette_png(buf: io.BytesIO) -> io.BytesIO:
     """The PNG with an adaptive 256-colour palette: a figure of many noisy
     traces is a third of its size, no difference to the eye (Pillow, which
@@ -172,11 +252,13 @@ def make_identification_figure(res: IdentificationResult, out_path: str | os.Pat
     nrow = -(-n // ncol)
     levels = res.details.get("levels") or []
     theta_rows = 2 if res.protocol == "constant_input" and len(levels) >= 2 else 0
-    fig = Figure(figsize=(4.2 * max(ncol, 3) + 4.6, 7.2 * nrow + 3.4 * theta_rows), dpi=dpi, layout="constrained")
+    cond_rows = 1 if _conditioned(res) else 0
+    fig = Figure(figsize=(4.2 * max(ncol, 3) + 4.6, 7.2 * nrow + 3.4 * (theta_rows + cond_rows)), dpi=dpi,
+                 layout="constrained")
     FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(2 * nrow + theta_rows, max(ncol, 3) + 1,
+    gs = fig.add_gridspec(2 * nrow + theta_rows + cond_rows, max(ncol, 3) + 1,
                           width_ratios=[1.0] * max(ncol, 3) + [1.05],
-                          height_ratios=[1.0] * (2 * nrow) + [0.95] * theta_rows)
+                          height_ratios=[1.0] * (2 * nrow) + [0.95] * (theta_rows + cond_rows))
     scores = {(s.record, s.level, s.part): s for s in res.holdout + res.train}
     u = res.unit
     for j, tr in enumerate(traces):
@@ -206,6 +288,9 @@ def make_identification_figure(res: IdentificationResult, out_path: str | os.Pat
         ax2.grid(True, lw=0.5, alpha=0.5)
     if theta_rows:
         _theta_panels(fig, gs, 2 * nrow, max(ncol, 3), res, levels)
+    if cond_rows:
+        sub = gs[2 * nrow + theta_rows, :max(ncol, 3)].subgridspec(1, 2)
+        _conditions_panels(fig.add_subplot(sub[0, 0]), fig.add_subplot(sub[0, 1]), res)
     # the table of every held-out score
     axt = fig.add_subplot(gs[:, max(ncol, 3)])
     axt.axis("off")
@@ -216,17 +301,9 @@ def make_identification_figure(res: IdentificationResult, out_path: str | os.Pat
     head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
     bench = ("per level (table)" if p.table is not None and p.table.has_bench()
              else f"F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m")
+    terms = _terms_text(p)
     fig.suptitle(f"{head}, laws: {p.laws}\n{bench}, tau_input {1e3 * p.tau_input:.3g} ms"
-                 f"{extra}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
+                 f"{extra}{terms}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
                                       if res.protocol == "constant_input" else "the fitted model on data the fit "
                                       "never saw"), fontsize="large")
-    buf = io.BytesIO()
-    fig.savefig(buf, format=ext)
-    if ext == "png":
-        buf = _palette_png(buf)
-    if write:
-        try:
-            write_outputs([(out_path, buf.getvalue())], force)
-        except OSError as exc:
-            raise FigureError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
-    return buf.getvalue()
+    return _save(fig, out_path, ext, force, write)

@@ -41,7 +41,11 @@ __all__ = ["BroadbandFit", "fit_broadband", "predict", "WARMUP_S"]
 #: samples at the start of every simulated span left out of objective and scores (s)
 WARMUP_S = 0.1
 _FD_STEP = 1e-6
-_LOG = {"F0", "Ac", "Bc", "sigma0_lo", "sigma0_hi", "sigma2_lo", "sigma2_hi", "Fs_lo", "Fs_hi", "vs_lo", "vs_hi"}
+_LOG = {"F0", "Ac", "Bc", "sigma0_lo", "sigma0_hi", "sigma2_lo", "sigma2_hi", "Fs_lo", "Fs_hi", "vs_lo", "vs_hi",
+        "sigma1_vd", "tau_input_fall", "x_hys"}
+#: the optional terms a ``use`` flag frees (docs/identification.md, "Model terms"): flag → parameters
+OPTIONAL = {"lag_fall": ("tau_input_fall",), "sigma1_v": ("sigma1_vd",),
+            "hysteresis": ("k_hys_pos", "k_hys_neg", "x_hys")}
 
 
 @dataclass
@@ -107,6 +111,12 @@ def _initial(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_hi: fl
     if use["inertia"]:
         p[IDX["m"]] = c[j]
     p[IDX["tau_input"]] = tau if use["lag"] else 0.0
+    if use.get("lag_fall") and use["lag"]:
+        p[IDX["tau_input_fall"]] = tau  # the fit moves it from the rise's
+    if use.get("sigma1_v"):
+        p[IDX["sigma1_vd"]] = 0.5 * sup.v_max
+    if use.get("hysteresis"):
+        p[IDX["x_hys"]] = 0.2 * x_amp
     return p
 
 
@@ -117,7 +127,10 @@ def _bounds(sup: Support, du: float, Fmax: float, tau_max: float, a_amp: float) 
     x_amp = sup.x_amp if sup.x_amp is not None else sup.v_max * 0.01
     b = {"F0": (fl, fh), "Ac": (1e-6 * sup.F_amp, 5.0 * sup.F_amp), "Bc": (1e-3 * du, 100.0 * du),
          "F_offset": (-3.0 * Fmax, 3.0 * Fmax), "k_x": (-100.0 * sup.F_amp / x_amp, 100.0 * sup.F_amp / x_amp),
-         "tau_input": (0.0, tau_max), "m": (-10.0 * sup.F_amp / a_amp, 10.0 * sup.F_amp / a_amp)}
+         "tau_input": (0.0, tau_max), "m": (-10.0 * sup.F_amp / a_amp, 10.0 * sup.F_amp / a_amp),
+         "tau_input_fall": (2e-4, tau_max), "sigma1_vd": (0.01 * sup.v_max, 100.0 * sup.v_max),
+         "k_hys_pos": (-100.0 * sup.F_amp / x_amp, 100.0 * sup.F_amp / x_amp),
+         "k_hys_neg": (-100.0 * sup.F_amp / x_amp, 100.0 * sup.F_amp / x_amp), "x_hys": (1e-3 * x_amp, 10.0 * x_amp)}
     for e in ("lo", "hi"):
         b[f"sigma0_{e}"] = (1e-2 * sup.F_amp / x_amp, 1.5 * sup.sigma0_max())
         b[f"sigma1_{e}"] = (-100.0 * s_v, 100.0 * s_v)
@@ -220,8 +233,12 @@ def fit_broadband(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_h
     dur = min(sp.v.size for sp in spans) * h
     a_amp = max(float(max(np.percentile(np.abs(sp.a), 99.5) for sp in spans)), 1e-9)
     bounds = _bounds(sup, u_hi - u_lo, Fmax, min(0.2, dur / 10.0), a_amp)
+    fixed = {k for flag, names in OPTIONAL.items() if not use.get(flag) for k in names} | {"tau_field"}  # never
+    if not use["lag"]:
+        fixed.add("tau_input_fall")
     free = [k for k in PHYS if not ((k == "F_offset" and not use["offset"]) or (k == "k_x" and not use["stiffness"])
-                                    or (k == "tau_input" and not use["lag"]) or (k == "m" and not use["inertia"]))]
+                                    or (k == "tau_input" and not use["lag"]) or (k == "m" and not use["inertia"])
+                                    or k in fixed)]
     taus = np.geomspace(2e-3, 25e-3, starts) if use["lag"] and starts > 1 else np.array([8e-3 if use["lag"] else 0.0])
     taus = np.resize(taus, starts)
     bar = make_bar(starts * max_nfev, "identify (broadband)", enabled=progress)

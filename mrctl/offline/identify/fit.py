@@ -322,12 +322,14 @@ def _grid_starts(rec: _Record, theta0: np.ndarray, vmax: float, amp: float, k: i
     return out
 
 
-def _fit_one_current(windows, method: str, starts_max: int = 2, X: np.ndarray | None = None):
+def _fit_one_current(windows, method: str, starts_max: int = 2, X: np.ndarray | None = None,
+                     theta_start: np.ndarray | None = None):
     """Fit Θ at one current over its windows: data-derived start, the
     ``starts_max`` best distinct (σ0, σ1) grid points, one optimiser run from
     each, the lowest Q kept. ``X``: linear terms at the fit samples (offset,
-    stiffness), solved exactly for every Θ. Returns (θ, problem, p, notes,
-    nfev, θ0, starts)."""
+    stiffness), solved exactly for every Θ. ``theta_start`` (a fit of the same
+    level with fewer linear terms) competes with the grid's best as a start.
+    Returns (θ, problem, p, notes, nfev, θ0, starts)."""
     rec = _window_record(windows, X)
     vf, Ff = rec.v[rec.fit], rec.F
     hf = rec.h[rec.fit]
@@ -339,6 +341,8 @@ def _fit_one_current(windows, method: str, starts_max: int = 2, X: np.ndarray | 
     vmax = float(np.percentile(np.abs(vf), 99.5))
     amp = 0.5 * float(np.ptp(np.cumsum(vf * hf)))  # stroke amplitude from ∫v dt
     starts = _grid_starts(rec, theta0, vmax, max(amp, 1e-9), starts_max)
+    if theta_start is not None:  # the level's fit of before, and the grid's best
+        starts = [np.asarray(theta_start, float), starts[0]]
     if starts[0][0] != theta0[0] or starts[0][1] != theta0[1]:
         notes["sigma0"] = (f"best of a Q grid (pre-sliding length Fc/σ0 = 1e-4…0.3 × stroke); "
                            f"slope estimate was {theta0[0]:.4g}")

@@ -122,14 +122,19 @@ def law_problems(p: LuGreParams, u_lo: float, u_hi: float, sup: Support, unit: s
 
     lo_F, hi_F = FC_MIN_REL * sup.F_amp, F_MAX_REL * sup.F_amp
     vs_lo, vs_hi = VS_MIN_REL * sup.v_max, VS_MAX_REL * sup.v_max
+    # the hysteretic stiffness saturates at k_hys·x_hys: a friction of its own (a seal's, field-free), which the
+    # damper's least sliding force includes beside Fc
+    F_h = min(p.k_hys_pos, p.k_hys_neg) * p.x_hys if p.has_hysteresis else 0.0
+    F_h = F_h if F_h > 0.0 else 0.0
     rules = [
         ("sigma0", "N/m", lambda a: a <= 0.0, True, "negative", "must stay > 0"),
         ("Fs", "N", lambda a: a <= 0.0, True, "negative", "must stay > 0"),
         ("vs", "m/s", lambda a: a <= 0.0, True, "negative", "must stay > 0"),
         ("Fc", "N", lambda a: a <= 0.0, True, "negative", "must stay > 0"),
         ("sigma2", "N·s/m", lambda a: a < 0.0, True, "negative", "must stay >= 0 (viscous damping)"),
-        ("Fc", "N", lambda a: (a > 0.0) & (a < lo_F), True, "low",
-         f"is below {lo_F:.3g} N, 1 % of the force amplitude {sup.F_amp:.3g} N"),
+        ("Fc", "N", lambda a: (a > 0.0) & (a + F_h < lo_F), True, "low",
+         f"is below {lo_F:.3g} N, 1 % of the force amplitude {sup.F_amp:.3g} N"
+         + (f", with the hysteretic stiffness's {F_h:.3g} N" if F_h else "")),
         ("Fc", "N", lambda a: a > hi_F, False, "high",
          f"exceeds {hi_F:.3g} N, 3 × the force amplitude {sup.F_amp:.3g} N"),
         ("Fs", "N", lambda a: a > hi_F, False, "high",
@@ -153,6 +158,10 @@ def law_problems(p: LuGreParams, u_lo: float, u_hi: float, sup: Support, unit: s
                    f"[{u_lo:.4g}, {u_hi:.4g}] {unit}); try: {_advice(name, what, scope)}")
     if not (math.isfinite(p.tau_input) and p.tau_input >= 0.0):
         out.append(f"tau_input = {p.tau_input:g} s must be >= 0")
+    if p.has_hysteresis and not (p.x_hys > 0.0 and max(abs(p.k_hys_pos), abs(p.k_hys_neg)) * p.x_hys <= hi_F):
+        out.append(f"the hysteretic stiffness's force k_hys·x_hys = {max(abs(p.k_hys_pos), abs(p.k_hys_neg)) * p.x_hys:.4g} "
+                   f"N exceeds {hi_F:.3g} N, 3 × the force amplitude (x_hys = {p.x_hys:.4g} m); try: "
+                   f"{_advice('k_hys', 'high', scope)}")
     return out
 
 

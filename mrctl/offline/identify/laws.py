@@ -19,7 +19,7 @@ from dataclasses import replace
 from mrctl.model.params import _LANGEVIN_SERIES_BELOW, TABLE_NAMES, LuGreParams, ThetaTable
 from mrctl.offline.identify.errors import IdentificationError
 
-__all__ = ["LawFit", "fit_laws", "theta_from_params", "table_set", "bench_at"]
+__all__ = ["LawFit", "fit_laws", "theta_from_params", "table_set", "bench_at", "hys_at"]
 
 
 @dataclass
@@ -163,13 +163,17 @@ def theta_from_params(p: LuGreParams, I: float) -> np.ndarray:
 
 
 def table_set(params: LuGreParams, levels: np.ndarray, thetas: Mapping[str, np.ndarray],
-              offsets: np.ndarray | None = None, k_xs: np.ndarray | None = None) -> LuGreParams:
+              offsets: np.ndarray | None = None, k_xs: np.ndarray | None = None,
+              k_hys: tuple[np.ndarray, np.ndarray] | None = None) -> LuGreParams:
     """``params`` with ``laws: table``: Θ at each level (ascending), and the
-    per-level offset and stiffness when given (both or neither), interpolated
+    per-level offset and stiffness when given (both or neither), then the
+    per-level hysteretic stiffness per direction (with them), interpolated
     piecewise linearly (:class:`mrctl.model.params.ThetaTable`)."""
     cols = [tuple(float(x) for x in np.asarray(thetas[k], float)) for k in TABLE_NAMES]
     if offsets is not None and k_xs is not None:
         cols += [tuple(float(x) for x in offsets), tuple(float(x) for x in k_xs)]
+        if k_hys is not None:
+            cols += [tuple(float(x) for x in k_hys[0]), tuple(float(x) for x in k_hys[1])]
     return replace(params, table=ThetaTable(tuple(float(u) for u in levels), tuple(cols)))
 
 
@@ -178,3 +182,12 @@ def bench_at(p: LuGreParams, level: float) -> tuple[float, float]:
     if p.table is not None and p.table.has_bench():
         return p.table.value(6, level), p.table.value(7, level)
     return p.F_offset, p.k_x
+
+
+def hys_at(p: LuGreParams, level: float) -> tuple[float, float, float] | None:
+    """(k_hys_pos, k_hys_neg, x_hys) of a set at an input level, None without the hysteretic stiffness."""
+    if not p.has_hysteresis:
+        return None
+    if p.table is not None and p.table.has_hys():
+        return p.table.value(8, level), p.table.value(9, level), p.x_hys
+    return p.k_hys_pos, p.k_hys_neg, p.x_hys

@@ -18,7 +18,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["THETA_NAMES", "THETA_UNITS", "lugre_force"]
+__all__ = ["THETA_NAMES", "THETA_UNITS", "lugre_force", "hys_state", "hys_columns"]
 
 #: Per-current parameter vector Θ of eq (4), in this order (SI units).
 THETA_NAMES: tuple[str, ...] = ("sigma0", "sigma1", "sigma2", "Fc", "Fs", "vs")
@@ -141,6 +141,38 @@ def lugre_force(theta: Sequence[float] | Mapping[str, float], v: np.ndarray, dt:
     h = np.broadcast_to(np.asarray(dt, float), (n,)).astype(float)
     rec = _Record(v, h, np.array([0]), np.arange(n), np.zeros(n))
     return _model_batch(np.asarray(theta, float).reshape(1, 6), rec, z0)[0]
+
+
+def hys_state(v: np.ndarray, h: float, x_hys: float, z0: float = 0.0) -> np.ndarray:
+    """The hysteretic stiffness's state z_h at every sample (LuGreModel's exact step with the
+    mid-step velocity), from z0 at the first sample."""
+    vm = np.empty_like(v)
+    vm[1:] = 0.5 * (v[1:] + v[:-1])
+    vm[0] = v[0]
+    x = np.abs(vm) * h / x_hys
+    small = x < _SMALL_AH
+    e = np.exp(-x)
+    b = np.where(small, vm * h * (1.0 - 0.5 * x), np.sign(vm) * x_hys * -np.expm1(-np.where(small, 1.0, x)))
+    e = np.where(small, 1.0 - x, e)
+    e[0], b[0] = 0.0, z0
+    return _exp_scan(e[None, :], b[None, :])[0]
+
+
+def hys_columns(v: np.ndarray, h: float, nw: int, x_hys: float) -> tuple[np.ndarray, np.ndarray]:
+    """(z_h where v ≥ 0, else 0; z_h where v < 0, else 0) over a window whose first ``nw``
+    samples are a whole warm-up cycle: z_h starts in the periodic state of that cycle (the
+    fixed point of its affine map z ← E·z + B), so no start-up transient reaches the fit."""
+    if nw > 1:
+        B = hys_state(v[:nw + 1], h, x_hys, 0.0)[-1]
+        E = hys_state(v[:nw + 1], h, x_hys, 1.0)[-1] - B
+        z0 = B / (1.0 - E) if E < 1.0 - 1e-12 else 0.0
+    else:
+        z0 = 0.0
+    zh = hys_state(v, h, x_hys, z0)
+    pos = v >= 0.0
+    return np.where(pos, zh, 0.0), np.where(pos, 0.0, zh)
+
+
 
 
 def _window_record(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]],

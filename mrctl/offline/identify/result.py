@@ -40,10 +40,17 @@ class Score:
     part: str = "holdout"  # "holdout" or "fit"
     nrmse_paper: float | None = None  # with the paper's laws (6)-(11) (constant input)
     nrmse_table: float | None = None  # with laws: table (constant input, >= 2 levels)
+    #: the test condition (constant input): the steady stroke, peak to peak (m), and the frequency (Hz)
+    #: of the scored cycles (the median over the record's segments at the level)
+    stroke_m: float | None = None
+    frequency_hz: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"record": self.record, "level": _r(self.level) if self.level is not None else None,
                              "nrmse": _r(self.nrmse, 5), "samples": self.samples}
+        for key in ("stroke_m", "frequency_hz"):
+            if getattr(self, key) is not None:
+                d[key] = _r(getattr(self, key), 5)
         for key in ("nrmse_laws", "nrmse_paper", "nrmse_table"):
             if getattr(self, key) is not None:
                 d[key] = _r(getattr(self, key), 5)
@@ -86,6 +93,12 @@ class IdentificationResult:
     @property
     def tau_s(self) -> float:
         return self.params.tau_input
+
+
+def nrmse(meas: np.ndarray, pred: np.ndarray) -> float:
+    """RMS(pred − meas) over the peak-to-peak of meas (NaN where it is flat)."""
+    ptp = float(np.ptp(meas)) if meas.size else 0.0
+    return float(np.sqrt(np.mean((pred - meas) ** 2)) / ptp) if ptp > 0 else float("nan")
 
 
 def _r(x: float | None, digits: int = 6) -> Any:
@@ -158,7 +171,7 @@ def summary_dict(res: IdentificationResult) -> dict[str, Any]:
         "F_offset_N": _r(p.F_offset),
         "k_x_N_per_m": _r(p.k_x),
         "inertia_kg": _r(res.inertia_kg),
-        "parameters": {k: _r(getattr(p, k)) for k in p.all_names()},
+        "parameters": {k: _r(v) for k, v in p.as_dict().items() if k not in ("laws", "table")},
         "laws": p.laws,
         "laws_choice": _plain(res.details.get("laws_choice")),
         "settings": _plain(res.settings),
@@ -184,8 +197,7 @@ def result_bytes(res: IdentificationResult, out: str | Path) -> list[tuple[Path,
         "input": res.input,
         "input_range": [float(res.input_range[0]), float(res.input_range[1])],
     }
-    values = p.as_dict()
-    doc.update({k: float(values[k]) for k in p.all_names()})
+    doc.update({k: float(v) for k, v in p.as_dict().items() if k not in ("laws", "table")})  # the optional terms when on
     if p.table is not None:  # the written laws: the per-level table (the 13 constants stay, for the inverse laws)
         doc["laws"] = "table"
         doc["table"] = {k: [_r(x, 8) for x in col] for k, col in p.table.as_dict().items()}
@@ -261,6 +273,8 @@ def format_summary(res: IdentificationResult) -> str:
     lines.append(f"bench terms: F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m, tau_input "
                  f"{1e3 * p.tau_input:.3g} ms" + (f", inertia {res.inertia_kg:.3g} kg (measurement term, not in "
                                                   "the set)" if res.inertia_kg else ""))
+    if p.extras():
+        lines.append("model terms: " + ", ".join(f"{k}={v:.5g}" for k, v in p.extras().items()))
     lines.append("parameters: " + ", ".join(f"{k}={getattr(p, k):.5g}" for k in p.names()))
     for w in res.warnings:
         lines.append(f"warning: {w}")

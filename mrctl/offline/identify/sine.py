@@ -33,10 +33,10 @@ import numpy as np
 from mrctl.offline.identify.errors import IdentificationError
 from mrctl.offline.identify.fit import _fit_one_current, _identifiability, _noise_N
 from mrctl.offline.identify.guards import Support
-from mrctl.offline.identify.model import THETA_NAMES, _model_batch, lugre_force
+from mrctl.offline.identify.model import THETA_NAMES, _model_batch, hys_columns, lugre_force
 from mrctl.offline.identify.prep import _MIN_LEVEL_S, Span
 
-__all__ = ["Segment", "LevelFit", "find_segments", "fit_levels", "predict_segment"]
+__all__ = ["Segment", "LevelFit", "find_segments", "fit_levels", "predict_segment", "choose_x_hys"]
 
 _PERIOD_TOL = 0.10
 
@@ -81,6 +81,9 @@ class LevelFit:
     corr: list[list[float]] = field(default_factory=list)
     determined: dict[str, str] = field(default_factory=dict)  # "well" / "poor" (fit._identifiability)
     theta0: dict[str, float] = field(default_factory=dict)  # the data-derived start
+    #: the hysteretic stiffness per direction (N/m) at the set's x_hys (model.hysteresis), else 0
+    k_hys_pos: float = 0.0
+    k_hys_neg: float = 0.0
 
 
 def _level_runs(sp: Span) -> list[tuple[int, int, float]]:
@@ -221,19 +224,65 @@ def _cluster_levels(segs: list[Segment]) -> dict[float, list[Segment]]:
     return groups
 
 
-def _design(sp: Span, a: int, b: int, use: dict[str, bool]) -> np.ndarray | None:
+def _design(sp: Span, s: Segment, a: int, b: int, use: dict[str, bool], x_hys: float = 0.0) -> np.ndarray | None:
+    """The terms the force is linear in, at samples [a, b) of segment s: 1 (offset), x (stiffness),
+    and with ``x_hys`` the hysteretic state per direction (from the segment's warm-up cycle)."""
     cols = []
     if use["offset"]:
         cols.append(np.ones(b - a))
     if use["stiffness"] and sp.x is not None:
         cols.append(sp.x[a:b])
+    if x_hys > 0.0:
+        zp, zn = hys_columns(sp.v[s.w0:b], sp.dt, s.f0 - s.w0, x_hys)
+        cols += [zp[a - s.w0:], zn[a - s.w0:]]
     return np.column_stack(cols) if cols else None
 
 
+#: the hysteretic stiffness's length tried, as multiples of the median stroke amplitude
+_XHYS_GRID = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+
+
+def choose_x_hys(spans: list[Span], fits: list[LevelFit], use: dict[str, bool]) -> tuple[float, dict[str, float]]:
+    """x_hys for the hysteretic stiffness, one for the set: each level's Θ held at its fit without
+    it, the linear terms (offset, stiffness, the two stiffnesses) solved per level, the length of
+    the least total squared residual: a grid (:data:`_XHYS_GRID` × the median stroke amplitude),
+    then a bounded search between the best point's neighbours. The levels are then fitted again
+    with it. Returns it and the sum at each grid point."""
+    from scipy.optimize import minimize_scalar
+
+    amp = 0.5 * float(np.median([s.stroke_m for lf in fits for s in lf.segments]))
+    held = []  # per level: the segments and the force less the LuGre force of its Θ (independent of x_hys)
+    for lf in fits:
+        th = np.array([lf.theta[k] for k in THETA_NAMES])
+        r = [spans[s.span].F[s.f0:s.f1] - lugre_force(th, spans[s.span].v[s.w0:s.f1], spans[s.span].dt)[s.f0 - s.w0:]
+             for s in lf.segments]
+        held.append((lf.segments, np.concatenate(r)))
+
+    def sse(xh: float) -> float:
+        q = 0.0
+        for segs, r in held:
+            X = np.vstack([_design(spans[s.span], s, s.f0, s.f1, use, xh) for s in segs])
+            res = r - X @ np.linalg.lstsq(X, r, rcond=None)[0]
+            q += float(res @ res)
+        return q
+
+    grid = [mul * amp for mul in _XHYS_GRID]
+    qs = [sse(xh) for xh in grid]
+    k = int(np.argmin(qs))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    best = minimize_scalar(lambda lx: sse(float(np.exp(lx))), bounds=(np.log(lo), np.log(hi)), method="bounded",
+                           options={"xatol": 0.02})
+    x_hys = float(np.exp(best.x)) if best.fun < qs[k] else grid[k]
+    return x_hys, {f"{xh:.6g}": q for xh, q in zip(grid, qs)}
+
+
 def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], method: str = "trf",
-               bar=None) -> list[LevelFit]:
+               bar=None, x_hys: float = 0.0, before: list[LevelFit] | None = None) -> list[LevelFit]:
     """One fit per input level over its segments' fit cycles (``segs`` from
-    :func:`find_segments`, which refuses a record with none)."""
+    :func:`find_segments`, which refuses a record with none); with ``x_hys``
+    the hysteretic stiffness per direction among the linear terms, and
+    ``before`` the same levels' fits without it, each a start beside the
+    grid's best."""
     groups = _cluster_levels([s for s in segs if s.cycles_fit > 0])
     fits = []
     for level in sorted(groups):
@@ -243,13 +292,16 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
             sp = spans[s.span]
             h = np.full(s.f1 - s.w0, sp.dt)
             windows.append((sp.v[s.w0:s.f1], sp.F[s.w0:s.f1], h, s.f0 - s.w0))
-            Xs.append(_design(sp, s.f0, s.f1, use))
+            Xs.append(_design(sp, s, s.f0, s.f1, use, x_hys))
             Fall.append(sp.F[s.f0:s.f1])
             vall.append(sp.v[s.f0:s.f1])
             if sp.x is not None:
                 xall.append(sp.x[s.f0:s.f1])
         X = None if Xs[0] is None else np.vstack(Xs)
-        theta, prob, p, _notes, nfev, theta0, _starts = _fit_one_current(windows, method, starts_max=4, X=X)
+        prev = None if before is None else next((np.array([f.theta[k] for k in THETA_NAMES]) for f in before
+                                                  if f.level == level), None)
+        theta, prob, p, _notes, nfev, theta0, _starts = _fit_one_current(windows, method, starts_max=4, X=X,
+                                                                         theta_start=prev)
         rec = prob.rec
         Fm = _model_batch(theta[None, :], rec)[0]
         beta = rec.linear_terms(Fm)
@@ -259,6 +311,7 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
         off = float(beta[j]) if use["offset"] else 0.0
         j += 1 if use["offset"] else 0
         kx = float(beta[j]) if (use["stiffness"] and X is not None and X.shape[1] > j) else 0.0
+        kp, kn = (float(beta[-2]), float(beta[-1])) if x_hys > 0.0 else (0.0, 0.0)
         F_lin = F - off - (kx * np.concatenate(xall) if xall and kx else 0.0)
         sup = Support.of(F_lin, np.concatenate(vall), np.concatenate(xall) if xall else None)
         ptp = float(np.ptp(F))
@@ -268,21 +321,25 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
                              float(np.sqrt(np.mean(resid * resid)) / ptp), int(F.size),
                              sum(s.cycles_fit for s in groups[level]), sup, nfev, time.perf_counter() - t0,
                              groups[level], noise / ptp, se, rel_se, sens, corr, det,
-                             {k: float(theta0[i]) for i, k in enumerate(THETA_NAMES)}))
+                             {k: float(theta0[i]) for i, k in enumerate(THETA_NAMES)}, kp, kn))
         if bar is not None:
             bar.update(1, level=f"{level:g}", nrmse=f"{100 * fits[-1].nrmse_fit:.2f}%")
     return fits
 
 
 def predict_segment(sp: Span, s: Segment, theta: dict[str, float] | np.ndarray, offset: float, k_x: float,
-                    start: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    start: int | None = None, hys: tuple[float, float, float] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """(measured, predicted) force of a segment from ``start`` (default: its held-out part) to its end,
-    the model run from the warm-up cycle."""
+    the model run from the warm-up cycle; ``hys``: (k_hys_pos, k_hys_neg, x_hys) when on."""
     if isinstance(theta, dict):
         theta = [theta[k] for k in THETA_NAMES]
     a = s.f1 if start is None else start
     F = lugre_force(np.asarray(theta, float), sp.v[s.w0:s.h1], sp.dt)[a - s.w0:]
     F = F + offset + (k_x * sp.x[a:s.h1] if sp.x is not None else 0.0)
+    if hys is not None and hys[2] > 0.0:
+        zp, zn = hys_columns(sp.v[s.w0:s.h1], sp.dt, s.f0 - s.w0, hys[2])
+        F = F + hys[0] * zp[a - s.w0:] + hys[1] * zn[a - s.w0:]
     if not np.all(np.isfinite(F)):  # pragma: no cover - Θ is checked before
         F = np.where(np.isfinite(F), F, math.nan)
     return sp.F[a:s.h1], F
