@@ -159,8 +159,10 @@ def _firmware(d: Path):
     assert res.returncode == 0, res.stderr
     fwh = _Firmware(exe, d)
     cfg = d / "firmware_host.yaml"
-    cfg.write_text((EXP / "firmware_host.yaml").read_text().replace("/tmp/mrctl-fw-tty", str(fwh.link))
-                   + "acceptance: {max_skipped_share: 1.0, max_gap_s: 3600.0}\n")
+    data = yaml.safe_load((EXP / "firmware_host.yaml").read_text())
+    data["backend"]["url"] = str(fwh.link)
+    data["acceptance"] = {**data.get("acceptance", {}), "max_skipped_share": 1.0, "max_gap_s": 3600.0}
+    cfg.write_text(yaml.safe_dump(data, sort_keys=False))
     return fwh, cfg
 
 
