@@ -179,8 +179,10 @@ class Fence:
     @classmethod
     def around(cls, folder: str | os.PathLike[str], allow_outside: bool = False,
                allowed: Iterable[str | os.PathLike[str]] = (), what: str = "the config") -> "Fence":
-        """The fence of a file in ``folder`` (:func:`fence_root`), or none
-        with ``allow_outside``; ``what`` names that file in the refusal."""
+        """The fence of a file in ``folder`` (:func:`fence_root`; None: the
+        current directory), or none with ``allow_outside``; ``what`` names
+        that file in the refusal."""
+        folder = folder if folder is not None else "."
         root = fence_root(folder)
         where = (f"{what}'s folder" if root == Path(os.path.abspath(folder)).resolve()
                  else f"the {CONFIG_TREE}/ tree {what} lies in")
