@@ -183,7 +183,8 @@ def dask_client(scheduler: Any) -> tuple[Any, bool]:
     except ImportError:
         raise DependencyMissing("--scheduler needs dask.distributed: pip install 'mrctl[sweep]'") from None
     check_scheduler_address(scheduler)
-    probe_scheduler(scheduler)
+    if not scheduler.startswith("inproc://"):  # a scheduler in this process: nothing foreign to ask
+        probe_scheduler(scheduler)
     try:
         return Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S:g}s"), True
     except Exception as exc:  # noqa: BLE001 - it answered a moment ago: whatever fails now is the link
