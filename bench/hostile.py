@@ -540,8 +540,9 @@ def _fig5_with(**changes: str) -> Path:
 def _file_key(key: str, allow: bool) -> Callable[[], tuple[bool, str]]:
     def fn() -> tuple[bool, str]:
         if key == "plant.model.parameters":
-            Path("x.yaml").write_text(FIG5.read_text().replace(
-                "plant: {driver_tau_s: 0.0}", f"plant: {{driver_tau_s: 0.0, model: {{type: bouc-wen, parameters: {SECRET}}}}}"))
+            model = f"model: {{type: bouc-wen, parameters: {SECRET}}}"
+            Path("x.yaml").write_text(FIG5.read_text().replace("plant: {driver_tau_s: 0.0}",
+                                                               f"plant: {{driver_tau_s: 0.0, {model}}}"))
         else:
             _fig5_with(**{key: SECRET})
         r = mrctl("check", "x.yaml", *(["--allow-outside-paths"] if allow else []))
@@ -666,8 +667,8 @@ def h4_cap() -> tuple[bool, str]:
     from mrctl.sweep.spec import MAX_POINTS
 
     _sweep_base()
-    Path("s.yaml").write_text(f"base: base.yaml\ngrid: {{inverse.law: [smooth, closed]}}\nrandom: {{n: {MAX_POINTS // 2}, "
-                              "plant.parameters.F0: {factor_uniform: [0.8, 1.2]}}\n")
+    Path("s.yaml").write_text(f"base: base.yaml\ngrid: {{inverse.law: [smooth, closed]}}\n"
+                              f"random: {{n: {MAX_POINTS // 2}, plant.parameters.F0: {{factor_uniform: [0.8, 1.2]}}}}\n")
     c = mrctl("check", "s.yaml")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     t0 = time.monotonic()

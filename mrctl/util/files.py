@@ -32,9 +32,9 @@ from typing import Any, Iterable
 
 from mrctl.errors import BadInput
 
-__all__ = ["FileProblem", "read_regular_file", "open_regular", "flock_holder", "not_regular", "per_user_dir", "private_dir", "MiB", "DEFAULT_OUT_DIR",
-           "check_out_parent", "ensure_out_parent", "Fence", "fence_root", "CONFIG_TREE", "same_file", "refuse_inputs",
-           "refuse_special"]
+__all__ = ["FileProblem", "read_regular_file", "open_regular", "flock_holder", "not_regular", "per_user_dir",
+           "private_dir", "MiB", "DEFAULT_OUT_DIR", "check_out_parent", "ensure_out_parent", "Fence", "fence_root",
+           "CONFIG_TREE", "same_file", "refuse_inputs", "refuse_special"]
 
 MiB = 1 << 20
 
