@@ -35,6 +35,8 @@ def _error(sweep: Sweep, base: str, picks: list[int], drawn: dict[str, tuple[str
         validate_experiment(config, sweep.bases[base].parent, fence=sweep.fence)
     except ConfigError as exc:
         return "; ".join(exc.errors)
+    except Exception as exc:  # noqa: BLE001 - what the point's row would say (mrctl.sweep.point)
+        return f"{type(exc).__name__}: {exc}"
     return None
 
 
