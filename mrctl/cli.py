@@ -89,11 +89,12 @@ def out_path(args: argparse.Namespace, default: str | None = None, inputs: list[
     """``--out`` with its strftime patterns expanded, or ``default``; its
     directory checked (a missing one is exit 2 naming it, unless --mkdir or
     runs/: :func:`mrctl.util.files.check_out_parent`); neither it nor what
-    the command writes beside it one of the command's ``inputs`` (default
-    :func:`command_inputs`), ``--force`` or not."""
+    the command writes beside it a device, FIFO or directory, nor one of
+    the command's ``inputs`` (default :func:`command_inputs`), ``--force``
+    or not."""
     import time
 
-    from mrctl.util.files import check_out_parent, refuse_inputs
+    from mrctl.util.files import check_out_parent, refuse_inputs, refuse_special
 
     if args.out is not None and not args.out.strip():  # not a silent "no file" or "the default"
         raise BadInput("--out '': an empty value names no file; give a file name, or leave --out out")
@@ -105,6 +106,7 @@ def out_path(args: argparse.Namespace, default: str | None = None, inputs: list[
     check_out_parent(out, getattr(args, "mkdir", False))
     companions = OUT_COMPANIONS.get(getattr(args, "command", ""), ())
     outputs = [out, *(str(Path(out).with_suffix(c)) if c == ".json" else out + c for c in companions)]
+    refuse_special(outputs)  # /dev/null, a FIFO, a directory: never replaced, --force or not
     refuse_inputs(outputs, command_inputs(args) if inputs is None else inputs)
     return out
 

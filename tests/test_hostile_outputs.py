@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -82,3 +83,34 @@ def test_examples_refuse_a_symlinked_dir_and_a_linked_file(tmp_path, capsys):
     assert main(["examples", str(dest), "--force"]) == 2
     assert "fig5.yaml: is a symlink" in capsys.readouterr().err
     assert (tmp_path / "secret").read_text() == "keep\n"
+
+
+# -- --force replaces a file, never a device, FIFO or directory ----------------------------------
+@pytest.mark.parametrize("kind", ["fifo", "device", "directory"])
+@pytest.mark.parametrize("argv", [
+    lambda d, o: ["simulate", str(FIG5), "--out", str(o), "--force", "--duration", "0.1", "-q"],
+    lambda d, o: ["run", str(FIG5), "--out", str(o), "--force", "--duration", "0.1", "-q"],
+    lambda d, o: ["calibrate", str(d / "t7.yaml"), "--out", str(o), "--force"],
+    lambda d, o: ["report", str(d / "r.csv"), "--out", str(o), "--force"],
+    lambda d, o: ["simulate", str(FIG5), "--out", str(d / "x.csv"), "--force", "--duration", "0.1", "-q"],
+], ids=["simulate", "run", "calibrate", "report", "simulate-sidecar"])
+def test_force_never_replaces_a_device_a_fifo_or_a_directory(tmp_path, capsys, kind, argv):
+    """As root, `run --out /dev/null --force` once replaced /dev/null with the run log (a clone of it here)."""
+    if kind == "device" and os.geteuid() != 0:
+        pytest.skip("making a device node needs root")
+    (tmp_path / "t7.yaml").write_bytes(T7.read_bytes())
+    assert main(["simulate", str(FIG5), "--out", str(tmp_path / "r.csv"), "--duration", "0.1", "-q"]) == 0
+    victim = tmp_path / ("x.json" if "x.csv" in argv(tmp_path, tmp_path / "o")[3] else "o.png")
+    if kind == "fifo":
+        os.mkfifo(victim)
+    elif kind == "device":
+        os.mknod(victim, 0o666 | stat.S_IFCHR, os.makedev(1, 3))  # what /dev/null is
+    else:
+        victim.mkdir()
+    before = os.lstat(victim)
+    capsys.readouterr()
+    assert main(argv(tmp_path, victim)) == 2
+    err = capsys.readouterr().err
+    assert "not a regular file" in err or "is a directory" in err, err
+    after = os.lstat(victim)
+    assert (after.st_mode, after.st_ino, after.st_rdev) == (before.st_mode, before.st_ino, before.st_rdev)

@@ -64,14 +64,15 @@ def test_the_identified_set_has_the_bench_terms(identified):
 
 def test_simulate_runs_the_law_on_the_identified_damper(identified):
     fname = {"file": str(identified)}
-    exp = build(validate_experiment(_fig5(fname, fname), EXPERIMENTS, allow_outside=True))  # the set: a test's tmp
+    here = identified.parent  # the identified set beside the experiment (files a config names lie under its folder)
+    exp = build(validate_experiment(_fig5(fname, fname), here))
     plant = exp.make_plant()
     p = read_params_file(identified).params
     assert plant.tau_s == pytest.approx(p.tau_input, rel=1e-9)  # the plant honours the set's lag
     aware = simulate(exp, 4.0).summary["force_nrmse"]
     # the same plant, the law's own model without offset and stiffness
     unaware_set = {k: getattr(p, k) for k in p.names()} | {"tau_input": p.tau_input}
-    unaware = simulate(build(validate_experiment(_fig5(unaware_set, fname), EXPERIMENTS, allow_outside=True)), 4.0)
+    unaware = simulate(build(validate_experiment(_fig5(unaware_set, fname), here)), 4.0)
     base = simulate(build(validate_experiment(load_yaml(EXPERIMENTS / "fig5.yaml"), EXPERIMENTS)), 4.0)
     assert aware < unaware.summary["force_nrmse"] / 3
     assert aware < 4 * base.summary["force_nrmse"] and aware < 0.012
@@ -92,7 +93,7 @@ def test_hil_sim_bench_runs_the_identified_set(identified, tmp_path):
 
     cfg = validate_bench({"version": 1, "parameters": str(identified),
                           "excitation": {"type": "sine", "amplitude_m": 0.01, "frequency_hz": 1.0},
-                          "plant": {"driver_tau_s": None}}, identified.parent)  # the set lies in its folder
+                          "plant": {"driver_tau_s": None}}, identified.parent)
     p = read_params_file(identified).params
     assert cfg.params == p
     dev = BenchDevice(cfg, DeviceState())

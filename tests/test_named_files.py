@@ -71,6 +71,10 @@ def test_a_named_files_values_are_described_not_quoted(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "F0: must be a finite number, got a string (14 characters)" in err
     assert "laws: a string (11 characters) not allowed" in err and "secret" not in err
+    (cfg.parent / "p.yaml").write_text("F0: *topsecretalias\n")  # PyYAML would quote the alias it met
+    assert main(["check", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "line 1, column 5: invalid YAML: found undefined alias" in err and "topsecret" not in err
     # the config itself is the user's own: its values are still quoted (briefly)
     cfg = _cfg(tmp_path, rate_hz="fast")
     assert main(["check", str(cfg)]) == 2

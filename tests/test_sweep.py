@@ -301,4 +301,4 @@ def test_check_lists_the_points_that_will_fail(tmp_path, capsys):
     p = _sweep(tmp_path, {"grid": {"safety.I_max": [0.6, 5.0, 7.0]}})
     assert main(["check", str(p)]) == 0
     out = capsys.readouterr().out
-    assert "will fail" in out and "safety.I_max" in out and "OK (2 points invalid" in out
+    assert "will fail" in out and "safety.I_max" in out and "OK (2 point(s) invalid" in out

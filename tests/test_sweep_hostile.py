@@ -294,3 +294,29 @@ def test_a_killed_sweep_leaves_no_worker_and_no_lock(sweep_file):
     # the table is free: the next sweep resumes it
     assert main(["sweep", str(sweep_file), "--out", str(out), "--no-progress", "--workers", "2"]) == 0
     assert [int(r["point"]) for r in _table(out)] == list(range(400))
+
+
+@pytest.mark.parametrize("suffix", ["csv", "parquet"])
+def test_a_table_larger_than_a_sort_chunk_is_merged_from_disk_in_point_order(tmp_path, monkeypatch, suffix):
+    """The rewrite in point order never holds the table: chunks sorted, spilled, merged; duplicates dropped."""
+    if suffix == "parquet":
+        pytest.importorskip("pyarrow")
+    import random
+
+    from mrctl.sweep import rows
+    from mrctl.sweep.table import read_results
+
+    monkeypatch.setattr(rows, "SORT_CHUNK", 700)
+    cols = columns(["demand.c_des"], ["force_nrmse"])
+    table = ResultsTable(tmp_path / f"r.{suffix}", cols)
+    table.open()
+    order = list(range(5000))
+    random.Random(1).shuffle(order)
+    for i in order + order[:300]:  # 300 points twice
+        table.add({"point": i, "config_hash": f"h{i}", "demand.c_des": 100 + i, "force_nrmse": i / 1e4,
+                   "status": "ok"})
+    table.close(True)
+    got_cols, got = read_results(tmp_path / f"r.{suffix}")
+    assert got_cols == cols and [int(r["point"]) for r in got] == list(range(5000))
+    assert got[4999]["demand.c_des"] == "5099" and float(got[7]["force_nrmse"]) == 7e-4
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"r.{suffix}"]  # no spill file left

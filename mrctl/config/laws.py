@@ -43,7 +43,8 @@ def _resolver(kind: str, base_dir: Path, fence: Fence | None
 
 
 def law_unions(base_dir: Path, fence: Fence | None = None) -> dict[str, Union]:
-    """The ``demand`` and ``inverse`` unions; file paths admitted by ``fence`` (default: under ``base_dir``'s folder)."""
+    """The ``demand`` and ``inverse`` unions; file paths admitted by ``fence``
+    (default: under ``base_dir``'s folder)."""
     def variants(kind: str) -> dict[str, Any]:
         return {name: bind_paths(cls.params, base_dir, fence) for name, cls in BUILTIN[kind].items()}
 

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Mapping, Sequence
 
 from mrctl.errors import BadInput
-from mrctl.util.files import check_out_parent, refuse_inputs
+from mrctl.util.files import check_out_parent, refuse_inputs, refuse_special
 from mrctl.util.jsonutil import jsonable
 
 __all__ = ["SIDECAR_RESERVE_BYTES", "sidecar_path", "check_log_path", "create_log", "write_json", "fsync_dir",
@@ -75,6 +75,8 @@ def check_output_path(path: str | os.PathLike[str], force: bool = False,
         raise BadInput(f"'': an empty file name for {what}")
     p = Path(path)
     refuse_inputs([p], inputs, what)
+    if not (p.is_dir() and not p.is_symlink()):
+        refuse_special([p], what)
     if p.is_dir() and not p.is_symlink():
         raise BadInput(f"{p}: is a directory; {what} is a file" if what != "the run log"
                        else f"{p}: is a directory; --out names the run log's CSV file")

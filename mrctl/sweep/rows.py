@@ -27,7 +27,7 @@ from mrctl.errors import BadInput
 __all__ = ["cell", "HashSet", "lines", "checked_rows", "sorted_rows", "SORT_CHUNK"]
 
 #: rows sorted in memory at once when a table is rewritten in point order (more: merged from runs on disk)
-SORT_CHUNK = 100_000
+SORT_CHUNK = 50_000
 
 
 def cell(v: Any) -> str:

@@ -24,6 +24,7 @@ import asyncio
 import ctypes
 import ctypes.util
 import itertools
+import multiprocessing
 import os
 import signal
 import sys
@@ -124,7 +125,11 @@ def run_local(tasks: Iterable[dict[str, Any]], workers: int, batch: int = 1) -> 
         return
     prewarm(first)  # before the fork: workers inherit the imports and the law registry
     tasks = itertools.chain([first], it)
-    pool = ProcessPoolExecutor(max_workers=workers, initializer=_worker_init, initargs=(os.getpid(),))
+    # forked (whatever the interpreter's default): workers inherit the prewarmed imports, and this process
+    # is their parent, whose death they watch
+    ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+    pool = ProcessPoolExecutor(max_workers=workers, initializer=_worker_init, initargs=(os.getpid(),),
+                               mp_context=ctx)
     try:
         def done_of(pending: list[Future]) -> tuple[list[Future], list[Future]]:
             d, p = wait(pending, return_when=FIRST_COMPLETED)
@@ -186,7 +191,8 @@ def dask_client(scheduler: Any) -> tuple[Any, bool]:
     except ImportError:
         raise DependencyMissing("--scheduler needs dask.distributed: pip install 'mrctl[sweep]'") from None
     check_scheduler_address(scheduler)
-    probe_scheduler(scheduler)
+    if not scheduler.startswith("inproc://"):  # a scheduler in this process: nothing foreign to ask
+        probe_scheduler(scheduler)
     try:
         return Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S:g}s"), True
     except Exception as exc:  # noqa: BLE001 - it answered a moment ago: whatever fails now is the link

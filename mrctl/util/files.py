@@ -32,8 +32,9 @@ from typing import Any, Iterable
 
 from mrctl.errors import BadInput
 
-__all__ = ["FileProblem", "read_regular_file", "open_regular", "flock_holder", "not_regular", "per_user_dir", "private_dir", "MiB", "DEFAULT_OUT_DIR",
-           "check_out_parent", "ensure_out_parent", "Fence", "fence_root", "CONFIG_TREE", "same_file", "refuse_inputs"]
+__all__ = ["FileProblem", "read_regular_file", "open_regular", "flock_holder", "not_regular", "per_user_dir",
+           "private_dir", "MiB", "DEFAULT_OUT_DIR", "check_out_parent", "ensure_out_parent", "Fence", "fence_root",
+           "CONFIG_TREE", "same_file", "refuse_inputs", "refuse_special"]
 
 MiB = 1 << 20
 
@@ -178,8 +179,10 @@ class Fence:
     @classmethod
     def around(cls, folder: str | os.PathLike[str], allow_outside: bool = False,
                allowed: Iterable[str | os.PathLike[str]] = (), what: str = "the config") -> "Fence":
-        """The fence of a file in ``folder`` (:func:`fence_root`), or none
-        with ``allow_outside``; ``what`` names that file in the refusal."""
+        """The fence of a file in ``folder`` (:func:`fence_root`; None: the
+        current directory), or none with ``allow_outside``; ``what`` names
+        that file in the refusal."""
+        folder = folder if folder is not None else "."
         root = fence_root(folder)
         where = (f"{what}'s folder" if root == Path(os.path.abspath(folder)).resolve()
                  else f"the {CONFIG_TREE}/ tree {what} lies in")
@@ -270,6 +273,24 @@ def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
         return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
     except (OSError, RuntimeError):
         return False
+
+
+def refuse_special(outputs: Iterable[str | os.PathLike[str]], what: str = "--out") -> None:
+    """``BadInput`` if an output's name holds something other than a regular
+    file or a symlink: ``--force`` replaces a file (or a link, never what it
+    points at), never a device, FIFO, socket or directory (as root,
+    ``--out /dev/null --force`` would otherwise replace /dev/null).
+    Touches nothing."""
+    for o in outputs:
+        try:
+            mode = os.lstat(o).st_mode
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            raise BadInput(f"{o}: {what}: cannot look at it: {exc.strerror or exc}") from None
+        if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+            raise BadInput(f"{o}: {what} names {_kind(mode)}, not a regular file; an output is a file, and --force "
+                           "replaces a file, never a device, FIFO, socket or directory")
 
 
 def refuse_inputs(outputs: Iterable[str | os.PathLike[str]], inputs: Iterable[str | os.PathLike[str]],

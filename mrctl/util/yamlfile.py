@@ -237,6 +237,8 @@ def load_yaml_lines(path: str | Path) -> tuple[Any, dict[Any, int]]:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
+        if not _ECHO.get().values:  # a named file: PyYAML quotes tags, aliases and anchors it met; not those
+            problem = re.sub(r"'[^'\s]{4,}'", "'…'", problem)
         raise ConfigError([f"{where}invalid YAML: {problem}"], str(p)) from None
     except RecursionError:  # 200 000 '[': PyYAML's composer recurses per level
         raise ConfigError(["invalid YAML: nested too deeply (lists or mappings inside each other hundreds of "
@@ -261,7 +263,8 @@ def read_named_yaml(value: Any, base_dir: Path, fence: Fence, key: str,
     if full is None:
         return None, [str(err)]
     try:
-        data, lines = load_yaml_lines(full)
+        with quoting(values=False):
+            data, lines = load_yaml_lines(full)
         with quoting(values=False, lines=lines):
             return read(full, data), []
     except ConfigError as exc:
