@@ -374,13 +374,13 @@ def d10_sidecar() -> tuple[bool, str]:
 def d10_status_reply() -> tuple[bool, str]:
     serve(str(Path("s.sock").resolve()), b"[" * 200_000)
     r = mrctl("status", "--socket", "s.sock")
-    return r.code == 1 and r.clean and "not a status reply" in r.err, r.say()
+    return r.code == 3 and r.clean and "not a status reply" in r.err, r.say()  # no mrctl answering: 3
 
 
 def d10_tap_reply() -> tuple[bool, str]:
     serve(str(Path("t.sock").resolve()), b"[" * 60_000 + b"\n")
     r = mrctl("tap", "--socket", "t.sock", "-n", "1")
-    return r.code == 1 and r.clean and "not a tap reply" in r.err, r.say()
+    return r.code == 3 and r.clean and "not a tap reply" in r.err, r.say()
 
 
 def _free_port() -> int:
@@ -430,7 +430,7 @@ def d10_exporter() -> tuple[bool, str]:
 def d17_status_dir_file() -> tuple[bool, str]:
     Path(f"mrctl-{os.getuid()}").write_text("")
     r = mrctl("status", env={"TMPDIR": os.getcwd(), "RUNTIME_DIRECTORY": ""})
-    return r.code == 1 and r.clean and "a regular file" in r.err, r.say()
+    return r.code == 3 and r.clean and "a regular file" in r.err, r.say()
 
 
 def d17_fifo_data() -> tuple[bool, str]:
@@ -685,7 +685,7 @@ def h4_cap() -> tuple[bool, str]:
     _pid, status, usage = os.wait4(p.pid, 0)
     code = os.waitstatus_to_exitcode(status)
     rss = usage.ru_maxrss / 1024
-    ok = c.code == 0 and c.secs < 20 and code == 130 and first < 20 and rss < 300
+    ok = c.code == 0 and c.secs < 20 and code == 0 and first < 20 and rss < 300  # Ctrl-C: 0, the table valid
     return ok, (f"check: exit {c.code} in {c.secs:.1f} s; sweep of {MAX_POINTS} points: 3 rows after {first:.1f} s, "
                 f"Ctrl-C exit {code}, max RSS {rss:.0f} MB")
 

@@ -403,7 +403,7 @@ def attack_d19_tap() -> tuple[bool, str]:
         rc, err, t = _mrctl(d, "tap", "--socket", path, "-n", "5", timeout=20)
     finally:
         srv.close()
-    return rc == 1 and t < 10, f"tap to a socket that accepts and never answers: exit {rc} after {t:.1f} s: {_last(err, 70)}"
+    return rc == 3 and t < 10, f"tap to a socket that accepts and never answers: exit {rc} after {t:.1f} s: {_last(err, 70)}"
 
 
 ATTACKS: list[tuple[str, str, Callable[[], tuple[bool, str]]]] = [
