@@ -122,10 +122,12 @@ def make_sweep_report(path: str, out: str, metric: str = "force_nrmse", bound: f
             n_ok = int(np.sum(np.isfinite(a) & (np.nan_to_num(a, nan=np.inf) <= bound)))
             same = next((other for other, b in drawn if np.array_equal(b, good)), None)
             text = f"{label}: {n_ok} of {a.size} ≤ {bound:g}" + (f" (identical to {same})" if same else "")
-            # overlapping laws stay visible: each its colour, line style and markers
+            # overlapping laws stay visible: each its colour, line style and markers, the markers
+            # staggered along the curve so an identical curve's never sit on another's
+            every = max(1, good.size // 8)
             ax1.step(good, np.arange(1, good.size + 1) / max(1, a.size), where="post", color=OKABE_ITO[n % 8],
                      ls=LINE_STYLES[n % len(LINE_STYLES)], lw=1.4, marker=MARKERS[n % len(MARKERS)],
-                     markevery=max(1, good.size // 8) if good.size else 1, ms=5, label=text)
+                     markevery=((n * every) // max(1, len(arrays)) % every, every), ms=5, label=text)
             drawn.append((label, good))
         ax1.axvline(bound, color="k", lw=0.8, ls="--")
         ax1.set_xscale("log")
