@@ -99,6 +99,9 @@ def test_monte_carlo_cdfs_keep_overlapping_laws_visible_and_say_so(tmp_path, mon
     assert sum("identical to" in t for t in legend) == 1, legend
     assert all(" of 20 ≤ 0.01" in t for t in legend), legend  # n of N points, per cell
     assert "40 points, 0 not ok; 20 draws per cell" in fig.get_suptitle()
+    labels = [lab for ax in fig.axes for lab in (ax.get_xlabel(), ax.get_ylabel())]
+    assert labels[0].startswith("force_nrmse: RMS(F − F_des)")
+    assert all(len(line) <= 60 for lab in labels for line in lab.splitlines()), labels  # none runs off the page
 
 
 def _marked(line) -> np.ndarray:
