@@ -75,7 +75,9 @@ def _has_data(ax) -> bool:
 
 
 def test_one_run_every_quantity_has_its_own_colour_and_line_style(tmp_path):
-    """The report of one run used to draw F, F - F_des and I in one red."""
+    """The report of one run used to draw F, F - F_des and I in one red: now
+    every legend entry has its own colour, and the lines that share a panel
+    differ in line style too (grey print)."""
     path = _write(tmp_path / "run.csv", _sine_run())
     fig, _ = build_figure(path)
     lines = _drawn_lines(fig)
@@ -85,7 +87,9 @@ def test_one_run_every_quantity_has_its_own_colour_and_line_style(tmp_path):
     styles = [_style(h) for h in lines]
     assert len(set(styles)) == len(styles), dict(zip(labels, styles))
     assert len({c for c, _ in styles}) == len(styles)  # colours alone tell them apart
-    assert len({d for _, d in styles}) == len(styles)  # and line styles alone (grey print)
+    for ax in fig.axes:  # within a panel, line styles alone tell them apart
+        drawn = [_style(ln) for ln in ax.lines if ln.get_gid() != "clipped" and not ln.get_label().startswith("_")]
+        assert len({d for _, d in drawn}) == len(drawn), (ax.get_label(), drawn)
 
 
 def test_no_panel_without_data_in_any_layout(tmp_path):

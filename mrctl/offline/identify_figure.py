@@ -27,6 +27,7 @@ from mrctl.errors import BadInput
 from mrctl.offline.identify.result import IdentificationResult, Trace
 from mrctl.offline.identify_panels import (conditioned, conditions_panels, conditions_vary, held_out, level_table,
                                            scores_panel, theta_panels, trace_panels)
+from mrctl.offline.report_figure import palette_png
 from mrctl.runlog.files import write_outputs
 
 __all__ = ["make_identification_figure", "make_conditions_figure", "score_table", "FORMATS"]
@@ -254,27 +255,12 @@ def _save(fig, out_path: str | os.PathLike[str], ext: str, force: bool, write: b
     buf = io.BytesIO()
     fig.savefig(buf, format=ext)
     if ext == "png":
-        buf = _palette_png(buf)
+        buf = io.BytesIO(palette_png(buf.getvalue()))
     if write:
         try:
             write_outputs([(out_path, buf.getvalue())], force)
         except OSError as exc:
             raise FigureError(f"{out_path}: cannot write the figure: {exc.strerror or exc}") from None
     return buf.getvalue()
-
-
-def _palette_png(buf: io.BytesIO) -> io.BytesIO:
-    """The PNG with an adaptive 256-colour palette: a figure of many noisy
-    traces is a third of its size, no difference to the eye (Pillow, which
-    matplotlib needs anyway; the RGB file as it was without it)."""
-    try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover - matplotlib depends on Pillow
-        return buf
-    buf.seek(0)
-    out = io.BytesIO()
-    Image.open(buf).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(out, format="PNG",
-                                                                                                optimize=True)
-    return out
 
 

@@ -148,8 +148,16 @@ def theta_panels(axes: list[Any], res: IdentificationResult, levels: list[dict])
         ax.grid(True, lw=0.5, alpha=0.5)
         if name == "sigma1":
             ax.axhline(0.0, color="0.3", lw=0.6)
-        if n == 0:
-            ax.legend(fontsize="x-small", loc="best")
+    # one legend, in the first panel, for what any panel draws (a hollow point may be in another panel only)
+    from matplotlib.lines import Line2D
+
+    handles, labels = axes[0].get_legend_handles_labels()
+    poorly = any((lv.get("determined") or {}).get(name) != "well" for lv in levels
+                 for name, *_ in THETA_PANELS)
+    if poorly and "per level, poorly determined" not in labels:
+        handles.append(Line2D([], [], ls="none", marker="o", color=OKABE_ITO[4], mfc="white", mec=OKABE_ITO[4], ms=5))
+        labels.append("per level, poorly determined")
+    axes[0].legend(handles, labels, fontsize="x-small", loc="best")
 
 
 def conditioned(res: IdentificationResult) -> list[Score]:
@@ -195,7 +203,8 @@ def conditions_panels(ax_stroke: Any, ax_freq: Any, res: IdentificationResult) -
         ax.title.set_fontsize("medium")
         ax.grid(True, lw=0.5, alpha=0.5)
         ax.set_ylim(bottom=0.0)
-    ax_stroke.legend(fontsize="small", title="level", loc="best")
+    # below the points: NRMSE rarely nears 0, and the axis starts there
+    ax_stroke.legend(fontsize="small", title="level", loc="lower right", ncol=min(4, max(1, len(levels))))
 
 
 def level_table(ax: Any, res: IdentificationResult) -> None:

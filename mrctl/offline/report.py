@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from mrctl.offline.report_figure import (DEFAULT_PANELS, PANELS, QUARTER_CAR_PANELS, ReportError, check_panels,
-                                         draw_runs, events_line)
+                                         draw_runs, events_line, palette_png)
 from mrctl.offline.report_marks import fault_spans, fault_ticks, skipped_spans, skipped_ticks
 from mrctl.runlog.files import check_output_path, write_outputs
 from mrctl.runlog.metrics import tracked_force, tracking_summary
@@ -334,7 +334,7 @@ def figure_bytes(fig: Any, fmt: str) -> bytes:
     :func:`mrctl.runlog.files.write_outputs`."""
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt)
-    return buf.getvalue()
+    return palette_png(buf.getvalue()) if fmt == "png" else buf.getvalue()
 
 
 def _save(fig: Any, out_path: str | os.PathLike[str] | None, fmt: str, force: bool = False) -> bytes:

@@ -1,9 +1,9 @@
 """What the run report marks on its panels, and how it tells things apart.
 
 - Colours and line styles: Okabe & Ito's colour-blind-safe palette; one
-  (colour, line style) per quantity in a one-run figure and per run in an
-  overlay, never two legend entries alike, and black dashed reserved for
-  the demanded force.
+  colour per quantity in a one-run figure (and a line style apart where two
+  share a panel), one (colour, line style) per run in an overlay, never two
+  legend entries alike, and black dashed reserved for the demanded force.
 - Shaded stretches: faults, latched faults (0 A with the output disabled
   until ``mrctl arm``) and skipped deadlines, each from the run log's rows
   (``fault`` bits, jumps of the tick index ``k``), drawn with a minimum
@@ -35,15 +35,17 @@ _LONGDASH = (0, (8, 2))
 _DASHDOTDOT = (0, (5, 1.5, 1.5, 1.5, 1.5, 1.5))
 _SHORTDASH = (0, (2.5, 1.5))
 
-#: one quantity's (colour, line style) in a one-run figure: every pair distinct
+#: one quantity's (colour, line style) in a one-run figure: every colour distinct, and the two
+#: quantities that share a panel (F and F_des) apart in line style too; a quantity alone in its
+#: panel is solid, since a dash pattern breaks a noisy 1 kHz trace into a blur
 QUANTITY_STYLE: dict[str, tuple[str, Any]] = {
     "F": (OKABE_ITO["blue"], "-"),
     "F_des": (OKABE_ITO["black"], _DASH),
-    "error": (OKABE_ITO["vermillion"], _DASHDOT),
-    "current": (OKABE_ITO["green"], (0, (3, 1))),
+    "error": (OKABE_ITO["vermillion"], "-"),
+    "current": (OKABE_ITO["green"], "-"),
     "body_acc": (OKABE_ITO["purple"], "-"),
-    "stroke": (OKABE_ITO["sky"], _SHORTDASH),
-    "tyre": (OKABE_ITO["orange"], _DASHDOTDOT),
+    "stroke": (OKABE_ITO["sky"], "-"),
+    "tyre": (OKABE_ITO["orange"], "-"),
 }
 #: each overlaid run's (colour, line style); black dashed stays the demand's
 RUN_STYLES: tuple[tuple[str, Any], ...] = (
@@ -210,19 +212,19 @@ def mark_clipped(ax: Any, series: list[tuple[np.ndarray, np.ndarray, str]], lo: 
                         mew=0.6, clip_on=False, zorder=30, gid="clipped", label="_beyond the axis")
     trans = blended_transform_factory(ax.transData, ax.transAxes)
     x0, x1 = ax.get_xlim()
-    texts: dict[str, tuple[float, bool]] = {}
-    for x, v, _ in sorted(marks, key=lambda m: -abs(m[1])):
+    texts: dict[str, tuple[float, bool, str]] = {}
+    for x, v, colour in sorted(marks, key=lambda m: -abs(m[1])):
         text = f"{v:.3g} {unit} at t = {x:.3g} s".replace("-", "\u2212")
         if text not in texts and len(texts) < max_labels:
-            texts[text] = (x, v > hi)
+            texts[text] = (x, v > hi, colour)
     placed: list[tuple[float, bool]] = []
-    for text, (x, up) in sorted(texts.items(), key=lambda kv: kv[1][0]):
+    for text, (x, up, colour) in sorted(texts.items(), key=lambda kv: kv[1][0]):
         near = sum(1 for px, pu in placed if pu == up and abs(px - x) < 0.2 * abs(x1 - x0))
         placed.append((x, up))
         dy = 4 + 12 * near
         ax.annotate(text, (x, 1.0 if up else 0.0), xycoords=trans, xytext=(6, -dy if up else dy),
                     textcoords="offset points", va="top" if up else "bottom", ha="left", fontsize="small",
-                    color="black", zorder=31, gid="clipped",
+                    color=colour, zorder=31, gid="clipped",  # in its line's colour: whose value it is
                     bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
     return len(marks)
 
