@@ -236,3 +236,17 @@ def test_quarter_car_overlay_labels_the_demand_where_it_differs(tmp_path):
     b = _write(tmp_path / "gnd.csv", _sine_run(gain=0.9), demand="groundhook")
     _, runs = build_figure([a, b])
     assert [r["label"] for r in runs] == ["sky.csv (skyhook + smooth)", "gnd.csv (groundhook + smooth)"]
+
+
+def test_the_caption_fits_a_narrow_figure(tmp_path):
+    """--size 7,5: the caption's lines are broken at their separators to the
+    figure's width (about 10 characters per inch at its font size), nothing cut."""
+    fault = np.zeros(2000)
+    fault[1500:1510] = 1
+    path = _write(tmp_path / "run.csv", _sine_run(fault=fault))
+    fig, _ = build_figure(path, size=(7.0, 5.0))
+    caption = fig.get_suptitle()
+    assert all(len(line) <= 70 for line in caption.splitlines()), caption
+    flat = " ".join(caption.split())
+    for text in ("force NRMSE", "max |ΔI|", "I = I_max (0.6 A)", "verdict: ok", "fault: 10 ticks (0.5 % of rows)"):
+        assert text in flat, text

@@ -213,8 +213,25 @@ def draw_runs(loaded: list[tuple[dict[str, np.ndarray], dict[str, Any]]], quanti
     fig.legend(handles, labels, loc="outside lower center", ncol=3 if len(handles) > 4 else len(handles),
                frameon=False, fontsize="medium")
     head = title if title is not None else ", ".join(m["label"] for _, m in loaded)
-    fig.suptitle(head + "\n" + "\n".join(lines), fontsize="large" if single else "medium")
+    width = int(size[0] * (10.0 if single else 12.0))  # characters a caption line holds at its font size
+    fig.suptitle("\n".join(_wrap(line, width) for line in [head, *lines]), fontsize="large" if single else "medium")
     return fig
+
+
+def _wrap(text: str, width: int) -> str:
+    """A caption's lines kept within ``width`` characters, broken at its ``·``
+    separators first (a figure narrower than the default keeps its caption)."""
+    out = []
+    for line in text.split("\n"):
+        cur = ""
+        for part in line.split("   ·   "):
+            if cur and len(cur) + 7 + len(part) > width:
+                out.append(cur)
+                cur = part
+            else:
+                cur = f"{cur}   ·   {part}" if cur else part
+        out.extend(textwrap.wrap(cur, width) or [""])
+    return "\n".join(out)
 
 
 def _legend(axes: dict[str, Any], loaded: list, single: bool, shaded: bool, settling: bool, clipped: int,
