@@ -263,8 +263,8 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=1, help="runs of each shipped fit for the time (median)")
     ap.add_argument("--only", help="only the dataset with this name")
     ap.add_argument("--figures", help="write each shipped fit's figures here (NAME.png, the summary; "
-                                      "NAME-detail.png and NAME-conditions.png, constant input: every level, NRMSE against "
-                                      "stroke and frequency)")
+                                      "NAME-detail.png and NAME-conditions.png, constant input: every level, "
+                                      "NRMSE against stroke and frequency)")
     ap.add_argument("--json", help="write every number to this JSON file")
     ap.add_argument("--data-dir", help="where the shared data are (over each description's data_dir:)")
     ap.add_argument("--ablation", action="store_true",

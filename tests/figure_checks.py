@@ -43,8 +43,8 @@ def line_key(line) -> tuple:
     """A line's look: colour, dash pattern (matplotlib keeps the unscaled one), marker and its fill."""
     drawn = line.get_linestyle() not in ("None", "none", "")
     marker = line.get_marker() if line.get_marker() not in ("None", "none", "", None) else None
-    return (to_hex(line.get_color()) if drawn else None, line._unscaled_dash_pattern if drawn else None, marker,
-            to_hex(line.get_markerfacecolor()) if marker else None, to_hex(line.get_markeredgecolor()) if marker else None)
+    fill = (to_hex(line.get_markerfacecolor()), to_hex(line.get_markeredgecolor())) if marker else None
+    return to_hex(line.get_color()) if drawn else None, line._unscaled_dash_pattern if drawn else None, marker, fill
 
 
 def legends_with_lookalikes(fig) -> list[list[str]]:

@@ -102,6 +102,14 @@ def test_no_panel_without_data_in_any_layout(tmp_path):
         assert not empty, (panels, empty)
 
 
+def test_a_time_window_without_rows_is_refused_not_drawn_empty(tmp_path):
+    from mrctl.offline.report import ReportError
+
+    path = _write(tmp_path / "run.csv", _sine_run())
+    with pytest.raises(ReportError, match=r"--time 5,6: no run has two rows there \(the runs span 0–1.999 s\)"):
+        build_figure(path, time=(5.0, 6.0))
+
+
 def test_a_start_up_error_beyond_the_axis_is_marked_with_its_value(tmp_path):
     """The error panel is scaled to the metrics window; a -44.8 N start-up
     error used to be clipped off it without a mark."""

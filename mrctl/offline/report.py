@@ -289,6 +289,10 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
     missing = [q for q in panels if q in ("body_acc", "tyre") and not all(m["quarter_car"] for _, m in loaded)]
     if missing:
         raise ReportError(f"--panels: {', '.join(missing)} needs a quarter-car run (columns a_sprung, tyre_defl)")
+    if time is not None and not any(((c["t"] >= time[0]) & (c["t"] <= time[1])).sum() >= 2 for c, _ in loaded):
+        lo, hi = min(float(c["t"][0]) for c, _ in loaded), max(float(c["t"][-1]) for c, _ in loaded)
+        raise ReportError(f"--time {time[0]:g},{time[1]:g}: no run has two rows there (the runs span "
+                          f"{lo:g}–{hi:g} s); every panel would be empty")
     try:
         import matplotlib  # noqa: F401
     except ImportError:
