@@ -262,7 +262,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeat", type=int, default=1, help="runs of each shipped fit for the time (median)")
     ap.add_argument("--only", help="only the dataset with this name")
-    ap.add_argument("--figures", help="write each shipped fit's figure here (NAME.png)")
+    ap.add_argument("--figures", help="write each shipped fit's figures here (NAME.png, the summary; "
+                                      "NAME-detail.png and NAME-conditions.png, constant input: every level, "
+                                      "NRMSE against stroke and frequency)")
     ap.add_argument("--json", help="write every number to this JSON file")
     ap.add_argument("--data-dir", help="where the shared data are (over each description's data_dir:)")
     ap.add_argument("--ablation", action="store_true",
@@ -287,14 +289,17 @@ def main() -> int:
 
             fig = Path(args.figures) / f"{ds.name}.png"
             fig.parent.mkdir(parents=True, exist_ok=True)
-            make_identification_figure(res, fig, dpi=80, force=True)  # redraws the docs' figures
-            try:  # a palette PNG: a third of the size, for the docs
-                from PIL import Image
+            pages = [(fig, False)] + ([(fig.with_name(f"{ds.name}-detail.png"), True)]  # broadband: the
+                                      if ds.protocol == "constant_input" else [])  # summary has every record
+            for path, detail in pages:
+                make_identification_figure(res, path, dpi=80, force=True, detail=detail)  # the docs' figures
+                try:  # a palette PNG: a third of the size, for the docs
+                    from PIL import Image
 
-                Image.open(fig).convert("RGB").quantize(colors=64).save(fig, optimize=True)
-            except ImportError:
-                pass
-            print(f"  wrote {fig} ({fig.stat().st_size // 1024} kB)")
+                    Image.open(path).convert("RGB").quantize(colors=64).save(path, optimize=True)
+                except ImportError:
+                    pass
+                print(f"  wrote {path} ({path.stat().st_size // 1024} kB)")
             if ds.protocol == "constant_input":
                 from mrctl.offline.identify_figure import make_conditions_figure
 

@@ -98,6 +98,19 @@ def table(res: dict) -> str:
     return "\n".join(lines)
 
 
+#: each law's look in every panel (Okabe & Ito's colour-blind-safe palette; a line style and a bar hatch
+#: tell them apart in grey print too)
+LOOK = {
+    "passive-off": ("#000000", (0, (4, 2)), ""),
+    "passive-on": ("#E69F00", "-", "//"),
+    "skyhook": ("#0072B2", "-", ""),
+    "skyhook on-off": ("#56B4E9", (0, (6, 1.5, 1.5, 1.5)), ".."),
+    "groundhook": ("#009E73", (0, (1, 1)), "\\\\"),
+    "groundhook on-off": ("#D55E00", (0, (8, 2)), "xx"),
+    "clipped-optimal": ("#CC79A7", (0, (3, 1, 1, 1, 1, 1)), "--"),
+}
+
+
 def figure(res: dict, path: Path) -> None:
     import matplotlib
 
@@ -105,43 +118,46 @@ def figure(res: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8.5))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9), layout="constrained")
     ax = axes[0, 0]
-    for lname, style, scale in (("passive-off", "C7--", 0.1), ("passive-on", "C1", 1.0), ("skyhook", "C0", 1.0),
-                                ("clipped-optimal", "C6", 1.0)):
+    for lname, scale in (("passive-off", 0.1), ("passive-on", 1.0), ("skyhook", 1.0), ("clipped-optimal", 1.0)):
         c = res[("resonance", lname)]["cols"]
         m = (c["t"] >= 8.0) & (c["t"] <= 10.0)
-        ax.plot(c["t"][m], scale * c["a_sprung"][m], style, lw=1.2,
+        colour, ls, _ = LOOK[lname]
+        ax.plot(c["t"][m], scale * c["a_sprung"][m], color=colour, ls=ls, lw=1.2,
                 label=lname + (f" × {scale:g}" if scale != 1.0 else ""))
-    ax.set(title=f"sine road at the body resonance ({QC.body_hz:.2f} Hz, 5 mm)", xlabel="t (s)",
+    ax.set(title=f"(a) sine road at the body resonance ({QC.body_hz:.2f} Hz, 5 mm)", xlabel="time (s)",
            ylabel="body acceleration (m/s²)")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
     ax = axes[0, 1]
-    c_off, c_sky = res[("sweep", "passive-off")]["cols"], res[("sweep", "skyhook")]["cols"]
-    c_on = res[("sweep", "passive-on")]["cols"]
+    c_off = res[("sweep", "passive-off")]["cols"]
     f_t = 0.5 + (15.0 - 0.5) * c_off["t"] / 30.0
     win = 250
-    for c, lname, style in ((c_off, "passive-off", "C7"), (c_on, "passive-on", "C1"), (c_sky, "skyhook", "C0")):
+    for lname in ("passive-off", "passive-on", "skyhook"):
+        c = res[("sweep", lname)]["cols"]
         a2 = np.convolve(c["a_sprung"] ** 2, np.ones(win) / win, mode="same")
-        ax.semilogy(f_t, np.sqrt(a2), style, lw=1.0, label=lname)
-    ax.set(title="sine sweep 0.5 → 15 Hz, 2 mm: running RMS body acceleration", xlabel="road frequency (Hz)",
-           ylabel="m/s²")
-    ax.legend(fontsize=8)
-    for ax, key, what in ((axes[1, 0], "rms_a_sprung_mps2", "ride comfort: RMS body acceleration"),
-                          (axes[1, 1], "rms_tyre_defl_m", "road holding: RMS tyre deflection")):
+        colour, ls, _ = LOOK[lname]
+        ax.semilogy(f_t, np.sqrt(a2), color=colour, ls=ls, lw=1.0, label=lname)
+    ax.set(title="(b) sine sweep 0.5 → 15 Hz, 2 mm (RMS over 0.25 s)", xlabel="road frequency (Hz)",
+           ylabel="running RMS body acceleration (m/s²)")
+    ax.legend(fontsize=8, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
+    for ax, key, what in ((axes[1, 0], "rms_a_sprung_mps2", "(c) ride comfort: RMS body acceleration"),
+                          (axes[1, 1], "rms_tyre_defl_m", "(d) road holding: RMS tyre deflection")):
         names = list(LAWS)
         x = np.arange(len(ROADS))
         w = 0.8 / len(names)
         for i, lname in enumerate(names):
             vals = [res[(r, lname)][key] / res[(r, "passive-off")][key] for r in ROADS]
-            ax.bar(x + (i - len(names) / 2 + 0.5) * w, vals, w, label=lname)
+            colour, _, hatch = LOOK[lname]
+            ax.bar(x + (i - len(names) / 2 + 0.5) * w, vals, w, color=colour, hatch=hatch, edgecolor="white",
+                   lw=0.3, label=lname)
         ax.set_xticks(x, list(ROADS))
         ax.axhline(1.0, color="k", lw=0.6)
-        ax.set(title=f"{what} (relative to passive-off)", ylabel="× passive-off")
-        ax.legend(fontsize=7, ncol=2)
+        ax.set(title=f"{what}, relative to passive-off", ylabel="× passive-off", xlabel="road")
+    handles, labels = axes[1, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.suptitle(f"MR damper (RD-1097-01 model, I_max {I_MAX} A) in a lab-scale quarter car: m_s {QC.m_s_kg:g} kg, "
                  f"m_u {QC.m_u_kg:g} kg, k_s {QC.k_s_N_per_m:g} N/m, k_t {QC.k_t_N_per_m:g} N/m")
-    fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
 

@@ -458,7 +458,8 @@ def cmd_identify(args: argparse.Namespace) -> int:
                        "(--dataset D.yaml) or run CSVs, not both")
     args.dataset, args.runs = dataset, runs
     if args.describe is not None:  # the description of the run CSVs, nothing fitted
-        given = [o for o, v in (("--out", args.out), ("--report", args.report), ("--holdout", args.holdout),
+        given = [o for o, v in (("--out", args.out), ("--report", args.report),
+                                ("--report-detail", args.report_detail), ("--holdout", args.holdout),
                                 ("--no-offset", args.no_offset), ("--method", args.method != "trf")) if v]
         if given:
             raise BadInput(f"identify: --describe writes the description and fits nothing; {given[0]} is for the "
@@ -467,8 +468,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
         return identify_command(args)
     src = Path(dataset if dataset is not None else runs[0])
     args.out = out_path(args, str(src.with_name(src.stem + ".params.yaml")))
-    if args.report:
-        args.report = out_path(argparse.Namespace(out=args.report, mkdir=args.mkdir), inputs=command_inputs(args))
+    for opt in ("report", "report_detail"):
+        if getattr(args, opt):
+            setattr(args, opt, out_path(argparse.Namespace(out=getattr(args, opt), mkdir=args.mkdir),
+                                        inputs=command_inputs(args)))
     return identify_command(args)
 
 
@@ -652,8 +655,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="dataset description (docs/identification.md): measured records, any columns")
     add_out_options(ip, "parameters YAML to write (usable as parameters: FILE); the JSON summary is written "
                         "beside it", default="STEM.params.yaml beside the dataset or the first run")
-    ip.add_argument("--report", metavar="FIG", help="also draw a figure (.png/.pdf/.svg): measured and predicted "
-                                                    "force, F-v loops, the parameters per level and their laws")
+    ip.add_argument("--report", metavar="FIG", help="also draw the summary figure (.png/.pdf/.svg): held-out NRMSE "
+                                                    "per record, the worst record's force and F-v loop, the "
+                                                    "parameters per level and their laws, NRMSE against stroke "
+                                                    "and frequency")
+    ip.add_argument("--report-detail", metavar="FIG", help="also draw every level's (broadband: held-out record's) "
+                                                           "force and F-v loop, with every held-out score")
     ip.add_argument("--describe", metavar="D.yaml",
                     help="run CSVs: write the dataset description mrctl makes of them (edit it, then "
                          "--dataset D.yaml) and fit nothing")

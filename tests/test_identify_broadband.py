@@ -149,3 +149,22 @@ def test_progress_without_tqdm_prints_plain_lines(bb_dir, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "identify (broadband):" in err and "%" in err
     assert res.holdout[0].nrmse < 0.01
+
+
+def test_the_summary_shows_the_held_out_record_and_its_score(result):
+    """Broadband: the held-out record's force and loop beside its NRMSE,
+    no empty panel, no unit twice on an axis, the legend told apart."""
+    pytest.importorskip("matplotlib")
+    from figure_checks import axes_without_data, doubled_units, legends_with_lookalikes
+
+    from mrctl.offline.identify_figure import build_identification_figure
+
+    for detail in (False, True):
+        fig = build_identification_figure(result, detail=detail)
+        assert not axes_without_data(fig) and not doubled_units(fig) and not legends_with_lookalikes(fig)
+    fig = build_identification_figure(result)
+    assert [ax.get_label() for ax in fig.axes] == ["record-time-0", "record-fv-0", "scores"]
+    (score,) = result.holdout
+    scores = fig.axes[2]
+    assert [p.get_width() for p in scores.patches] == [pytest.approx(100 * score.nrmse)]
+    assert f"NRMSE {100 * score.nrmse:.2f} %" in fig.axes[0].get_title()

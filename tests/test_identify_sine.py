@@ -150,3 +150,27 @@ def test_savgol_window_follows_rate_and_band():
     # the window shrinks as the band widens and grows with the rate, and never drops below 5
     assert savgol_window(1000.0, 2.0) > savgol_window(1000.0, 20.0) > savgol_window(1000.0, 200.0) >= 5
     assert savgol_window(2000.0, 20.0) > savgol_window(1000.0, 20.0)
+
+
+def test_the_summary_page_has_the_conditions_and_the_per_level_table(result):
+    """Two files at two strokes and frequencies: the summary adds the NRMSE
+    against each and the per-level table, one colour and marker per level
+    in both; nothing empty, no unit twice, every legend told apart."""
+    pytest.importorskip("matplotlib")
+    from figure_checks import axes_without_data, doubled_units, legends_with_lookalikes
+
+    from mrctl.offline.identify_figure import build_identification_figure
+
+    fig = build_identification_figure(result)
+    labels = [ax.get_label() for ax in fig.axes]
+    assert {"scores", "worst-time", "worst-fv", "stroke", "frequency", "levels-table"} <= set(labels)
+    assert len(labels) == 12
+    assert not axes_without_data(fig) and not doubled_units(fig) and not legends_with_lookalikes(fig)
+    stroke = fig.axes[labels.index("stroke")]
+    pts = sorted((round(float(x), 3), round(float(y), 4)) for ln in stroke.lines if ln.get_label()[:1].isdigit()
+                 for x, y in zip(ln.get_xdata(), ln.get_ydata()))
+    want = sorted((round(1e3 * s.stroke_m, 3), round(100 * (s.nrmse_laws if s.nrmse_laws is not None else s.nrmse), 4))
+                  for s in result.holdout)
+    assert pts == want
+    table = fig.axes[labels.index("levels-table")].texts[0].get_text()
+    assert all(f"{lv['level']:.4g}" in table for lv in result.details["levels"])

@@ -1,7 +1,7 @@
 """``mrctl identify``: run CSVs or a dataset description to a parameters YAML.
 
 Checks the command line, then every output before the fit, fits, and writes
-the parameters, the dataset's JSON summary and the figure together after
+the parameters, the dataset's JSON summary and the figures together after
 it, all or nothing. The outputs keep the run log's rules
 (:mod:`mrctl.runlog.files`): an existing file only with ``--force``, never a
 symlink's target, never an input (a run, its sidecar, the dataset
@@ -73,20 +73,22 @@ def identify_command(args: argparse.Namespace) -> int:
             return _describe(args, doc)
         inputs = [q for r in runs for q in (r, sidecar_path(r))]
         source = ", ".join(runs)
-    check_outputs(args.out, args.report, inputs, force=args.force)
+    detail = getattr(args, "report_detail", None)
+    check_outputs(args.out, args.report, inputs, force=args.force, detail=detail)
     model = {"offset": False, "stiffness": False} if args.no_offset else None
     res = identify_dataset(ds, holdout=args.holdout, model=model, source=source, method=args.method,
                            progress=not (args.no_progress or args.quiet), described=doc, notes=notes)
     items = result_bytes(res, args.out)
-    if args.report:
+    figures = [(f, d) for f, d in ((args.report, False), (detail, True)) if f]
+    for fig, as_detail in figures:
         from mrctl.offline.identify_figure import make_identification_figure
 
-        items.append((Path(args.report), make_identification_figure(res, args.report, write=False)))
+        items.append((Path(fig), make_identification_figure(res, fig, write=False, detail=as_detail)))
     print(format_summary(res))
     write_all(items, args.force)
     _say(args, f"wrote {args.out} and {items[1][0]} ({res.time_s:.1f} s)")
-    if args.report:
-        _say(args, f"wrote {args.report}")
+    for fig, _ in figures:
+        _say(args, f"wrote {fig}")
     return 0
 
 
@@ -122,7 +124,8 @@ def _say(args: argparse.Namespace, msg: str) -> None:
         print(msg, flush=True)
 
 
-def check_outputs(out: str, report: str | None, inputs: Sequence[PathLike], *, force: bool = False) -> None:
+def check_outputs(out: str, report: str | None, inputs: Sequence[PathLike], *, force: bool = False,
+                  detail: str | None = None) -> None:
     """``BadInput`` for any output that would destroy something (see the
     module doc): the parameters, the JSON summary beside them, the figure.
     Touches nothing."""
@@ -132,10 +135,11 @@ def check_outputs(out: str, report: str | None, inputs: Sequence[PathLike], *, f
         raise BadInput(f"--out {out}: the parameters file is YAML; a .json name is the summary's, written beside "
                        "it (name it .yaml)")
     outs = [(Path(out), "the parameters (--out)"), (json_path(out), f"the summary of {Path(out).name}")]
-    if report is not None:
-        if Path(report).suffix.lower().lstrip(".") not in FORMATS:
-            raise BadInput(f"--report {report!r}: cannot write a figure of that name; name it .png, .pdf or .svg")
-        outs.append((Path(report), "the figure (--report)"))
+    for opt, fig, what in (("--report", report, "the figure"), ("--report-detail", detail, "the detail figure")):
+        if fig is not None:
+            if Path(fig).suffix.lower().lstrip(".") not in FORMATS:
+                raise BadInput(f"{opt} {fig!r}: cannot write a figure of that name; name it .png, .pdf or .svg")
+            outs.append((Path(fig), f"{what} ({opt})"))
     seen: dict[Path, str] = {}
     for p, what in outs:
         key = p.resolve()

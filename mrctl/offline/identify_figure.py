@@ -1,17 +1,19 @@
-"""The figure of an identification: held-out force, F–v loops, the parameters per level.
+"""The figures of an identification: a summary page, and per-level detail on request.
 
-:func:`make_identification_figure` draws the measured and the predicted force over
-time and the force–velocity loops: for constant input one record fitted at
-every level (its held-out cycles where it has some, else its fitted ones),
-for broadband the held-out parts of the first records, each with its NRMSE
-in its title; for constant input with two levels or more, the six
+:func:`make_identification_figure` draws, by default, the summary a reader
+takes in at a glance: the held-out NRMSE of every record (per level for
+constant input), the worst held-out record's force over time and its
+force–velocity loop; for constant input with two levels or more the six
 parameters per level (±2 standard errors) with the paper's laws and the
-table (the paper's Fig 3) and the held-out NRMSE of every record against
-its stroke and its frequency, one colour per level
-(:func:`make_conditions_figure` draws those two alone); a last panel lists
-the held-out NRMSE of every record and level under its whole name. The format
-follows the file's extension (.png, .pdf, .svg). matplotlib is imported only
-here (``mrctl[plot]``); the identification package never imports this module.
+table (the paper's Fig 3); where the records differ in stroke or frequency,
+the held-out NRMSE against each with a per-level table. Broadband: the
+held-out records (the worst and the best of more than two) and their NRMSE.
+``detail=True`` (``mrctl identify --report-detail FIG``) draws every level's
+(or held-out record's) force and F–v loop, two levels a row, with every
+held-out score under its record's whole name. :func:`make_conditions_figure`
+draws the NRMSE against stroke and frequency alone. The format follows the
+file's extension (.png, .pdf, .svg). matplotlib is imported only here
+(``mrctl[plot]``); the identification package never imports this module.
 """
 
 from __future__ import annotations
@@ -19,19 +21,22 @@ from __future__ import annotations
 import io
 import os
 from pathlib import Path
-
-import numpy as np
+from typing import Any
 
 from mrctl.errors import BadInput
 from mrctl.offline.identify.result import IdentificationResult, Trace
+from mrctl.offline.identify_panels import (conditioned, conditions_panels, conditions_vary, held_out, level_table,
+                                           scores_panel, theta_panels, trace_panels)
+from mrctl.offline.report_figure import palette_png
 from mrctl.runlog.files import write_outputs
 
 __all__ = ["make_identification_figure", "make_conditions_figure", "score_table", "FORMATS"]
 
 FORMATS = ("png", "pdf", "svg")
-#: records shown for broadband data; panels per row (constant input shows every level)
-_MAX_TRACES = 4
-#: seconds of the held-out force shown over time: broadband records are long
+#: held-out records shown for broadband data (detail); levels (or records) per row of the detail page
+_MAX_TRACES = 12
+_PER_ROW = 2
+#: seconds of the force shown over time: broadband records are long
 #: and fast, a constant-input one shows a few cycles
 _SHOW_S = {"broadband": 1.0, "constant_input": 5.0}
 
@@ -76,68 +81,6 @@ def score_table(res: IdentificationResult, max_rows: int = 40) -> str:
     return head + "\n\n" + "\n".join(rows)
 
 
-def _window(tr: Trace, show_s: float) -> slice:
-    """The first ``show_s`` seconds of the trace, up to its first gap (segments are concatenated)."""
-    dt = np.diff(tr.t)
-    if dt.size == 0:
-        return slice(0, tr.t.size)
-    step = float(np.median(dt))
-    n = int(round(show_s / step)) if step > 0 else tr.t.size
-    gaps = np.flatnonzero(dt > 1.5 * step)
-    end = int(gaps[0]) + 1 if gaps.size else tr.t.size
-    return slice(0, max(2, min(n, end)))
-
-
-# (Θ name, label, unit scale, unit text) of the per-level panels (the paper's Fig 3)
-_THETA_PANELS = (
-    ("Fc", "Coulomb force $F_c$", 1.0, "N"),
-    ("Fs", "stiction force $F_s$", 1.0, "N"),
-    ("vs", "Stribeck velocity $v_s$", 1e3, "mm/s"),
-    ("sigma0", "bristle stiffness $\\sigma_0$", 1e-3, "kN/m"),
-    ("sigma1", "bristle damping $\\sigma_1$", 1.0, "N·s/m"),
-    ("sigma2", "viscous coefficient $\\sigma_2$", 1.0, "N·s/m"),
-)
-
-
-def _theta_panels(fig, gs, row0: int, width: int, res: IdentificationResult, levels: list[dict]) -> None:
-    """The six parameters per level (±2 standard errors, hollow where poorly
-    determined) with the paper's laws (6)–(11) and, when written, the table:
-    what the laws make of the levels (the paper's Fig 3)."""
-    import dataclasses
-
-    from mrctl.offline.identify.laws import theta_from_params
-    from mrctl.offline.identify.model import THETA_NAMES
-
-    u = np.array([lv["level"] for lv in levels], float)
-    grid = np.linspace(float(u.min()), float(u.max()), 200)
-    paper = dataclasses.replace(res.params, table=None)
-    law = np.array([theta_from_params(paper, float(g)) for g in grid])
-    table = (np.array([theta_from_params(res.params, float(g)) for g in grid]) if res.params.table is not None
-             else None)
-    for n, (name, label, scale, unit) in enumerate(_THETA_PANELS):
-        sub = gs[row0 + n // 3, :width].subgridspec(1, 3)
-        ax = fig.add_subplot(sub[0, n % 3])
-        j = THETA_NAMES.index(name)
-        y = np.array([lv["theta"][name] for lv in levels]) * scale
-        se = np.array([(lv.get("std_error") or {}).get(name, np.nan) for lv in levels], float) * abs(scale)
-        well = np.array([(lv.get("determined") or {}).get(name) == "well" for lv in levels])
-        ax.plot(grid, law[:, j] * scale, color="black", lw=1.3, label="laws (6)–(11)")
-        if table is not None:
-            ax.plot(grid, table[:, j] * scale, color="tab:green", lw=1.1, ls="-.", label="laws: table")
-        if np.isfinite(se).any():
-            ax.errorbar(u, y, yerr=2 * np.nan_to_num(se), fmt="none", ecolor="tab:blue", elinewidth=0.9, capsize=2)
-        ax.plot(u[well], y[well], "o", color="tab:blue", ms=5, label="per level")
-        if (~well).any():
-            ax.plot(u[~well], y[~well], "o", mfc="white", mec="tab:blue", ms=5, label="poorly determined")
-        ax.set(xlabel=f"input ({res.unit})", ylabel=unit, title=label)
-        ax.title.set_fontsize("medium")
-        ax.grid(True, lw=0.5, alpha=0.5)
-        if name == "sigma1":
-            ax.axhline(0.0, color="0.3", lw=0.6)
-        if n == 0:
-            ax.legend(fontsize="x-small", loc="best")
-
-
 def _terms_text(p) -> str:
     """The optional model terms that are on, for the figure's title ('' without them)."""
     parts = []
@@ -150,55 +93,160 @@ def _terms_text(p) -> str:
     return (", " + ", ".join(parts)) if parts else ""
 
 
-def _conditioned(res: IdentificationResult) -> list:
-    """The held-out scores that carry a test condition (stroke and frequency)."""
-    return [s for s in res.holdout if s.level is not None and s.stroke_m is not None and s.frequency_hz is not None]
+def _figure_classes() -> tuple[Any, Any]:
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise FigureError("matplotlib is needed for figures: pip install 'mrctl[plot]'") from None
+    return Figure, FigureCanvasAgg
 
 
-def _conditions_panels(ax_stroke, ax_freq, res: IdentificationResult) -> None:
-    """Held-out NRMSE against stroke and against frequency, one colour per
-    level: where one Θ per level holds across the conditions and where not.
-    Filled: through the written set; hollow: the level's own fit, where it
-    differs from the written set's."""
-    scores = _conditioned(res)
-    levels = sorted({float(s.level) for s in scores})  # type: ignore[arg-type]
-    colours = [f"C{k % 10}" for k in range(len(levels))]
-    for lv, c in zip(levels, colours):
-        mine = sorted((s for s in scores if s.level == lv), key=lambda s: s.stroke_m)
-        for ax, key, scale in ((ax_stroke, "stroke_m", 1e3), (ax_freq, "frequency_hz", 1.0)):
-            x = np.array([getattr(s, key) for s in mine]) * scale
-            y = np.array([100 * (s.nrmse_laws if s.nrmse_laws is not None else s.nrmse) for s in mine])
-            y0 = np.array([100 * s.nrmse for s in mine])
-            ax.plot(x, y, "o", color=c, ms=6, label=f"{lv:.4g} {res.unit}")
-            differ = np.abs(y - y0) > 1e-3
-            if differ.any():
-                ax.plot(x[differ], y0[differ], "o", mfc="white", mec=c, ms=5)
-    for ax, label in ((ax_stroke, "stroke, peak to peak (mm)"), (ax_freq, "frequency (Hz)")):
-        ax.set(xlabel=label, ylabel="held-out NRMSE (%)", title=f"held-out NRMSE against {label.split(',')[0].split(' (')[0]}")
-        ax.title.set_fontsize("medium")
-        ax.grid(True, lw=0.5, alpha=0.5)
-        ax.set_ylim(bottom=0.0)
-    ax_stroke.legend(fontsize="small", title="level", loc="best")
+def _ext(out_path: str | os.PathLike[str]) -> str:
+    ext = Path(out_path).suffix.lower().lstrip(".")
+    if ext not in FORMATS:
+        raise FigureError(f"{out_path}: unknown figure format {ext or '(none)'!r}; use .png, .pdf or .svg")
+    return ext
+
+
+def _head(res: IdentificationResult, title: str | None, what: str) -> str:
+    """The suptitle: what was fitted, the written laws, the bench terms."""
+    p = res.params
+    extra = f", inertia {res.inertia_kg:.3g} kg" if res.inertia_kg else ""
+    head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
+    bench = ("per level (table)" if p.table is not None and p.table.has_bench()
+             else f"F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m")
+    return (f"{head}, laws: {p.laws} ({what})\n{bench}, tau_input {1e3 * p.tau_input:.3g} ms{extra}"
+            f"{_terms_text(p)}; model: " + ("fitted at each level, on held-out cycles where a record has them"
+                                            if res.protocol == "constant_input" else "on data the fit never saw"))
+
+
+def _score_of(res: IdentificationResult, tr: Trace) -> Any:
+    return next((s for s in res.holdout + res.train if (s.record, s.level, s.part) == (tr.record, tr.level, tr.part)),
+                None)
+
+
+def _trace_head(res: IdentificationResult, tr: Trace, prefix: str = "") -> str:
+    sc = _score_of(res, tr)
+    lv = "" if tr.level is None else f" at {tr.level:.4g} {res.unit}"
+    what = "held out" if tr.part == "holdout" else "fitted"
+    return f"{prefix}{tr.record}{lv}, {what}" + (f": NRMSE {100 * sc.nrmse:.2f} %" if sc else "")
+
+
+def _worst(res: IdentificationResult) -> Trace | None:
+    """The trace of the worst held-out record (through the written set) that has one."""
+    for s in sorted(res.holdout, key=held_out, reverse=True):
+        tr = next((t for t in res.traces if (t.record, t.level, t.part) == (s.record, s.level, "holdout")), None)
+        if tr is not None:
+            return tr
+    return None
+
+
+def _summary(fig: Any, res: IdentificationResult) -> None:
+    show = _SHOW_S.get(res.protocol, 1.0)
+    if res.protocol != "constant_input":  # broadband: the held-out records, the worst and the best of more
+        held = sorted([t for t in res.traces if t.part == "holdout"] or res.traces,
+                      key=lambda t: -(held_out(_score_of(res, t)) if _score_of(res, t) else 0.0))
+        shown = held if len(held) <= 2 else [held[0], held[-1]]
+        gs = fig.add_gridspec(len(shown), 3, width_ratios=(1.35, 1.0, 0.75))
+        for i, tr in enumerate(shown):
+            ax_t, ax_v = fig.add_subplot(gs[i, 0], label=f"record-time-{i}"), fig.add_subplot(gs[i, 1],
+                                                                                                label=f"record-fv-{i}")
+            prefix = "" if len(held) <= 2 else ("worst: " if i == 0 else "best: ")
+            trace_panels(ax_t, ax_v, tr, _trace_head(res, tr, prefix), show, legend=i == 0)
+        scores_panel(fig.add_subplot(gs[:, 2]), res)
+        return
+    levels = res.details.get("levels") or []
+    theta = len(levels) >= 2
+    cond = bool(conditioned(res)) and conditions_vary(res)
+    gs = fig.add_gridspec(1 + 2 * theta + cond, 3, height_ratios=[1.15] + [1.0] * (2 * theta + cond))
+    scores_panel(fig.add_subplot(gs[0, 0]), res)
+    tr = _worst(res) or _pick(res.traces)[0]
+    trace_panels(fig.add_subplot(gs[0, 1], label="worst-time"), fig.add_subplot(gs[0, 2], label="worst-fv"), tr,
+                 _trace_head(res, tr, "worst: " if len(res.holdout) > 1 else ""), show, legend=True)
+    if theta:
+        theta_panels([fig.add_subplot(gs[1 + n // 3, n % 3]) for n in range(6)], res, levels)
+    if cond:
+        r = 2 * theta + 1
+        conditions_panels(fig.add_subplot(gs[r, 0]), fig.add_subplot(gs[r, 1]), res)
+        level_table(fig.add_subplot(gs[r, 2]), res)
+
+
+def _detail(fig: Any, res: IdentificationResult, traces: list[Trace]) -> None:
+    nrow = -(-len(traces) // _PER_ROW)
+    ncol = 2 * min(_PER_ROW, len(traces))
+    gs = fig.add_gridspec(nrow, ncol + 1, width_ratios=[1.0] * ncol + [1.1])
+    for j, tr in enumerate(traces):
+        r, c = j // _PER_ROW, 2 * (j % _PER_ROW)
+        key = f"{tr.level:.4g}" if tr.level is not None else tr.record
+        trace_panels(fig.add_subplot(gs[r, c], label=f"time-{key}"), fig.add_subplot(gs[r, c + 1], label=f"fv-{key}"),
+                     tr, _trace_head(res, tr), _SHOW_S.get(res.protocol, 1.0), legend=j == 0)
+    axt = fig.add_subplot(gs[:, ncol], label="scores-table")
+    axt.axis("off")
+    axt.text(0.0, 1.0, score_table(res, max(40, 12 * nrow)), va="top", ha="left", family="monospace",
+             fontsize="small", transform=axt.transAxes)
+
+
+def build_identification_figure(res: IdentificationResult, title: str | None = None, dpi: int = 110,
+                                detail: bool = False) -> Any:
+    """The summary page (or with ``detail`` the per-level page) as an unsaved
+    Figure, each Axes labelled with what it shows: for tests and for
+    :func:`make_identification_figure`."""
+    Figure, Canvas = _figure_classes()
+    if detail:
+        traces = _pick(res.traces)
+        if res.protocol != "constant_input":
+            traces = traces[:_MAX_TRACES]
+        if not traces:
+            raise FigureError("no data to draw (no fitted or held-out record)")
+        nrow = -(-len(traces) // _PER_ROW)
+        fig = Figure(figsize=(4.3 * 2 * min(_PER_ROW, len(traces)) + 4.8, 3.4 * nrow + 1.2), dpi=dpi,
+                     layout="constrained")
+        Canvas(fig)
+        _detail(fig, res, traces)
+        fig.suptitle(_head(res, title, "detail: every level" if res.protocol == "constant_input"
+                           else "detail: the held-out records"), fontsize="large")
+        return fig
+    if not res.traces:
+        raise FigureError("no data to draw (no fitted or held-out record)")
+    levels = res.details.get("levels") or []
+    constant = res.protocol == "constant_input"
+    if constant:
+        rows = 1.15 + 2.0 * (len(levels) >= 2) + (bool(conditioned(res)) and conditions_vary(res))
+        size = (15.0, 3.6 * rows + 1.3)
+    else:
+        size = (15.0, 3.6 * min(2, sum(t.part == "holdout" for t in res.traces) or 1) + 1.3)
+    fig = Figure(figsize=size, dpi=dpi, layout="constrained")
+    Canvas(fig)
+    _summary(fig, res)
+    fig.suptitle(_head(res, title, "summary; every level: --report-detail" if constant
+                       else "summary; every held-out record: --report-detail"), fontsize="large")
+    return fig
+
+
+def make_identification_figure(res: IdentificationResult, out_path: str | os.PathLike[str], title: str | None = None,
+                               dpi: int = 110, force: bool = False, write: bool = True, detail: bool = False) -> bytes:
+    """Write the summary figure of a :class:`IdentificationResult` (``detail``:
+    the per-level page) to ``out_path`` (.png/.pdf/.svg; ``dpi`` for PNG),
+    whole or not at all (an existing file refused unless ``force``); returns
+    its bytes. ``write=False`` only renders them (the CLI writes them with the
+    parameters)."""
+    ext = _ext(out_path)
+    return _save(build_identification_figure(res, title, dpi, detail), out_path, ext, force, write)
 
 
 def make_conditions_figure(res: IdentificationResult, out_path: str | os.PathLike[str], dpi: int = 110,
                            force: bool = False, write: bool = True) -> bytes:
     """Held-out NRMSE against stroke and frequency per level (constant input),
     written to ``out_path`` as :func:`make_identification_figure` writes; returns its bytes."""
-    ext = Path(out_path).suffix.lower().lstrip(".")
-    if ext not in FORMATS:
-        raise FigureError(f"{out_path}: unknown figure format {ext or '(none)'!r}; use .png, .pdf or .svg")
-    if not _conditioned(res):
+    ext = _ext(out_path)
+    if not conditioned(res):
         raise FigureError("no held-out score with a stroke and a frequency (constant-input records only)")
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError:
-        raise FigureError("matplotlib is needed for figures: pip install 'mrctl[plot]'") from None
+    Figure, Canvas = _figure_classes()
     fig = Figure(figsize=(11.0, 4.2), dpi=dpi, layout="constrained")
-    FigureCanvasAgg(fig)
+    Canvas(fig)
     a1, a2 = fig.subplots(1, 2)
-    _conditions_panels(a1, a2, res)
+    conditions_panels(a1, a2, res)
     fig.suptitle(f"{res.name}: held-out force NRMSE per record, laws: {res.params.laws}")
     return _save(fig, out_path, ext, force, write)
 
@@ -207,7 +255,7 @@ def _save(fig, out_path: str | os.PathLike[str], ext: str, force: bool, write: b
     buf = io.BytesIO()
     fig.savefig(buf, format=ext)
     if ext == "png":
-        buf = _palette_png(buf)
+        buf = io.BytesIO(palette_png(buf.getvalue()))
     if write:
         try:
             write_outputs([(out_path, buf.getvalue())], force)
@@ -216,94 +264,3 @@ def _save(fig, out_path: str | os.PathLike[str], ext: str, force: bool, write: b
     return buf.getvalue()
 
 
-def _palette_png(buf: io.BytesIO) -> io.BytesIO:
-    """The PNG with an adaptive 256-colour palette: a figure of many noisy
-    traces is a third of its size, no difference to the eye (Pillow, which
-    matplotlib needs anyway; the RGB file as it was without it)."""
-    try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover - matplotlib depends on Pillow
-        return buf
-    buf.seek(0)
-    out = io.BytesIO()
-    Image.open(buf).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(out, format="PNG",
-                                                                                                optimize=True)
-    return out
-
-
-def make_identification_figure(res: IdentificationResult, out_path: str | os.PathLike[str], title: str | None = None,
-                        dpi: int = 110, force: bool = False, write: bool = True) -> bytes:
-    """Write the figure of a :class:`IdentificationResult` to ``out_path`` (.png/.pdf/.svg; ``dpi`` for PNG),
-    whole or not at all (an existing file refused unless ``force``); returns its bytes.
-    ``write=False`` only renders them (the CLI writes them with the parameters)."""
-    ext = Path(out_path).suffix.lower().lstrip(".")
-    if ext not in FORMATS:
-        raise FigureError(f"{out_path}: unknown figure format {ext or '(none)'!r}; use .png, .pdf or .svg")
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError:
-        raise FigureError("matplotlib is needed for figures: pip install 'mrctl[plot]'") from None
-    traces = _pick(res.traces)
-    if not traces:
-        raise FigureError("no data to draw (no fitted or held-out record)")
-    n = len(traces)
-    ncol = min(n, _MAX_TRACES)
-    nrow = -(-n // ncol)
-    levels = res.details.get("levels") or []
-    theta_rows = 2 if res.protocol == "constant_input" and len(levels) >= 2 else 0
-    cond_rows = 1 if _conditioned(res) else 0
-    fig = Figure(figsize=(4.2 * max(ncol, 3) + 4.6, 7.2 * nrow + 3.4 * (theta_rows + cond_rows)), dpi=dpi,
-                 layout="constrained")
-    FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(2 * nrow + theta_rows + cond_rows, max(ncol, 3) + 1,
-                          width_ratios=[1.0] * max(ncol, 3) + [1.05],
-                          height_ratios=[1.0] * (2 * nrow) + [0.95] * (theta_rows + cond_rows))
-    scores = {(s.record, s.level, s.part): s for s in res.holdout + res.train}
-    u = res.unit
-    for j, tr in enumerate(traces):
-        r0, c0 = 2 * (j // ncol), j % ncol
-        sc = scores.get((tr.record, tr.level, tr.part))
-        lv = "" if tr.level is None else f" at {tr.level:.4g} {u}"
-        what = "held out" if tr.part == "holdout" else "fitted"
-        head = f"{tr.record}{lv}, {what}" + (f": NRMSE {100 * sc.nrmse:.2f} %" if sc else "")
-        ax = fig.add_subplot(gs[r0, c0])
-        w = _window(tr, _SHOW_S.get(res.protocol, 1.0))
-        t0 = tr.t[w][0]
-        ax.plot(tr.t[w] - t0, tr.F_meas[w], color="0.1", lw=1.0, label="measured")
-        ax.plot(tr.t[w] - t0, tr.F_pred[w], color="tab:red", lw=0.9, alpha=0.85, label="predicted")
-        ax.set(xlabel=f"time from {t0:.3g} s (s)", ylabel="force (N)", title=head)
-        ax.title.set_fontsize("medium")
-        ax.grid(True, lw=0.5, alpha=0.5)
-        if j == 0:
-            ax.legend(loc="upper right", fontsize="small")
-        ax2 = fig.add_subplot(gs[r0 + 1, c0])
-        step = max(1, tr.v.size // 3000)  # a few thousand points show the loop
-        ax2.plot(1e3 * tr.v[::step], tr.F_meas[::step], ".", ms=1.5, color="0.15", alpha=0.3, rasterized=True,
-                 label="measured")
-        ax2.plot(1e3 * tr.v[::step], tr.F_pred[::step], ".", ms=1.0, color="tab:red", alpha=0.3, rasterized=True,
-                 label="predicted")
-        ax2.set(xlabel="velocity (mm/s)", ylabel="force (N)", title=f"force–velocity, {what} part")
-        ax2.title.set_fontsize("medium")
-        ax2.grid(True, lw=0.5, alpha=0.5)
-    if theta_rows:
-        _theta_panels(fig, gs, 2 * nrow, max(ncol, 3), res, levels)
-    if cond_rows:
-        sub = gs[2 * nrow + theta_rows, :max(ncol, 3)].subgridspec(1, 2)
-        _conditions_panels(fig.add_subplot(sub[0, 0]), fig.add_subplot(sub[0, 1]), res)
-    # the table of every held-out score
-    axt = fig.add_subplot(gs[:, max(ncol, 3)])
-    axt.axis("off")
-    axt.text(0.0, 1.0, score_table(res, 40 * nrow), va="top", ha="left", family="monospace", fontsize="small",
-             transform=axt.transAxes)
-    p = res.params
-    extra = f", inertia {res.inertia_kg:.3g} kg" if res.inertia_kg else ""
-    head = title if title is not None else f"{res.name}: {res.protocol} identification, {res.input} input"
-    bench = ("per level (table)" if p.table is not None and p.table.has_bench()
-             else f"F_offset {p.F_offset:.4g} N, k_x {p.k_x:.4g} N/m")
-    terms = _terms_text(p)
-    fig.suptitle(f"{head}, laws: {p.laws}\n{bench}, tau_input {1e3 * p.tau_input:.3g} ms"
-                 f"{extra}{terms}; red: " + ("the model fitted at that level, on held-out cycles where a record has them"
-                                      if res.protocol == "constant_input" else "the fitted model on data the fit "
-                                      "never saw"), fontsize="large")
-    return _save(fig, out_path, ext, force, write)

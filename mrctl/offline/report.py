@@ -17,7 +17,6 @@ imported only inside the figure functions: the daemon never needs it.
 
 from __future__ import annotations
 
-
 import io
 import math
 import os
@@ -27,7 +26,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from mrctl.errors import BadInput
+from mrctl.offline.report_figure import (DEFAULT_PANELS, PANELS, QUARTER_CAR_PANELS, ReportError, check_panels,
+                                         draw_runs, events_line, palette_png)
+from mrctl.offline.report_marks import fault_spans, fault_ticks, skipped_spans, skipped_ticks
 from mrctl.runlog.files import check_output_path, write_outputs
 from mrctl.runlog.metrics import tracked_force, tracking_summary
 from mrctl.runlog.read import read_run_table, sidecar_path, try_sidecar
@@ -46,10 +47,6 @@ DEFAULT_SETTLE_S = 1.0
 
 #: figure formats, by the output name's extension
 FORMATS = ("png", "pdf", "svg")
-
-
-class ReportError(BadInput):
-    """A run file cannot be reported on; the message says why, for the CLI user."""
 
 
 def figure_format(out_path: str | os.PathLike[str]) -> str:
@@ -110,7 +107,8 @@ def _run_facts(path: Path) -> dict[str, Any]:
     settle = side.get("settle_s")
     verdict = side.get("verdict")
     reasons = side.get("verdict_reasons")
-    return {"law": law if isinstance(law, str) else None,
+    demand = (cfg.get("demand") or {}).get("type") if isinstance(cfg.get("demand"), dict) else None
+    return {"law": law if isinstance(law, str) else None, "demand": demand if isinstance(demand, str) else None,
             "I_max": float(I_max) if isinstance(I_max, (int, float)) and not isinstance(I_max, bool) else None,
             "settle": float(settle) if isinstance(settle, (int, float)) and not isinstance(settle, bool) else None,
             "verdict": verdict if verdict in ("ok", "degraded") else None,
@@ -163,30 +161,11 @@ def _summary_line(m: dict[str, Any], settle_used: bool) -> str:
 
 
 # -- figure -----------------------------------------------------------------
-_COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")
-#: line styles of overlaid runs: told apart in grey print and by colour-blind readers too
-_STYLES = ("-", (0, (6, 2)), (0, (1, 1.2)), (0, (6, 2, 1, 2)), (0, (3, 1, 1, 1, 1, 1)), (0, (10, 3)))
-
-#: every panel the report can draw: (title, y label); time panels share the time axis
-PANELS: dict[str, tuple[str, str]] = {
-    "force": ("damper force", "force (N)"),
-    "error": ("tracking error $F - F_{des}$", "error (N)"),
-    "current": ("coil current", "coil current (A)"),
-    "fv": ("force–velocity", "force (N)"),
-    "fx": ("force–displacement", "force (N)"),
-    "body_acc": ("body acceleration", "body acceleration (m/s²)"),
-    "stroke": ("suspension stroke", "stroke (mm)"),
-    "tyre": ("tyre deflection", "tyre deflection (mm)"),
-}
-TIME_PANELS = ("force", "error", "current", "body_acc", "stroke", "tyre")
-#: the default panels: a force-tracking run, and a quarter-car run (judged on comfort and road holding)
-DEFAULT_PANELS = ("force", "error", "current", "fv", "fx")
-QUARTER_CAR_PANELS = ("body_acc", "stroke", "tyre", "current")
+__all__ += ["PANELS", "DEFAULT_PANELS", "QUARTER_CAR_PANELS", "check_panels", "build_figure", "parse_pair",
+            "fault_spans", "skipped_spans"]
+#: the quarter car's columns, and the optional columns the report shades or draws
 _QC_COLUMNS = ("a_sprung", "tyre_defl")
 _EXTRA_COLUMNS = ("k", "fault", *_QC_COLUMNS)
-
-__all__ += ["PANELS", "DEFAULT_PANELS", "QUARTER_CAR_PANELS", "build_figure", "parse_pair", "fault_spans",
-            "skipped_spans"]
 
 
 def parse_pair(text: str, option: str, positive: bool = False) -> tuple[float, float]:
@@ -212,39 +191,6 @@ def _load_extras(path: Path) -> dict[str, np.ndarray]:
         except CsvError:
             continue  # absent or not numeric: nothing to shade or draw from it
     return out
-
-
-def _runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[first, last] row index of each run of True."""
-    m = np.asarray(mask, bool)
-    if not m.any():
-        return []
-    d = np.diff(np.concatenate(([0], m.view(np.int8), [0])))
-    return list(zip(np.flatnonzero(d == 1).tolist(), (np.flatnonzero(d == -1) - 1).tolist()))
-
-
-def fault_spans(t: np.ndarray, fault: np.ndarray | None, dt: float) -> list[tuple[float, float]]:
-    """Time spans (s) of rows with a fault bit set: from the first such
-    row's time to one tick after the last."""
-    if fault is None:
-        return []
-    f = np.asarray(fault, float)
-    return [(float(t[a]), float(t[b]) + dt) for a, b in _runs_of(np.isfinite(f) & (f != 0))]
-
-
-def skipped_spans(t: np.ndarray, k: np.ndarray | None, dt: float) -> list[tuple[float, float]]:
-    """Time spans (s) of skipped deadlines: where the tick index jumps,
-    from one tick after the row before to the row after."""
-    if k is None or len(k) < 2:
-        return []
-    jumps = np.flatnonzero(np.diff(np.asarray(k, float)) > 1.5)
-    return [(float(t[i]) + dt, float(t[i + 1])) for i in jumps]
-
-
-def _rgb(colour: str) -> tuple[float, float, float]:
-    from matplotlib.colors import to_rgb
-
-    return to_rgb(colour)
 
 
 def _dt(t: np.ndarray, k: np.ndarray | None) -> float:
@@ -273,15 +219,32 @@ def _ride_line(cols: dict[str, np.ndarray], m: dict[str, Any]) -> str:
             f"I = 0: {100.0 * m['share_zero']:.1f} %")
 
 
-def check_panels(panels: Sequence[str]) -> list[str]:
-    """``--panels`` as a list; ReportError naming any unknown panel (checked
-    before any file is touched)."""
-    panels = list(panels)
-    unknown = [q for q in panels if q not in PANELS]
-    if unknown or not panels:
-        raise ReportError(f"--panels: unknown panel(s) {', '.join(unknown) or '(none given)'}; "
-                          f"choose from {', '.join(PANELS)}")
-    return panels
+def _events(cols: dict[str, np.ndarray], m: dict[str, Any]) -> None:
+    """The run's faults, latched faults and skipped deadlines: their spans
+    (s) and how many ticks each, into ``m``."""
+    t, k, fault = cols["t"], cols.get("k"), cols.get("fault")
+    dt = _dt(t, k)
+    m["fault_spans"] = fault_spans(t, fault, dt)
+    m["latched_spans"] = fault_spans(t, fault, dt, latched=True)
+    m["skipped_spans"] = skipped_spans(t, k, dt)
+    m["ticks"] = {"fault": fault_ticks(fault), "latched": fault_ticks(fault, latched=True),
+                  "skipped deadlines": skipped_ticks(k)}
+    m["rows"] = len(t)
+    m["deadlines"] = len(t) + m["ticks"]["skipped deadlines"]
+
+
+def _labels(paths: list[Path], facts: list[dict[str, Any]]) -> list[str]:
+    """Each run's label: its file name and law (with its demand where the runs'
+    demands differ: skyhook beside groundhook); its folder too where two runs
+    share a name."""
+    names = [p.name for p in paths]
+    demands = len({f["demand"] for f in facts}) > 1
+    out = []
+    for p, f in zip(paths, facts):
+        name = p.name if names.count(p.name) == 1 else f"{p.parent.name}/{p.name}"
+        law = f"{f['demand']} + {f['law']}" if demands and f["demand"] and f["law"] else f["law"]
+        out.append(f"{name} ({law})" if law else name)
+    return out
 
 
 def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], title: str | None = None,
@@ -290,8 +253,9 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
                  panels: Sequence[str] | None = None) -> tuple[Any, list[dict[str, Any]]]:
     """The report's Figure (unsaved) and each run's figures: for tests that
     check what is drawn, and for :func:`make_report`. Each panel's Axes is
-    labelled with its name (``ax.get_label()``); shaded spans carry the
-    labels ``fault``, ``skipped deadlines`` and ``settling``."""
+    labelled with its name (``ax.get_label()``); shaded stretches carry the
+    labels ``fault``, ``latched``, ``skipped deadlines`` and ``settling``;
+    markers of values beyond an axis the gid ``clipped``."""
     paths = [Path(runs)] if isinstance(runs, (str, os.PathLike)) else [Path(r) for r in runs]
     if not paths:
         raise ReportError("no run to report on")
@@ -300,20 +264,24 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
     # like with like: the plant's own force only when every run has it (simulated benches),
     # else every run's load cell (a run on hardware beside its replay)
     quantity = "F_true" if all("F_measured" in cols for _, cols in read) else "F"
-    for p, cols in read:
+    facts_of = [_run_facts(p) for p in paths]
+    labels = _labels(paths, facts_of)
+    for (p, cols), facts, label in zip(read, facts_of, labels):
         if quantity == "F" and "F_measured" in cols:
             cols["F"] = cols.pop("F_measured")
         cols.update(_load_extras(p))
-        facts = _run_facts(p)
         st = settle if settle is not None else (facts["settle"] if facts["settle"] is not None else DEFAULT_SETTLE_S)
         m: dict[str, Any] = summarize(cols, st, facts["I_max"])
         m.update(I_max=facts["I_max"], path=str(p), verdict=facts["verdict"], force_from=quantity,
-                 verdict_reasons=facts["verdict_reasons"],
-                 label=f"{p.name} ({facts['law']})" if facts["law"] else p.name)
+                 verdict_reasons=facts["verdict_reasons"], label=label)
         m["quarter_car"] = all(c in cols for c in _QC_COLUMNS)
-        dt = _dt(cols["t"], cols.get("k"))
-        m["fault_spans"] = fault_spans(cols["t"], cols.get("fault"), dt)
-        m["skipped_spans"] = skipped_spans(cols["t"], cols.get("k"), dt)
+        _events(cols, m)
+        m["window"] = _window_text(m, m["t_start"] > cols["t"][0])
+        summary = _ride_line(cols, m) if m["quarter_car"] else _summary_line(m, m["t_start"] > cols["t"][0])
+        verdict = _verdict_text(m)
+        parts = [summary + (f"   ·   {verdict}" if len(verdict) < 40 else ""), events_line(m),
+                 "" if len(verdict) < 40 else "\n".join(textwrap.wrap(verdict, 150))]
+        m["caption"] = "\n".join(part for part in parts if part)
         loaded.append((cols, m))
     if panels is None:
         panels = QUARTER_CAR_PANELS if all(m["quarter_car"] for _, m in loaded) else DEFAULT_PANELS
@@ -321,128 +289,15 @@ def build_figure(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
     missing = [q for q in panels if q in ("body_acc", "tyre") and not all(m["quarter_car"] for _, m in loaded)]
     if missing:
         raise ReportError(f"--panels: {', '.join(missing)} needs a quarter-car run (columns a_sprung, tyre_defl)")
+    if time is not None and not any(((c["t"] >= time[0]) & (c["t"] <= time[1])).sum() >= 2 for c, _ in loaded):
+        lo, hi = min(float(c["t"][0]) for c, _ in loaded), max(float(c["t"][-1]) for c, _ in loaded)
+        raise ReportError(f"--time {time[0]:g},{time[1]:g}: no run has two rows there (the runs span "
+                          f"{lo:g}–{hi:g} s); every panel would be empty")
     try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.patches import Patch
+        import matplotlib  # noqa: F401
     except ImportError:
         raise ReportError("matplotlib is needed for reports: pip install 'mrctl[plot]'") from None
-
-    single = len(loaded) == 1
-    ncols = 1 if len(panels) <= 2 else 2
-    nrows = -(-len(panels) // ncols)
-    if size is None:
-        size = (12.0, 2.9 * nrows + 1.6 + 0.35 * len(loaded))
-    fig = Figure(figsize=size, dpi=200, layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = {}
-    for i, name in enumerate(panels):
-        ax = fig.add_subplot(nrows, ncols, i + 1, label=name)
-        axes[name] = ax
-    t_lo = min(float(c["t"][0]) for c, _ in loaded)
-    t_hi = max(float(c["t"][-1]) for c, _ in loaded)
-    if time is not None:
-        t_lo, t_hi = time
-    time_axes = [axes[q] for q in panels if q in TIME_PANELS]
-    lines = []
-    for n, (cols, m) in enumerate(loaded):
-        t = cols["t"]
-        settle_used = m["t_start"] > t[0]
-        colour = _COLOURS[n % len(_COLOURS)]
-        style = _STYLES[n % len(_STYLES)]
-        sel = (t >= t_lo) & (t <= t_hi)
-        w = sel & (t >= m["t_start"])  # loops over the metrics window only (no stray start-up cycle)
-        if single:  # actual first and lighter, desired on top and dark-dashed: when tracking
-            # is good the two coincide, and the reference must stay visible
-            act = dict(color=colour, lw=0.9, alpha=0.8, zorder=2,
-                       label="true $F$ (simulated plant)" if "F_measured" in cols else "load-cell $F$")
-            des = dict(color="black", lw=1.3, ls=(0, (4, 2)), zorder=3, label="desired $F_{des}$")
-            line = dict(color=colour, lw=1.0, zorder=2)
-        else:  # each run in its colour and line style; a demand that differs from the first run's gets a line
-            act = dict(color=colour, ls=style, lw=1.0, alpha=0.9, zorder=2 + n, label=m["label"])
-            des = None if n and _same_demand(loaded, n) else dict(
-                color="black" if n == 0 else colour, lw=1.1, ls=(0, (4, 2)), zorder=20, alpha=0.8,
-                label="desired $F_{des}$" if n == 0 else f"desired $F_{{des}}$, {m['label']}")
-            line = dict(color=colour, ls=style, lw=1.0, zorder=2 + n, label=m["label"])
-        F, F_des = cols["F"], cols["F_des"]
-        draw = {
-            "force": lambda ax: (ax.plot(t[sel], F[sel], **act),
-                                 des is not None and ax.plot(t[sel], F_des[sel], **des)),
-            "error": lambda ax: ax.plot(t[sel], (F - F_des)[sel], **{**line, "label": line.get("label",
-                                                                                        "$F - F_{des}$")}),
-            "current": lambda ax: ax.plot(t[sel], cols["I"][sel], **{**line, "label": line.get("label",
-                                                                                            "current $I$")}),
-            "fv": lambda ax: (ax.plot(1e3 * cols["v"][w], F[w], **act),
-                              des is not None and ax.plot(1e3 * cols["v"][w], F_des[w], **des)),
-            "fx": lambda ax: (ax.plot(1e3 * cols["x"][w], F[w], **act),
-                              des is not None and ax.plot(1e3 * cols["x"][w], F_des[w], **des)),
-            "body_acc": lambda ax: ax.plot(t[sel], cols["a_sprung"][sel], **line),
-            "stroke": lambda ax: ax.plot(t[sel], 1e3 * cols["x"][sel], **line),
-            "tyre": lambda ax: ax.plot(t[sel], 1e3 * cols["tyre_defl"][sel], **line),
-        }
-        for q in panels:
-            draw[q](axes[q])
-        # what happened, shaded in every time panel: faults (0 A), skipped deadlines
-        for ax in time_axes:
-            for a, b in m["skipped_spans"]:
-                ax.axvspan(a, b, color="tab:orange" if single else colour, alpha=0.22, lw=0, zorder=0.5,
-                           label="skipped deadlines")
-            for a, b in m["fault_spans"]:  # over the skips: a fault is what a reader must not miss
-                ax.axvspan(a, b, facecolor=(1.0, 0.0, 0.0, 0.22) if single else (*_rgb(colour), 0.22),
-                           edgecolor="tab:red" if single else colour, hatch="///", lw=0, zorder=0.6,
-                           label="fault")
-        if m["quarter_car"]:
-            summary = _ride_line(cols, m)
-        else:
-            summary = _summary_line(m, settle_used)
-        verdict = "\n".join(textwrap.wrap(_verdict_text(m), 150))
-        lines.append(f"{summary}\n{verdict}" if single else f"{m['label']}: {summary}\n{verdict}")
-    # the settling window (what the metrics leave out), shaded in every time panel
-    t_settle = max(m["t_start"] for _, m in loaded)
-    if t_settle > t_lo:
-        for ax in time_axes:
-            ax.axvspan(t_lo, min(t_settle, t_hi), color="0.88", zorder=0, lw=0, label="settling")
-    for q, ax in axes.items():
-        what, ylabel = PANELS[q]
-        if q == "force":  # which force every run is drawn and judged on
-            what += ": the plant's $F_{true}$" if quantity == "F_true" else ": the load cell's $F$"
-        letter = "abcdefghij"[panels.index(q)]
-        if q in ("fv", "fx"):
-            window = (f" ({_window_text(loaded[0][1], loaded[0][1]['t_start'] > loaded[0][0]['t'][0])})"
-                      if single else " (metrics windows)")
-            ax.set(xlabel="velocity (mm/s)" if q == "fv" else "displacement (mm)", ylabel=ylabel,
-                   title=f"({letter}) {what}{window}")
-        else:
-            ax.set(xlabel="time (s)", ylabel=ylabel, title=f"({letter}) {what}")
-            ax.set_xlim(t_lo, t_hi)
-        if q == "error":
-            ax.axhline(0.0, color="0.3", lw=0.6, zorder=1)
-            lim = _error_limits(loaded, t_lo, t_hi)
-            if lim is not None:  # scaled to the metrics window: a start-up transient is not the story
-                ax.set_ylim(*lim)
-        ax.grid(True, lw=0.5, alpha=0.5)
-    # one shared legend below the panels, so no legend ever covers data; the
-    # shaded spans once each
-    handles, labels = [], []
-    for ax in axes.values():
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            if lab not in labels and lab not in ("fault", "skipped deadlines", "settling"):
-                handles.append(h)
-                labels.append(lab)
-    shade = {"fault": any(m["fault_spans"] for _, m in loaded),
-             "skipped deadlines": any(m["skipped_spans"] for _, m in loaded), "settling": t_settle > t_lo}
-    for lab, colour, alpha in (("fault", "tab:red", 0.22), ("skipped deadlines", "tab:orange", 0.22),
-                               ("settling", "0.88", 1.0)):
-        if shade[lab] and time_axes:
-            handles.append(Patch(facecolor=(*_rgb(colour), alpha), edgecolor=colour, lw=0,
-                                 hatch="///" if lab == "fault" else None))
-            labels.append({"fault": "fault (0 A)", "settling": "settling (not in metrics)"}.get(lab, lab))
-    if handles:
-        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(handles), 4), frameon=False,
-                   fontsize="medium")
-    head = title if title is not None else ", ".join(m["label"] for _, m in loaded)
-    fig.suptitle(head + "\n" + "\n".join(lines), fontsize="large" if single else "medium")
-    return fig, [m for _, m in loaded]
+    return draw_runs(loaded, quantity, panels, title=title, size=size, time=time), [m for _, m in loaded]
 
 
 def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], out_path: str | os.PathLike[str],
@@ -478,37 +333,12 @@ def make_report(runs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     return runs_out
 
 
-def _error_limits(loaded: list, t_lo: float, t_hi: float) -> tuple[float, float] | None:
-    """y limits of the error panel: the runs' F - F_des over their metrics
-    windows within [t_lo, t_hi], 15 % margin; None when there is nothing
-    finite there (matplotlib's own limits then)."""
-    lo, hi = math.inf, -math.inf
-    for cols, m in loaded:
-        t = cols["t"]
-        sel = (t >= max(t_lo, m["t_start"])) & (t <= t_hi)
-        e = (cols["F"] - cols["F_des"])[sel]
-        e = e[np.isfinite(e)]
-        if e.size:
-            lo, hi = min(lo, float(e.min())), max(hi, float(e.max()))
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        return None
-    pad = 0.15 * max(hi - lo, 1e-9)
-    return lo - pad, hi + pad
-
-
-def _same_demand(loaded: list, n: int) -> bool:
-    """Run n asks for the force run 0 asks for (the same demand on the same
-    time base): its dashed reference would only repeat run 0's."""
-    a, b = loaded[0][0], loaded[n][0]
-    return len(a["t"]) == len(b["t"]) and np.allclose(a["F_des"], b["F_des"], rtol=1e-6, atol=1e-6, equal_nan=True)
-
-
 def figure_bytes(fig: Any, fmt: str) -> bytes:
     """The rendered figure (png, pdf or svg) as bytes, for
     :func:`mrctl.runlog.files.write_outputs`."""
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt)
-    return buf.getvalue()
+    return palette_png(buf.getvalue()) if fmt == "png" else buf.getvalue()
 
 
 def _save(fig: Any, out_path: str | os.PathLike[str] | None, fmt: str, force: bool = False) -> bytes:

@@ -79,12 +79,21 @@ _KEY_UNITS = {"demand.c_des": "N·s/m", "plant.driver_tau_s": "s", "safety.I_max
               "excitation.amplitude_m": "m", "excitation.frequency_hz": "Hz", "inverse.law": ""}
 
 
-def metric_label(metric: str) -> str:
-    """An axis label for ``metric``: its meaning (mrctl.sweep.metrics.METRIC_DOCS) and name."""
+def metric_label(metric: str, width: int = 52) -> str:
+    """An axis label for ``metric``: its name and meaning (mrctl.sweep.metrics.METRIC_DOCS)
+    without a closing remark in brackets (a unit stays), wrapped to ``width``
+    characters so it never runs off the figure."""
+    import textwrap
+
     from mrctl.sweep.metrics import METRIC_DOCS
 
     doc = METRIC_DOCS.get(metric)
-    return f"{metric}: {doc.split(' (')[0] if '(' in doc and not doc.startswith('RMS(') else doc}" if doc else metric
+    if not doc:
+        return metric
+    head, _, tail = doc.rpartition(" (")
+    if head and tail.endswith(")") and len(tail) > 8:  # "(mrctl simulate's force NRMSE)": a remark, not a unit
+        doc = head
+    return "\n".join(textwrap.wrap(f"{metric}: {doc}", width))
 
 
 def key_label(key: str) -> str:
@@ -122,10 +131,12 @@ def make_sweep_report(path: str, out: str, metric: str = "force_nrmse", bound: f
             n_ok = int(np.sum(np.isfinite(a) & (np.nan_to_num(a, nan=np.inf) <= bound)))
             same = next((other for other, b in drawn if np.array_equal(b, good)), None)
             text = f"{label}: {n_ok} of {a.size} ≤ {bound:g}" + (f" (identical to {same})" if same else "")
-            # overlapping laws stay visible: each its colour, line style and markers
+            # overlapping laws stay visible: each its colour, line style and markers, the markers
+            # staggered along the curve so an identical curve's never sit on another's
+            every = max(1, good.size // 8)
             ax1.step(good, np.arange(1, good.size + 1) / max(1, a.size), where="post", color=OKABE_ITO[n % 8],
                      ls=LINE_STYLES[n % len(LINE_STYLES)], lw=1.4, marker=MARKERS[n % len(MARKERS)],
-                     markevery=max(1, good.size // 8) if good.size else 1, ms=5, label=text)
+                     markevery=((n * every) // max(1, len(arrays)) % every, every), ms=5, label=text)
             drawn.append((label, good))
         ax1.axvline(bound, color="k", lw=0.8, ls="--")
         ax1.set_xscale("log")
@@ -137,7 +148,7 @@ def make_sweep_report(path: str, out: str, metric: str = "force_nrmse", bound: f
         ax2.set_xticks(range(1, len(arrays) + 1), [" ".join(k) or "all" for k in arrays], rotation=20, fontsize=8)
         ax2.axhline(bound, color="k", lw=0.8, ls="--")
         ax2.set_yscale("log")
-        ax2.set_ylabel(f"{label_of}\n(box: quartiles, whiskers 5-95 %)")
+        ax2.set_ylabel(f"{metric} (its meaning: left)\nbox: quartiles, whiskers 5–95 %")
     elif len(grid) >= 2:
         xa, ya, rest = grid[0], grid[1], grid[2:]
         xs = sorted({k[0] for k in arrays}, key=_sort_key)
