@@ -15,6 +15,9 @@ interpreter spends on the log. Each round measures, for this tree and each
   ``format_pending`` per row, the writer thread's CPU time per row
   (its ``pthread_getcpuclockid`` clock: write and fsync), and
   ``Recorder.record`` per call (timeit, the fast path within a block);
+- ``--formatter``: this tree's row formatter alone
+  (:class:`mrctl.runlog.rowtext.RowFormatter`), C against its ``%`` twin,
+  µs per 15-column row of a simulated fig5_robust log, 32 and 256 rows a call;
 - ``--loop``: ``bench/loop_timing.py --tick controller_tick:make_tick
   --strategies hybrid`` of that tree (the real controller tick and its
   recorder at 1 kHz, cyclictest in the same window) while ``--hogs``
@@ -25,6 +28,7 @@ Medians over rounds, and the median of per-round ratios against the first
 ``--tree``.
 
     python bench/log_writer.py --cpu --rounds 7 --tree ../mrctl-before
+    python bench/log_writer.py --formatter --rounds 7
     python bench/log_writer.py --loop --rounds 5 --seconds 8 --hogs 2 --tree ../mrctl-before
 """
 
@@ -102,6 +106,37 @@ print(json.dumps({"format_us_per_row": fmt_cpu / n / 1e3, "writer_us_per_row": w
                   "bytes_per_row": size / n}))
 """
 
+def formatter_round() -> dict[str, float]:
+    """This tree's formatter, C and its '%' twin, µs per row (the median of 5 passes)."""
+    import time
+    from array import array
+
+    sys.path.insert(0, str(ROOT))
+    from mrctl.config import load_experiment
+    from mrctl.experiment import build
+    from mrctl.offline.simulate import log_columns, simulate
+    from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS
+    from mrctl.runlog.rowtext import RowFormatter
+
+    cols = log_columns(simulate(build(load_experiment(ROOT / "config/experiments/fig5_robust.yaml")), 20.0))
+    n = len(cols["t"])
+    packed = array("d", [float(cols[c][i]) for i in range(n) for c in RUN_COLUMNS])
+    out = {}
+    for name, compiled in (("C", True), ("py", False)):
+        f = RowFormatter(RUN_COLUMNS, RUN_FORMATS, use_compiled=compiled)
+        if compiled and not f.compiled:
+            raise SystemExit("the compiled formatter is not built here")
+        for chunk in (32, 256):
+            times = []
+            for _ in range(5):
+                t0 = time.perf_counter()
+                for r in range(0, n - chunk + 1, chunk):
+                    f.rows(packed, r, chunk)
+                times.append((time.perf_counter() - t0) / (n - n % chunk) * 1e6)
+            out[f"{name}_{chunk}"] = statistics.median(times)
+    return out
+
+
 HOG = "import time\nend = time.monotonic() + {s}\nx = 0.0\nwhile time.monotonic() < end:\n    x += 1.0\n"
 
 
@@ -166,6 +201,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cpu", action="store_true", help="the writer's CPU per row, record() per call")
     ap.add_argument("--loop", action="store_true", help="the loop's lateness beside --hogs CPU hogs")
+    ap.add_argument("--formatter", action="store_true", help="this tree's formatter alone, C and '%%'")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--rows", type=int, default=100_000)
     ap.add_argument("--seconds", type=float, default=8.0)
@@ -197,8 +233,13 @@ def main() -> int:
                                   ("late_p999", "lateness p99.9 µs"), ("compute_p99", "compute p99 µs"),
                                   ("skipped", "skipped deadlines"), ("ct_p99", "cyclictest p99 µs"),
                                   ("cpu_pct", "loop process CPU %")], results, trees)
-    if not (a.cpu or a.loop):
-        ap.error("give --cpu and/or --loop")
+    if a.formatter:
+        results = {"this": [formatter_round() for _ in range(a.rounds)]}
+        _table(f"Row formatter alone, µs per 15-column row, {a.rounds} rounds: median (runs)",
+               [("C_32", "C, 32 rows a call"), ("C_256", "C, 256 rows a call"), ("py_32", "'%', 32 rows a call"),
+                ("py_256", "'%', 256 rows a call")], results, [("this", ROOT)])
+    if not (a.cpu or a.loop or a.formatter):
+        ap.error("give --cpu, --formatter and/or --loop")
     return 0
 
 

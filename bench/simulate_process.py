@@ -109,8 +109,9 @@ def main() -> int:
                 if bname == "compiled" and (tname, "pure", d) in results:
                     ps = results[(tname, "pure", d)]
                     ratio = f"{med([p['whole'] / c['whole'] for c, p in zip(rs, ps)]):.2f}×"
+                per_loop = [x["whole"] / x["loop"] for x in rs if x["loop"] > 0]
                 print(f"| {tname} | {bname} | {d:g} | {med([x['whole'] for x in rs]):.3f} | "
-                      f"{med([x['loop'] for x in rs]):.3f} | {med([x['whole'] / x['loop'] for x in rs]):.2f} | "
+                      f"{med([x['loop'] for x in rs]):.3f} | {f'{med(per_loop):.2f}' if per_loop else '-'} | "
                       f"{med([x['rss_mb'] for x in rs]):.0f} | {ratio} |")
     print()
     for d in durations:

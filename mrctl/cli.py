@@ -186,7 +186,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     exp = _load_simulated(args)
     duration = run_duration(exp, override)
     total = run_ticks(exp, duration)
-    bar = make_bar(total, "simulate", not (args.quiet or args.no_progress), unit="ticks", delay_s=2.0, every_s=30.0)
+    bar = make_bar(total, "simulate", not (args.quiet or args.no_progress), unit="ticks", delay_s=2.0,
+                   every_s=30.0)
     done = [0]
 
     def progress(ticks: int) -> None:
@@ -198,10 +199,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             res = simulate_blocks(exp, duration, progress=progress)
             verdict, code = simulate_verdict(exp, res)
         else:
+            def say_size(e: Any) -> None:  # a long run says, before it goes on, what the disk must hold
+                if e.total_bytes >= 2**28:
+                    _say(args, f"run log {args.out}: {e.text()}")
+
             res, verdict, code = simulate_logged(
                 exp, duration, args.out, args.config, force=args.force, mkdir=args.mkdir, replay_of=args.replay,
-                on_estimate=lambda e: _say(args, f"run log {args.out}: {e.text()}") if e.total_bytes >= 2**28 else None,
-                progress=progress)
+                on_estimate=say_size, progress=progress)
     finally:
         bar.close()
     return _simulated(args, exp, res, verdict, code)

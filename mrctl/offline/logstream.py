@@ -143,7 +143,8 @@ class BlockLog:
         names = self.formatter.columns
         counters = RowFormatter(_COUNTERS, {c: RUN_FORMATS[c] for c in _COUNTERS}, require_core=False)
         in_block = len(counters.columns_text([cols[names.index(c)] for c in _COUNTERS], 0, n))
-        k = np.sort(np.random.default_rng(0).integers(0, self.rows, _SAMPLE_TICKS)).astype(float)
+        # ticks spread over the whole run (golden-ratio steps: no numpy.random to import)
+        k = np.sort(np.floor((np.arange(1, _SAMPLE_TICKS + 1) * 0.6180339887498949) % 1.0 * self.rows))
         t = k * self.dt  # as the loop computes a tick's time
         sampled = len(counters.columns_text([t, k, k, t], 0, _SAMPLE_TICKS)) / _SAMPLE_TICKS
         per_row = (len(data) - in_block) / n + sampled

@@ -53,10 +53,11 @@ RUN_UNITS: dict[str, str] = {c: u for c, u, _ in _COLUMNS}
 RUN_MEANINGS: dict[str, str] = {c: m for c, _, m in _COLUMNS}
 #: The core columns, in order (s, m, m/s, N, N, A).
 CORE_COLUMNS: tuple[str, ...] = RUN_COLUMNS[:6]
-#: Their text formats. 9 significant digits are far below any sensor's
-#: resolution, and format 5x faster than exact repr (2.9 vs 14 us per row):
-#: the writer thread shares the GIL with the loop. Counters and clocks get 10
-#: digits, exact for integers below 1e10 and to 1 us for device times.
+#: Their text formats: the log's contract, the bytes both builds write
+#: (mrctl/runlog/rowtext.py formats them, in C in the compiled build). 9
+#: significant digits are far below any sensor's resolution, and format 5x
+#: faster than exact repr with '%'. Counters and clocks get 10 digits, exact
+#: for integers below 1e10.
 RUN_FORMATS = {c: "%.9g" for c in RUN_COLUMNS} | {"t": "%.10g", "k": "%.10g", "seq": "%.10g", "t_dev": "%.10g"}
 
 #: The ``fault`` column's bits: (name, value, meaning). The supervisor's
