@@ -61,6 +61,8 @@ _OOR = int(FaultBit.OUT_OF_RANGE)
 _IGNORE_SP = int(FaultBit.IGNORE_SETPOINTS)
 _ESTOP_F = int(FaultBit.ESTOP)
 _ESTOP = int(Status.ESTOP)
+#: a gap between ticks longer than this many periods is the emulator's own stall, not the host's silence
+_STALL_PERIODS = 4
 
 
 def clamp_setpoint(I: float, I_max: float) -> tuple[float, bool]:
@@ -97,6 +99,8 @@ class BenchDevice:
         #: ticks held at 0 A by the E-stop (the input open, or the device's latch)
         self.estop_ticks = 0
         self._expired = False  # watchdog expired now (setpoints absent)
+        self._prev_now_ns = 0  # the previous tick's time: a longer gap is this process's own stall
+        self._stall_ns = _STALL_PERIODS * self.loop.period_ns
         self._clears_seen = 0
         self.k_last = -1
         self.ticks = 0
@@ -164,7 +168,7 @@ class BenchDevice:
         if sp_ns == 0:
             # Watchdog from power-up: 0 A until the first setpoint (not a trip).
             I = 0.0
-        elif now_ns - sp_ns > (wd_ms * 1_000_000 if wd_ms > 0 else self.default_watchdog_ns):
+        elif self._silence_ns(now_ns, sp_ns) > (wd_ms * 1_000_000 if wd_ms > 0 else self.default_watchdog_ns):
             I = 0.0
             if not self._expired:
                 self._expired = True
@@ -203,9 +207,22 @@ class BenchDevice:
         if self.truth is not None:
             self.truth.record((k, t, b.x, b.v, b.F, b.I_cmd, I_app, x_m, v_m, F_m, status, fbits))
         self.k_last = k
+        self._prev_now_ns = now_ns
         self.ticks += 1
         if not self.first_tick.is_set():
             self.first_tick.set()
+
+    def _silence_ns(self, now_ns: int, sp_ns: int) -> int:
+        """How long the host has been silent, as the device saw it. A real
+        device never stalls; this process can (a loaded machine), and the
+        setpoints sent meanwhile wait unread in its socket. After a gap of more
+        than _STALL_PERIODS periods the silence counts only up to a period past
+        the tick before it; the next tick, a period later, counts it whole, the
+        server thread having had that period to read what waited."""
+        prev = self._prev_now_ns
+        if now_ns - prev > self._stall_ns:
+            return min(now_ns, prev + self.loop.period_ns) - sp_ns
+        return now_ns - sp_ns
 
     def _fault_change(self, fbits: int, k: int) -> None:
         """A fault window opened or closed at this tick (rare: not the hot path)."""

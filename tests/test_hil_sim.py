@@ -21,6 +21,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -488,6 +489,44 @@ def test_watchdog_trips_after_watchdog_ms_and_latches() -> None:
     state.set_setpoint(0.2, True, clear_faults=True)
     dev.tick(54, t_sp)
     assert not state.latest_sample().status & WD
+
+
+def test_the_emulators_own_stall_is_not_the_hosts_silence(monkeypatch) -> None:
+    """A real device never stalls; hil_sim can (a loaded machine), and the
+    setpoints sent meanwhile wait in its socket. A tick after a 300 ms stall
+    does not trip the 50 ms watchdog; the next one does if still nothing came,
+    and a setpoint read in between keeps it alive. Setpoints are stamped on a
+    virtual clock, as the ticks are."""
+    import hil_sim.state as state_mod
+
+    now = [10_000_000_000]
+    monkeypatch.setattr(state_mod, "time", types.SimpleNamespace(monotonic_ns=lambda: now[0]))
+    dev, state = _device()
+    state.set_setpoint(0.3, True)
+    t_sp = now[0]
+    dev.tick(1, t_sp + 1_000_000)
+    dev.tick(300, t_sp + 300_000_000)  # the process stalled 299 ms
+    assert dev.bench.I_cmd == 0.3 and not state.latest_sample().status & WD and dev.watchdog_trips == 0
+    dev.tick(301, t_sp + 301_000_000)  # a period later, still no setpoint: the host's silence
+    assert dev.bench.I_cmd == 0.0 and state.latest_sample().status & WD and dev.watchdog_trips == 1
+    assert dev.first_trip_k == 301
+
+    other, st2 = _device()
+    st2.set_setpoint(0.3, True)
+    t0 = now[0]
+    other.tick(1, t0 + 1_000_000)
+    other.tick(300, t0 + 300_000_000)
+    now[0] = t0 + 300_500_000  # what waited in the socket, read after the stall
+    st2.set_setpoint(0.25, True)
+    other.tick(301, t0 + 301_000_000)
+    assert other.bench.I_cmd == 0.25 and other.watchdog_trips == 0
+    # Without the stall a 299 ms silence does trip (the rule is not "never trip").
+    third, st3 = _device()
+    st3.set_setpoint(0.3, True)
+    t3 = now[0]
+    for k in range(1, 300):
+        third.tick(k, t3 + k * 1_000_000)
+    assert third.watchdog_trips == 1 and third.bench.I_cmd == 0.0
 
 
 def test_host_requested_watchdog_enable_and_clamp() -> None:
