@@ -227,3 +227,17 @@ def test_too_few_rows(tmp_path: Path, n_rows: int) -> None:
     path.write_text("t,x,v,F_des,F,I\n" + "0,0,0,0,0,0\n" * n_rows)
     with pytest.raises(ReportError, match="at least 2"):
         load_run(path)
+
+
+def test_a_non_numeric_extra_column_leaves_the_others_read(tmp_path: Path) -> None:
+    """The tick index still shades the skipped deadlines when the fault column is not numeric."""
+    cols = synthetic(duration=2.0)
+    n = len(cols["t"])
+    cols["k"] = np.arange(n, dtype=float) + 5.0 * (np.arange(n) >= 1000)  # 5 ticks skipped at t = 1 s
+    path = write_csv(tmp_path / "run.csv", cols)
+    text = path.read_text().splitlines()
+    text = [text[0] + ",fault"] + [line + ",none" for line in text[1:]]
+    path.write_text("\n".join(text) + "\n")
+    (m,) = make_report(path, tmp_path / "fig.png")
+    assert len(m["skipped_spans"]) == 1 and m["skipped_spans"][0][0] == pytest.approx(0.999, abs=2e-3)
+    assert m["fault_spans"] == []

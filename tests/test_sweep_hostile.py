@@ -320,3 +320,33 @@ def test_a_table_larger_than_a_sort_chunk_is_merged_from_disk_in_point_order(tmp
     assert got_cols == cols and [int(r["point"]) for r in got] == list(range(5000))
     assert got[4999]["demand.c_des"] == "5099" and float(got[7]["force_nrmse"]) == 7e-4
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"r.{suffix}"]  # no spill file left
+
+
+def test_a_parquet_table_is_typed_by_the_first_row_per_point_and_written_in_point_order(tmp_path, monkeypatch):
+    """Each column's type comes from the rows kept (a dropped duplicate does not widen it); rows in point order."""
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    from mrctl.sweep import rows
+
+    monkeypatch.setattr(rows, "SORT_CHUNK", 2)  # spilled and merged
+    cols = columns(["demand.c_des", "observer.on"], ["force_nrmse"])
+    table = ResultsTable(tmp_path / "r.parquet", cols)
+    table.open()
+    for i, c_des, on, nrmse in [(4, 140, True, 0.5), (2, 120, False, None), (0, 100, True, 1.5),
+                                (3, 130, None, 2), (1, 110, False, 0.25)]:
+        table.add({"point": i, "config_hash": f"h{i}", "demand.c_des": c_des, "observer.on": on, "seed": 7,
+                   "force_nrmse": nrmse, "status": "ok"})
+    table.add({"point": 2, "config_hash": "h2", "demand.c_des": "text", "observer.on": 3.5, "status": "ok"})
+    table.close(True)
+    got = pq.read_table(tmp_path / "r.parquet")
+    assert got.schema == pa.schema([
+        ("point", pa.int64()), ("config_hash", pa.string()), ("demand.c_des", pa.int64()),
+        ("observer.on", pa.bool_()), ("seed", pa.int64()), ("force_nrmse", pa.float64()),
+        ("status", pa.string()), ("error", pa.string()), ("wall_s", pa.float64()),
+        ("mrctl_version", pa.string()), ("build", pa.string())])
+    assert got.to_pydict() == {
+        "point": [0, 1, 2, 3, 4], "config_hash": ["h0", "h1", "h2", "h3", "h4"],
+        "demand.c_des": [100, 110, 120, 130, 140], "observer.on": [True, False, False, None, True],
+        "seed": [7] * 5, "force_nrmse": [1.5, 0.25, None, 2.0, 0.5], "status": ["ok"] * 5, "error": [""] * 5,
+        "wall_s": [None] * 5, "mrctl_version": [""] * 5, "build": [""] * 5}

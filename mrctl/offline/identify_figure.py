@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mrctl.errors import BadInput
-from mrctl.offline.identify.result import IdentificationResult, Trace
+from mrctl.offline.identify.result import IdentificationResult, Score, Trace
 from mrctl.offline.identify_panels import (conditioned, conditions_panels, conditions_vary, held_out, level_table,
                                            scores_panel, theta_panels, trace_panels)
 from mrctl.offline.report_figure import palette_png
@@ -121,13 +121,16 @@ def _head(res: IdentificationResult, title: str | None, what: str) -> str:
                                             if res.protocol == "constant_input" else "on data the fit never saw"))
 
 
-def _score_of(res: IdentificationResult, tr: Trace) -> Any:
-    return next((s for s in res.holdout + res.train if (s.record, s.level, s.part) == (tr.record, tr.level, tr.part)),
-                None)
+def _scores(res: IdentificationResult) -> dict[tuple[str, float | None, str], Score]:
+    """Each (record, level, part)'s score, the first where two share one."""
+    out: dict[tuple[str, float | None, str], Score] = {}
+    for s in res.holdout + res.train:
+        out.setdefault((s.record, s.level, s.part), s)
+    return out
 
 
 def _trace_head(res: IdentificationResult, tr: Trace, prefix: str = "") -> str:
-    sc = _score_of(res, tr)
+    sc = _scores(res).get((tr.record, tr.level, tr.part))
     lv = "" if tr.level is None else f" at {tr.level:.4g} {res.unit}"
     what = "held out" if tr.part == "holdout" else "fitted"
     return f"{prefix}{tr.record}{lv}, {what}" + (f": NRMSE {100 * sc.nrmse:.2f} %" if sc else "")
@@ -142,11 +145,17 @@ def _worst(res: IdentificationResult) -> Trace | None:
     return None
 
 
-def _summary(fig: Any, res: IdentificationResult) -> None:
+def _summary(fig: Any, res: IdentificationResult, cond: bool) -> None:
+    """The summary page; ``cond``: with the panels against the test conditions (:func:`conditions_vary`)."""
     show = _SHOW_S.get(res.protocol, 1.0)
     if res.protocol != "constant_input":  # broadband: the held-out records, the worst and the best of more
-        held = sorted([t for t in res.traces if t.part == "holdout"] or res.traces,
-                      key=lambda t: -(held_out(_score_of(res, t)) if _score_of(res, t) else 0.0))
+        scores = _scores(res)
+
+        def worst_first(t: Trace) -> float:
+            sc = scores.get((t.record, t.level, t.part))
+            return -(held_out(sc) if sc else 0.0)
+
+        held = sorted([t for t in res.traces if t.part == "holdout"] or res.traces, key=worst_first)
         shown = held if len(held) <= 2 else [held[0], held[-1]]
         gs = fig.add_gridspec(len(shown), 3, width_ratios=(1.35, 1.0, 0.75))
         for i, tr in enumerate(shown):
@@ -158,7 +167,6 @@ def _summary(fig: Any, res: IdentificationResult) -> None:
         return
     levels = res.details.get("levels") or []
     theta = len(levels) >= 2
-    cond = bool(conditioned(res)) and conditions_vary(res)
     gs = fig.add_gridspec(1 + 2 * theta + cond, 3, height_ratios=[1.15] + [1.0] * (2 * theta + cond))
     scores_panel(fig.add_subplot(gs[0, 0]), res)
     tr = _worst(res) or _pick(res.traces)[0]
@@ -211,14 +219,15 @@ def build_identification_figure(res: IdentificationResult, title: str | None = N
         raise FigureError("no data to draw (no fitted or held-out record)")
     levels = res.details.get("levels") or []
     constant = res.protocol == "constant_input"
+    cond = constant and conditions_vary(res)  # conditions_vary is False without a conditioned score
     if constant:
-        rows = 1.15 + 2.0 * (len(levels) >= 2) + (bool(conditioned(res)) and conditions_vary(res))
+        rows = 1.15 + 2.0 * (len(levels) >= 2) + cond
         size = (15.0, 3.6 * rows + 1.3)
     else:
         size = (15.0, 3.6 * min(2, sum(t.part == "holdout" for t in res.traces) or 1) + 1.3)
     fig = Figure(figsize=size, dpi=dpi, layout="constrained")
     Canvas(fig)
-    _summary(fig, res)
+    _summary(fig, res, cond)
     fig.suptitle(_head(res, title, "summary; every level: --report-detail" if constant
                        else "summary; every held-out record: --report-detail"), fontsize="large")
     return fig

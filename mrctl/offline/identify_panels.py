@@ -15,13 +15,13 @@ from typing import Any
 import numpy as np
 
 from mrctl.offline.identify.result import IdentificationResult, Score, Trace
+from mrctl.util.palette import OKABE_ITO
 
-__all__ = ["OKABE_ITO", "held_out", "scores_panel", "trace_panels", "theta_panels", "conditions_panels",
+__all__ = ["held_out", "scores_panel", "trace_panels", "theta_panels", "conditions_panels",
            "conditioned", "conditions_vary", "level_table", "window"]
 
-OKABE_ITO = ("#000000", "#E69F00", "#56B4E9", "#009E73", "#0072B2", "#D55E00", "#CC79A7", "#F0E442")
-_MEASURED = {"color": "#000000", "ls": "-"}
-_MODEL = {"color": "#D55E00", "ls": (0, (4, 1.5))}
+_MEASURED = {"color": OKABE_ITO[0], "ls": "-"}
+_MODEL = {"color": OKABE_ITO[5], "ls": (0, (4, 1.5))}
 #: one marker per level (with its colour): told apart without colour too
 _LEVEL_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">", "h", "p")
 #: (Θ name, label, unit scale, unit text) of the per-level panels (the paper's Fig 3)

@@ -183,7 +183,13 @@ def parse_pair(text: str, option: str, positive: bool = False) -> tuple[float, f
 
 def _load_extras(path: Path) -> dict[str, np.ndarray]:
     """The optional columns the report shades or draws (tick index, fault
-    bits, the quarter car's channels), those that are there and numeric."""
+    bits, the quarter car's channels), those that are there and numeric:
+    read together, and only if one of them cannot be, one by one."""
+    try:
+        got = read_run_table(path, _EXTRA_COLUMNS).columns
+        return {c: got[c] for c in _EXTRA_COLUMNS if c in got}
+    except CsvError:
+        pass
     out: dict[str, np.ndarray] = {}
     for c in _EXTRA_COLUMNS:
         try:

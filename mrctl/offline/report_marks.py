@@ -24,10 +24,8 @@ from typing import Any
 import numpy as np
 
 from mrctl.runlog.format import FAULT_BITS
+from mrctl.util.palette import OKABE_ITO_NAMED
 
-#: Okabe & Ito (2008), the palette of colour-blind-safe figures
-OKABE_ITO = {"black": "#000000", "orange": "#E69F00", "sky": "#56B4E9", "green": "#009E73",
-             "yellow": "#F0E442", "blue": "#0072B2", "vermillion": "#D55E00", "purple": "#CC79A7"}
 _DASH = (0, (4, 2))
 _DASHDOT = (0, (6, 1.5, 1.5, 1.5))
 _DOT = (0, (1, 1))
@@ -39,30 +37,31 @@ _SHORTDASH = (0, (2.5, 1.5))
 #: quantities that share a panel (F and F_des) apart in line style too; a quantity alone in its
 #: panel is solid, since a dash pattern breaks a noisy 1 kHz trace into a blur
 QUANTITY_STYLE: dict[str, tuple[str, Any]] = {
-    "F": (OKABE_ITO["blue"], "-"),
-    "F_des": (OKABE_ITO["black"], _DASH),
-    "error": (OKABE_ITO["vermillion"], "-"),
-    "current": (OKABE_ITO["green"], "-"),
-    "body_acc": (OKABE_ITO["purple"], "-"),
-    "stroke": (OKABE_ITO["sky"], "-"),
-    "tyre": (OKABE_ITO["orange"], "-"),
+    "F": (OKABE_ITO_NAMED["blue"], "-"),
+    "F_des": (OKABE_ITO_NAMED["black"], _DASH),
+    "error": (OKABE_ITO_NAMED["vermillion"], "-"),
+    "current": (OKABE_ITO_NAMED["green"], "-"),
+    "body_acc": (OKABE_ITO_NAMED["purple"], "-"),
+    "stroke": (OKABE_ITO_NAMED["sky"], "-"),
+    "tyre": (OKABE_ITO_NAMED["orange"], "-"),
 }
 #: each overlaid run's (colour, line style); black dashed stays the demand's
 RUN_STYLES: tuple[tuple[str, Any], ...] = (
-    (OKABE_ITO["blue"], "-"), (OKABE_ITO["vermillion"], _DASHDOT), (OKABE_ITO["green"], _DOT),
-    (OKABE_ITO["purple"], _DASHDOTDOT), (OKABE_ITO["orange"], _LONGDASH), (OKABE_ITO["sky"], _SHORTDASH),
+    (OKABE_ITO_NAMED["blue"], "-"), (OKABE_ITO_NAMED["vermillion"], _DASHDOT), (OKABE_ITO_NAMED["green"], _DOT),
+    (OKABE_ITO_NAMED["purple"], _DASHDOTDOT), (OKABE_ITO_NAMED["orange"], _LONGDASH),
+    (OKABE_ITO_NAMED["sky"], _SHORTDASH),
 )
 #: the demand (black dashed) and, in an overlay, a run's own demand where it differs (its colour, dashed)
-DEMAND_STYLE = (OKABE_ITO["black"], _DASH)
+DEMAND_STYLE = (OKABE_ITO_NAMED["black"], _DASH)
 
 #: the LATCHED bit of the run log's fault column
 LATCHED_BIT = next(v for n, v, _ in FAULT_BITS if n == "LATCHED")
 
 #: how each kind of stretch is drawn: face colour, alpha, hatch, edge of the panel used when it is everywhere
 SHADES: dict[str, dict[str, Any]] = {
-    "fault": {"colour": OKABE_ITO["vermillion"], "alpha": 0.20, "hatch": "///", "edge": 0.0},
+    "fault": {"colour": OKABE_ITO_NAMED["vermillion"], "alpha": 0.20, "hatch": "///", "edge": 0.0},
     "latched": {"colour": "#4D4D4D", "alpha": 0.22, "hatch": "x", "edge": 0.0},
-    "skipped deadlines": {"colour": OKABE_ITO["orange"], "alpha": 0.30, "hatch": None, "edge": 0.955},
+    "skipped deadlines": {"colour": OKABE_ITO_NAMED["orange"], "alpha": 0.30, "hatch": None, "edge": 0.955},
 }
 #: narrowest drawn stretch, as a share of the time axis (~5 px on a 7-inch panel at 200 dpi)
 MIN_WIDTH_SHARE = 0.005

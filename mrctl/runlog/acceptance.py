@@ -107,14 +107,6 @@ def judge(figures: Mapping[str, Any], bounds: Mapping[str, Any], dt_s: float) ->
     return {"verdict": DEGRADED if reasons else OK, "reasons": reasons, "figures": figs, "bounds": b}
 
 
-def offline_verdict(cols: Mapping[str, np.ndarray], summary: Mapping[str, Any], bounds: Mapping[str, Any],
-                    dt_s: float) -> dict[str, Any]:
-    """The verdict of an offline run (``mrctl simulate``) on what it has:
-    faults, forced 0 A, tracking; no real clock, so no skips or gaps."""
-    return offline_judgement(row_figures(cols, dt_s) if len(cols["t"]) else {}, summary, bounds, dt_s,
-                             float(summary.get("window_start_s", 0.0)))
-
-
 #: the shortest settled window a run's tracking is judged on (s): a shorter one is mostly the
 #: law's start (the first ramp from 0 A) and says little about the tracking
 MIN_TRACKING_WINDOW_S = 1.0
@@ -136,9 +128,10 @@ def tracking_judged(track: Mapping[str, Any] | None, settle_s: float, dt_s: floa
 
 def offline_judgement(row_figs: Mapping[str, float], summary: Mapping[str, Any], bounds: Mapping[str, Any],
                       dt_s: float, settle_s: float = 0.0) -> dict[str, Any]:
-    """:func:`offline_verdict` from the run's :func:`row_figures`, however
-    they were computed (``mrctl simulate`` accumulates them block by block:
-    :mod:`mrctl.runlog.blockmetrics`)."""
+    """The verdict of an offline run (``mrctl simulate``) on what it has:
+    faults, forced 0 A, tracking; no real clock, so no skips or gaps. From
+    the run's :func:`row_figures`, however they were computed (``mrctl
+    simulate`` accumulates them block by block: :mod:`mrctl.runlog.blockmetrics`)."""
     figs = dict(row_figs)
     figs.pop("longest_gap_s", None)
     figs.update(tracking_judged(summary, settle_s, dt_s))

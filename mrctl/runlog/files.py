@@ -75,11 +75,10 @@ def check_output_path(path: str | os.PathLike[str], force: bool = False,
         raise BadInput(f"'': an empty file name for {what}")
     p = Path(path)
     refuse_inputs([p], inputs, what)
-    if not (p.is_dir() and not p.is_symlink()):
-        refuse_special([p], what)
     if p.is_dir() and not p.is_symlink():
         raise BadInput(f"{p}: is a directory; {what} is a file" if what != "the run log"
                        else f"{p}: is a directory; --out names the run log's CSV file")
+    refuse_special([p], what)
     if os.path.lexists(p) and not force:
         kind = "a symlink" if p.is_symlink() else "a file"
         raise BadInput(f"{p}: {what} would replace {kind} that exists; refusing (pass --force to replace it)")

@@ -115,10 +115,7 @@ class RowFormatter:
     def columns_text(self, cols: Sequence[Any], row0: int, nrows: int, release_gil: bool = False) -> bytes:
         """Rows ``row0 .. row0 + nrows`` of one float64 buffer per column
         (``array('d')``, 1-D contiguous ndarrays), in the order of ``columns``."""
-        if len(cols) != self.ncols:
-            raise ValueError(f"{self.ncols} columns, {len(cols)} buffers given")
-        if row0 < 0 or nrows < 0:
-            raise IndexError(f"rows {row0}..{row0 + nrows}: negative")
+        self._check_columns(cols, row0, nrows)
         if self._c is not None:
             return self._c.format_columns(cols, self.precisions, row0, nrows, release_gil)
         parts = []
@@ -137,13 +134,17 @@ class RowFormatter:
         (``io.FileIO``), the rows are formatted and written in one call
         without the GIL; else the text goes through ``fh.write``."""
         if self._c is not None and type(fh) is io.FileIO:
-            if len(cols) != self.ncols:
-                raise ValueError(f"{self.ncols} columns, {len(cols)} buffers given")
-            if row0 < 0 or nrows < 0:
-                raise IndexError(f"rows {row0}..{row0 + nrows}: negative")
+            self._check_columns(cols, row0, nrows)
             done, rows, err = self._c.write_columns(fh.fileno(), cols, self.precisions, row0, nrows)
             return done, rows, (OSError(err, os.strerror(err)) if err else None)
         return write_all(fh, self.columns_text(cols, row0, nrows, release_gil=True), nrows)
+
+    def _check_columns(self, cols: Sequence[Any], row0: int, nrows: int) -> None:
+        """ValueError unless one buffer per column; IndexError for a negative row range."""
+        if len(cols) != self.ncols:
+            raise ValueError(f"{self.ncols} columns, {len(cols)} buffers given")
+        if row0 < 0 or nrows < 0:
+            raise IndexError(f"rows {row0}..{row0 + nrows}: negative")
 
 
 def write_all(fh: BinaryIO, data: bytes, rows: int) -> tuple[int, int, OSError | None]:

@@ -13,10 +13,11 @@ depends on the draws.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from mrctl.config import ConfigError, validate_experiment
-from mrctl.sweep.points import axis_values, draws, resolve
+from mrctl.sweep.points import draws, resolve
 from mrctl.sweep.spec import Sweep, load_sweep
 
 #: distinct errors listed at most
@@ -28,7 +29,7 @@ NORMAL_SPAN = 4.0
 def _error(sweep: Sweep, base: str, picks: list[int], drawn: dict[str, tuple[str, float]]) -> str | None:
     """The config's error (None if it validates) with the grid at ``picks`` and the draws ``drawn``."""
     overrides: list[tuple[str, Any]] = []
-    for ax, k in zip(axis_values(sweep), picks):
+    for ax, k in zip(sweep.axis_values, picks):
         overrides += ax[k][1]
     try:
         config = resolve(sweep, base, overrides, drawn)
@@ -45,7 +46,7 @@ def _grid_errors(sweep: Sweep, base: str, drawn: dict[str, tuple[str, float]]
     """(axis, value) → error of each grid value that fails on ``base``, the
     other axes at a value that passes (found in a second pass if the first
     value of an axis fails); and how many configs were checked."""
-    sizes = [len(ax) for ax in axis_values(sweep)]
+    sizes = [len(ax) for ax in sweep.axis_values]
     ref = [0] * len(sizes)
     failed: dict[tuple[int, int], str] = {}
     checked = 0
@@ -85,11 +86,9 @@ def check_sweep(path: str, *, allow_outside: bool = False) -> int:
     """0 when the file is valid (points that will fail are listed, not an error: they become failed rows);
     the sweep file's own errors raise ConfigError (exit 2)."""
     sweep = load_sweep(path, allow_outside=allow_outside)
-    sizes = [len(ax) for ax in axis_values(sweep)]
+    sizes = [len(ax) for ax in sweep.axis_values]
     n = sweep.random_n or 1
-    per_base = n
-    for size in sizes:
-        per_base *= size
+    per_base = n * math.prod(sizes)
     zero = draws(sweep, 0) if sweep.random else {}
     bad: dict[str, list[int]] = {}  # error → [points, first point]
     invalid = 0
@@ -97,9 +96,7 @@ def check_sweep(path: str, *, allow_outside: bool = False) -> int:
     for b, base in enumerate(sweep.bases):
         failed, n_checked = _grid_errors(sweep, base, zero)
         checked += n_checked
-        passing = n
-        for j, size in enumerate(sizes):
-            passing *= size - sum(1 for (a, _k) in failed if a == j)
+        passing = n * math.prod(size - sum(1 for (a, _k) in failed if a == j) for j, size in enumerate(sizes))
         invalid += per_base - passing if (-1, 0) not in failed else per_base
         for (j, k), err in failed.items():
             count = per_base // sizes[j] if j >= 0 else per_base
@@ -123,7 +120,4 @@ def check_sweep(path: str, *, allow_outside: bool = False) -> int:
 
 def _stride(sizes: list[int], j: int) -> int:
     """Grid cells between two values of axis ``j`` (the axes after it vary faster)."""
-    stride = 1
-    for size in sizes[j + 1:]:
-        stride *= size
-    return stride
+    return math.prod(sizes[j + 1:])

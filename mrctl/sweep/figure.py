@@ -21,6 +21,7 @@ import numpy as np
 
 from mrctl.errors import BadInput
 from mrctl.sweep.table import TAIL, read_results
+from mrctl.util.palette import OKABE_ITO
 
 MAX_PANELS = 6
 
@@ -70,8 +71,6 @@ def summarise(cols: list[str], rows: list[dict[str, str]], metric: str, bound: f
 
 #: print resolution of the sweep figures (a paper's figure: 200 dpi or more)
 DPI = 200
-#: Okabe & Ito's colour-blind-safe palette, black first
-OKABE_ITO = ("#000000", "#E69F00", "#56B4E9", "#009E73", "#0072B2", "#D55E00", "#CC79A7", "#F0E442")
 LINE_STYLES = ("-", "--", "-.", ":")
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 #: units of the key paths a sweep varies most, for axis labels

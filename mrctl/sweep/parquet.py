@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import os
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 from mrctl.errors import BadInput
-from mrctl.sweep.rows import cell
+from mrctl.sweep.rows import cell, sorted_rows
 
 __all__ = ["parquet_wanted", "check_columns", "text_rows", "write_parquet", "TEXT_COLUMNS"]
 
@@ -90,16 +91,24 @@ def write_csv_rows(fd: int, rows: Iterator[list[str]]) -> None:
         os.write(fd, buf.getvalue().encode("utf-8"))
 
 
-def write_parquet(path: Path, cols: list[str], rows: Callable[[], Iterator[list[str]]]) -> None:
-    """The rows ``rows()`` gives (called twice: types, then data) as the
-    Parquet file ``path``, replaced at once when complete."""
+def write_parquet(path: Path, cols: list[str], rows: Iterator[list[str]], spill_dir: Path) -> None:
+    """``rows`` (the first per config hash, in any order) as the Parquet file
+    ``path`` in point order, replaced at once when complete. One pass: each
+    column's type is widened as the sort reads the rows, and is final once
+    the sort gives its first row."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     kinds = ["str" if c in TEXT_COLUMNS else "none" for c in cols]
-    for row in rows():
-        for j, v in enumerate(row):
-            kinds[j] = _widen(kinds[j], v)
+
+    def typed() -> Iterator[list[str]]:
+        for row in rows:
+            for j, v in enumerate(row):
+                kinds[j] = _widen(kinds[j], v)
+            yield row
+
+    ordered = sorted_rows(typed(), spill_dir)
+    first = next(ordered, None)  # the sort has read every row: the kinds are final
     kinds = ["float" if k == "none" else k for k in kinds]
     types = {"int": pa.int64(), "float": pa.float64(), "bool": pa.bool_(), "str": pa.string()}
     schema = pa.schema([(c, types[k]) for c, k in zip(cols, kinds)])
@@ -107,7 +116,7 @@ def write_parquet(path: Path, cols: list[str], rows: Callable[[], Iterator[list[
     try:
         with pq.ParquetWriter(tmp, schema) as writer:
             batch: list[list[str]] = []
-            for row in rows():
+            for row in itertools.chain([first] if first is not None else [], ordered):
                 batch.append(row)
                 if len(batch) >= BATCH:
                     writer.write_table(_arrow(batch, schema, kinds))

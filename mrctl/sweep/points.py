@@ -174,7 +174,7 @@ def cell_of(sweep: "Sweep", cell: int) -> tuple[str, dict[str, Any], list[tuple[
     """(base name, column values, overrides) of grid cell ``cell``: bases
     outermost, then the axes in file order, the last fastest (as
     ``itertools.product``)."""
-    axes = axis_values(sweep)
+    axes = sweep.axis_values
     picks: list[int] = []
     for ax in reversed(axes):
         cell, k = divmod(cell, len(ax))

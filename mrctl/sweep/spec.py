@@ -14,6 +14,7 @@ not the files, and a sweep's size costs no memory.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +23,7 @@ from typing import Any, Iterator
 from mrctl.config import ConfigError, Custom, Num, Str, validate_experiment, validate_fields
 from mrctl.config.experiment import experiment_schema
 from mrctl.sweep.metrics import DEFAULT_METRICS, METRICS
-from mrctl.sweep.points import DISCRIMINATORS, PARAM_SETS, Point, Unresolved, expand, point  # noqa: F401
+from mrctl.sweep.points import DISCRIMINATORS, PARAM_SETS, Point, Unresolved, axis_values, expand, point  # noqa: F401
 from mrctl.util.files import Fence
 from mrctl.util.schema import check_num, key_repr, load_yaml_lines, quoting, read_named_yaml, short_repr
 
@@ -56,6 +57,12 @@ class Sweep:
         """The table's value columns, in order."""
         cols = ["base"] if len(self.bases) > 1 else []
         return cols + list(self.grid) + list(self.random)
+
+    @functools.cached_property
+    def axis_values(self) -> list[list[tuple[Any, list[tuple[str, Any]]]]]:
+        """Per grid axis, its values as (column label, overrides)
+        (:func:`mrctl.sweep.points.axis_values`), built once: every point picks from them."""
+        return axis_values(self)
 
     def size(self) -> int:
         n = len(self.bases) * (self.random_n or 1)

@@ -146,7 +146,9 @@ class ResultsTable:
         try:
             os.fsync(fd)
             if self.parquet:
-                write_parquet(self.path, self.cols, lambda: self._journal_rows(fd))
+                with open(os.dup(fd), "rb", closefd=True) as fh:
+                    fh.seek(0)
+                    write_parquet(self.path, self.cols, checked_rows(fh, self.journal, self.cols), self.path.parent)
                 if complete:
                     self.journal.unlink(missing_ok=True)
             elif complete:

@@ -43,6 +43,9 @@ WARMUP_S = 0.1
 _FD_STEP = 1e-6
 _LOG = {"F0", "Ac", "Bc", "sigma0_lo", "sigma0_hi", "sigma2_lo", "sigma2_hi", "Fs_lo", "Fs_hi", "vs_lo", "vs_hi",
         "sigma1_vd", "tau_input_fall", "x_hys"}
+#: the parameters each ``use`` flag frees: flag → parameters; without a lag no falling lag either
+#: (the rising one's other half)
+TERMS = {"offset": ("F_offset",), "stiffness": ("k_x",), "lag": ("tau_input", "tau_input_fall"), "inertia": ("m",)}
 #: the optional terms a ``use`` flag frees (docs/identification.md, "Model terms"): flag → parameters
 OPTIONAL = {"lag_fall": ("tau_input_fall",), "sigma1_v": ("sigma1_vd",),
             "hysteresis": ("k_hys_pos", "k_hys_neg", "x_hys")}
@@ -111,8 +114,8 @@ def _initial(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_hi: fl
     if use["inertia"]:
         p[IDX["m"]] = c[j]
     p[IDX["tau_input"]] = tau if use["lag"] else 0.0
-    if use.get("lag_fall") and use["lag"]:
-        p[IDX["tau_input_fall"]] = tau  # the fit moves it from the rise's
+    if use.get("lag_fall"):
+        p[IDX["tau_input_fall"]] = tau  # the fit moves it from the rise's (0 without a lag: fixed there)
     if use.get("sigma1_v"):
         p[IDX["sigma1_vd"]] = 0.5 * sup.v_max
     if use.get("hysteresis"):
@@ -233,12 +236,10 @@ def fit_broadband(spans: list[SpanData], Fs_: list[np.ndarray], u_lo: float, u_h
     dur = min(sp.v.size for sp in spans) * h
     a_amp = max(float(max(np.percentile(np.abs(sp.a), 99.5) for sp in spans)), 1e-9)
     bounds = _bounds(sup, u_hi - u_lo, Fmax, min(0.2, dur / 10.0), a_amp)
-    fixed = {k for flag, names in OPTIONAL.items() if not use.get(flag) for k in names} | {"tau_field"}  # never
-    if not use["lag"]:
-        fixed.add("tau_input_fall")
-    free = [k for k in PHYS if not ((k == "F_offset" and not use["offset"]) or (k == "k_x" and not use["stiffness"])
-                                    or (k == "tau_input" and not use["lag"]) or (k == "m" and not use["inertia"])
-                                    or k in fixed)]
+    fixed = ({"tau_field"}  # never
+             | {k for flag, names in TERMS.items() if not use[flag] for k in names}
+             | {k for flag, names in OPTIONAL.items() if not use.get(flag) for k in names})
+    free = [k for k in PHYS if k not in fixed]
     taus = np.geomspace(2e-3, 25e-3, starts) if use["lag"] and starts > 1 else np.array([8e-3 if use["lag"] else 0.0])
     taus = np.resize(taus, starts)
     bar = make_bar(starts * max_nfev, "identify (broadband)", enabled=progress)

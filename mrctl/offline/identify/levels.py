@@ -25,7 +25,7 @@ from mrctl.offline.identify.model import THETA_NAMES
 from mrctl.offline.identify.prep import Span
 from mrctl.util.progress import make_bar
 from mrctl.offline.identify.result import Score, Trace, nrmse as _nrmse
-from mrctl.offline.identify.sine import choose_x_hys, find_segments, fit_levels, predict_segment
+from mrctl.offline.identify.sine import choose_x_hys, find_segments, fit_levels, predict_segment, segment_hys
 from mrctl.util.schema import Node
 
 __all__ = ["constant_input", "law_sets", "leave_level_out"]
@@ -77,12 +77,13 @@ def constant_input(ds: Node, spans: list[Span], frac: float, use: dict[str, bool
                 mine = [s for s in segs if s.record == rec and s.level == lv and sel(s)]
                 for s in mine:
                     sp = spans[s.span]
+                    zh = segment_hys(sp, s, x_hys) if x_hys > 0.0 else None  # every set's x_hys
                     start = s.f1 if part == "holdout" else s.f0
-                    m, p = predict_segment(sp, s, lf.theta, lf.offset_N, lf.k_x, start, own_hys)
+                    m, p = predict_segment(sp, s, lf.theta, lf.offset_N, lf.k_x, start, own_hys, zh)
                     end = s.h1 if part == "holdout" else s.f1
                     m, p = m[:end - start], p[:end - start]
                     for name, (th, off_l, kx_l, hy) in th_laws.items():
-                        pl[name].append(predict_segment(sp, s, th, off_l, kx_l, start, hy)[1][:end - start])
+                        pl[name].append(predict_segment(sp, s, th, off_l, kx_l, start, hy, zh)[1][:end - start])
                     mm.append(m)
                     pp.append(p)
                     tt.append(sp.t[start:end])
@@ -187,12 +188,13 @@ def leave_level_out(spans: list[Span], segs: list[Any], fits: list[Any], use: di
                     and (s.h1 > s.f1 if part == "holdout" else s.cycles_fit > 0)]
             if not mine:
                 continue
+            zhs = [segment_hys(spans[s.span], s, x_hys) if x_hys > 0.0 else None for s in mine]  # every set's x_hys
             for name, cand in cands.items():
                 th, (off, kx), hy = theta_from_params(cand, lv), bench_at(cand, lv), hys_at(cand, lv)
                 mm, pp = [], []
-                for s in mine:
+                for s, zh in zip(mine, zhs):
                     start, end = (s.f1, s.h1) if part == "holdout" else (s.f0, s.f1)
-                    m, q = predict_segment(spans[s.span], s, th, off, kx, start, hy)
+                    m, q = predict_segment(spans[s.span], s, th, off, kx, start, hy, zh)
                     mm.append(m[:end - start])
                     pp.append(q[:end - start])
                 per[name].append(_nrmse(np.concatenate(mm), np.concatenate(pp)))

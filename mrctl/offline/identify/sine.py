@@ -36,7 +36,7 @@ from mrctl.offline.identify.guards import Support
 from mrctl.offline.identify.model import THETA_NAMES, _model_batch, hys_columns, lugre_force
 from mrctl.offline.identify.prep import _MIN_LEVEL_S, Span
 
-__all__ = ["Segment", "LevelFit", "find_segments", "fit_levels", "predict_segment", "choose_x_hys"]
+__all__ = ["Segment", "LevelFit", "find_segments", "fit_levels", "predict_segment", "segment_hys", "choose_x_hys"]
 
 _PERIOD_TOL = 0.10
 
@@ -327,18 +327,26 @@ def fit_levels(spans: list[Span], segs: list[Segment], *, use: dict[str, bool], 
     return fits
 
 
+def segment_hys(sp: Span, s: Segment, x_hys: float) -> tuple[np.ndarray, np.ndarray]:
+    """The hysteretic state's columns over a segment from its warm-up cycle to its end
+    (:func:`~mrctl.offline.identify.model.hys_columns`): the same for every prediction of
+    the segment at that ``x_hys``, so a caller predicting it many times computes them once."""
+    return hys_columns(sp.v[s.w0:s.h1], sp.dt, s.f0 - s.w0, x_hys)
+
+
 def predict_segment(sp: Span, s: Segment, theta: dict[str, float] | np.ndarray, offset: float, k_x: float,
-                    start: int | None = None, hys: tuple[float, float, float] | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                    start: int | None = None, hys: tuple[float, float, float] | None = None,
+                    hys_cols: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(measured, predicted) force of a segment from ``start`` (default: its held-out part) to its end,
-    the model run from the warm-up cycle; ``hys``: (k_hys_pos, k_hys_neg, x_hys) when on."""
+    the model run from the warm-up cycle; ``hys``: (k_hys_pos, k_hys_neg, x_hys) when on, and
+    ``hys_cols`` the segment's :func:`segment_hys` at that x_hys when already computed."""
     if isinstance(theta, dict):
         theta = [theta[k] for k in THETA_NAMES]
     a = s.f1 if start is None else start
     F = lugre_force(np.asarray(theta, float), sp.v[s.w0:s.h1], sp.dt)[a - s.w0:]
     F = F + offset + (k_x * sp.x[a:s.h1] if sp.x is not None else 0.0)
     if hys is not None and hys[2] > 0.0:
-        zp, zn = hys_columns(sp.v[s.w0:s.h1], sp.dt, s.f0 - s.w0, hys[2])
+        zp, zn = hys_cols if hys_cols is not None else segment_hys(sp, s, hys[2])
         F = F + hys[0] * zp[a - s.w0:] + hys[1] * zn[a - s.w0:]
     if not np.all(np.isfinite(F)):  # pragma: no cover - Θ is checked before
         F = np.where(np.isfinite(F), F, math.nan)
