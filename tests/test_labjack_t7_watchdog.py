@@ -274,6 +274,68 @@ def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) ->
         link.close()
 
 
+class _Wire:
+    """A TcpIO stand-in: the requests written, the replies given one segment per recv, what drain drops."""
+
+    def __init__(self, *segments: bytes, queued: int = 0) -> None:
+        self.segments, self.queued, self.sent = list(segments), queued, []
+
+    def write(self, data, deadline) -> None:
+        self.sent.append(bytes(data))
+
+    def recv(self, deadline, wake_ns=0) -> bytes:
+        return self.segments.pop(0) if self.segments else b""
+
+    def drain(self) -> int:
+        n, self.queued = self.queued, 0
+        return n
+
+    def close(self) -> None:
+        pass
+
+
+def _reply(tid: int, pdu: bytes, pid: int = 0, unit: int = 1) -> bytes:
+    return struct.pack(">HHHB", tid, pid, len(pdu) + 1, unit) + pdu
+
+
+def test_the_preset_links_replies_are_checked_whole_on_either_path() -> None:
+    """The PresetLink's wire: a reply alone in its segment (the quick path) and one among others
+    (the MBAP framing ModbusTcpLink uses) are checked alike: a protocol id other than 0 flushes the
+    stream and counts the bytes dropped; a late reply is skipped and counted; FC3's byte count
+    and FC16's echo must match."""
+    from mrctl.io.base import FrameError
+    from mrctl.io.devices import resolve_device
+    from mrctl.io.devices.link import PresetLink
+
+    setup, errors = resolve_device("labjack_t7", {"x": {"ain": 0, "m_per_V": 0.0025},
+                                                  "current": {"dac": 0, "V_per_A": 2.5}}, {})
+    assert errors == []
+    link = PresetLink(setup, host="127.0.0.1")
+    f7 = struct.pack(">f", 7.0)
+    link._io = _Wire(_reply(1, bytes((3, 4)) + f7))  # the quick path
+    assert link.read_value(60000, "float32") == 7.0
+    link._io = _Wire(_reply(1, bytes((3, 4)) + f7) + _reply(2, bytes((3, 4)) + f7))  # a late one first
+    assert link.read_value(60000, "float32") == 7.0 and link.stale_replies == 1
+    bad_pid = _reply(3, bytes((3, 4)) + f7, pid=1)
+    for segments in ((bad_pid,), (bad_pid[:5], bad_pid[5:])):  # alone, or through the framing
+        link._io = _Wire(*segments, queued=5)
+        before = link.bytes_discarded
+        with pytest.raises(FrameError, match="bad MBAP header; stream flushed"):
+            link.read_value(60000, "float32")
+        assert link.bytes_discarded - before == len(bad_pid) + 5 and not link._rx
+        assert link.counters()["bytes_discarded"] == link.bytes_discarded
+    for split in (None, 3):  # byte count 2 in a reply of the right length: alone, or through the framing
+        bad_count = _reply(link._tid + 1, bytes((3, 2)) + f7[:2] + bytes(2))
+        link._io = _Wire(*((bad_count,) if split is None else (bad_count[:split], bad_count[split:])))
+        with pytest.raises(FrameError, match="byte count"):
+            link.read_value(60000, "float32")
+    echo = _reply(link._tid + 1, struct.pack(">BHH", 16, 1002, 2))  # FC16 echoing another address
+    link._io = _Wire(echo)
+    with pytest.raises(FrameError, match="echoed address"):
+        link.write_value(1000, "float32", 1.0)
+    link._io = None
+
+
 @pytest.mark.parametrize("change, message", [
     ({"safety": {"estop": {"input": "DIO0", "active": "low"}}, "backend": {"enable_dio": 0}},
      "safety.estop.input: 'DIO0' is DIO0, the enable output (backend.enable_dio)"),

@@ -14,8 +14,9 @@ their class. One tick is **one request** when the device answers LabJack's Modbu
 
 A device that refuses MBFB (ILLEGAL_FUNCTION, or silence) gets the same operations as one FC3/FC16
 each; the start-up line says which was chosen. Every reply is checked (transaction id, protocol
-id, unit, function, exact length); a reply to another transaction is skipped and counted, never
-taken for this tick's.
+id, unit, function, exact length, FC3's byte count, FC16's echo); a reply to another transaction
+is skipped and counted (``stale_replies``), never taken for this tick's; an impossible MBAP header
+flushes the stream (``bytes_discarded``), as :class:`~mrctl.io.modbus.tcp.ModbusTcpLink` does.
 
 At open, each value read back: the identity and firmware (too old for the watchdog block: refused,
 exit 3), range, resolution index, negative channel and settling of every input in use, the enable
@@ -34,10 +35,11 @@ from mrctl.io.base import (
     CounterUnwrap, DeviceError, Disconnected, FrameError, Link, LinkTimeout, Sample, Status, network_device_key,
 )
 from mrctl.io.devices import DeviceSetup
-from mrctl.io.devices.mbfb import FC_READ, FC_WRITE, Request, mbfb_request, plain_requests, read_pdu, write_pdu
+from mrctl.io.devices.mbfb import Op, Request, mbfb_request, plain_requests
 from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, _tick_ops, model_period_s
 from mrctl.io.devices.watchdog import WatchdogError, configure_watchdog, disarm_watchdog, watchdog_plan
 from mrctl.io.modbus.codec import exception_name
+from mrctl.io.modbus.tcp import next_mbap_frame
 from mrctl.io.modbus.transport import TcpIO
 
 __all__ = ["PresetLink", "DeviceSetupError", "model_period_s"]
@@ -66,8 +68,8 @@ class PresetLink(Link):
 
     kinds = ("modbus-tcp",)
     split = False
-    COUNTERS = Link.COUNTERS + ("transactions", "enable_toggles", "watchdog_trips", "dac_mismatches",
-                                "estop_ticks", "invalid_values")
+    COUNTERS = Link.COUNTERS + ("transactions", "bytes_discarded", "enable_toggles", "watchdog_trips",
+                                "dac_mismatches", "estop_ticks", "invalid_values")
 
     def __init__(self, setup: DeviceSetup, *, host: str, port: int | None = None, unit_id: int | None = None,
                  timeout_s: float | None = None, open_timeout_s: float = 1.0, spin_wait: bool = True,
@@ -165,40 +167,38 @@ class PresetLink(Link):
     def _where(self) -> str:
         return f"{self.setup.preset.name} at {self.host}:{self.port}"
 
-    def _rpc(self, adu: bytearray, fc: int, resp_len: int, deadline: float, wake_ns: int = 0) -> bytes:
-        """Send ``adu`` with the next transaction id; the reply's whole frame, checked."""
+    def _rpc(self, req: Request, deadline: float, wake_ns: int = 0) -> bytes:
+        """Send ``req`` with the next transaction id; the reply's whole frame, checked. The usual
+        case (exactly the reply, alone in one segment) is one ``startswith`` against ``req.tail``;
+        anything else goes through the MBAP framing ModbusTcpLink uses (:func:`next_mbap_frame`)."""
         io = self._io
         if io is None:
             raise Disconnected(f"{self._where()}: not open")
         tid = self._tid = (self._tid + 1) & 0xFFFF
+        adu = req.adu
         adu[0], adu[1] = tid >> 8, tid & 0xFF
         io.write(adu, deadline)
         self.transactions += 1
         rx = self._rx
         while True:
-            while len(rx) >= 7:
-                if rx[2] or rx[3] or not 2 <= (rx[4] << 8 | rx[5]) <= 254:
-                    rx.clear()
-                    io.drain()
-                    raise FrameError(f"{self._where()}: bad MBAP header; stream flushed")
-                total = 6 + (rx[4] << 8 | rx[5])
-                if len(rx) < total:
-                    break
-                frame = bytes(rx[:total])
-                del rx[:total]
+            frame = next_mbap_frame(self, rx, io) if len(rx) >= 6 else None
+            if frame is not None:
                 if frame[0] << 8 | frame[1] != tid:
                     self.stale_replies += 1  # the late answer to an earlier request
                     continue
-                return self._check(frame, fc, resp_len)
+                return self._check(frame, req)
             chunk = io.recv(deadline, wake_ns)
             wake_ns = 0
             if not chunk:
                 raise LinkTimeout(f"{self._where()}: no reply to tid {tid} within {self.timeout_s * 1e3:.3g} ms")
-            if not rx and len(chunk) == resp_len and chunk[0] << 8 | chunk[1] == tid:
-                return self._check(chunk, fc, resp_len)
+            if not rx and len(chunk) == req.resp_len and chunk[0] << 8 | chunk[1] == tid \
+                    and chunk.startswith(req.tail, 2):
+                return chunk
             rx += chunk
 
-    def _check(self, frame: bytes, fc: int, resp_len: int) -> bytes:
+    def _check(self, frame: bytes, req: Request) -> bytes:
+        """A whole frame with this request's tid (protocol id 0 and its MBAP length: the framing saw to it)."""
+        fc = req.fc
         if frame[6] != self.unit_id:
             raise FrameError(f"{self._where()}: reply from unit {frame[6]}, asked unit {self.unit_id}")
         got = frame[7]
@@ -206,28 +206,27 @@ class PresetLink(Link):
             raise DeviceError(frame[8], f"{self._where()}: function {fc} refused: {exception_name(frame[8])}")
         if got != fc:
             raise FrameError(f"{self._where()}: reply with function {got}, asked {fc}")
-        if len(frame) != resp_len:
-            raise FrameError(f"{self._where()}: function {fc} reply of {len(frame)} bytes, expected {resp_len}")
+        if len(frame) != req.resp_len:
+            raise FrameError(f"{self._where()}: function {fc} reply of {len(frame)} bytes, expected {req.resp_len}")
+        if not frame.startswith(req.tail, 2):  # FC3's byte count, FC16's echo
+            raise FrameError(f"{self._where()}: function {fc} reply {frame[8:2 + len(req.tail)].hex()}, expected "
+                             f"{req.tail[6:].hex()} (FC3's byte count, FC16's echoed address and count)")
         return frame
 
     def read_value(self, address: int, dtype: str, deadline: float | None = None) -> Any:
         """One register value (FC3), outside the tick."""
         self._step = f"reading register {address}"
-        st = _PACK[dtype]
-        frame = self._rpc(bytearray(struct.pack(">HHHB", 0, 0, 6, self.unit_id) + read_pdu(address, st.size // 2)),
-                          FC_READ, 9 + st.size, deadline or time.monotonic() + self.open_timeout_s)
-        if frame[8] != st.size:
-            raise FrameError(f"{self._where()}: read of {address}: byte count {frame[8]}, expected {st.size}")
-        return st.unpack_from(frame, 9)[0]
+        req = plain_requests([Op(False, address, dtype)], self.unit_id)[0]
+        frame = self._rpc(req, deadline or time.monotonic() + self.open_timeout_s)
+        return req.decode.unpack_from(frame, req.data_off)[0]  # type: ignore[union-attr]
 
     def write_value(self, address: int, dtype: str, value: Any, deadline: float | None = None) -> None:
         """One register value (FC16), outside the tick."""
         self._step = f"writing {value!r} to register {address}"
-        pdu = write_pdu(address, _PACK[dtype].pack(value))
-        frame = self._rpc(bytearray(struct.pack(">HHHB", 0, 0, len(pdu) + 1, self.unit_id) + pdu), FC_WRITE, 12,
-                          deadline or time.monotonic() + self.open_timeout_s)
-        if frame[8:12] != pdu[1:5]:
-            raise FrameError(f"{self._where()}: write of {address} echoed {frame[8:12].hex()}")
+        req = plain_requests([Op(True, address, dtype)], self.unit_id)[0]
+        st, off = req.slots[0]
+        st.pack_into(req.adu, off, value)
+        self._rpc(req, deadline or time.monotonic() + self.open_timeout_s)
 
     # -- open: set-up ----------------------------------------------------------------------------
     def _open_transport(self) -> None:
@@ -329,17 +328,10 @@ class PresetLink(Link):
             adu = req.adu
             for (st, off), role in zip(req.slots, roles[j]):
                 st.pack_into(adu, off, vals[role])
-            frame = self._rpc(adu, req.fc, req.resp_len, deadline, wake_ns)
+            frame = self._rpc(req, deadline, wake_ns)
             wake_ns = 0
-            if req.fc == FC_WRITE:
-                if frame[8:12] != adu[8:12]:
-                    raise FrameError(f"{self._where()}: write echoed {frame[8:12].hex()}")
-            elif req.fc == FC_READ:
-                if frame[8] != req.resp_len - 9:
-                    raise FrameError(f"{self._where()}: byte count {frame[8]}, expected {req.resp_len - 9}")
-                reads.extend(req.decode.unpack_from(frame, 9))  # type: ignore[union-attr]
-            elif req.decode is not None:
-                reads.extend(req.decode.unpack_from(frame, 8))
+            if req.decode is not None:
+                reads.extend(req.decode.unpack_from(frame, req.data_off))
         if level != self._level:
             self.enable_toggles += 1
             self._level = level

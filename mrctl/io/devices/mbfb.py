@@ -49,14 +49,24 @@ class Op:
 class Request:
     """One prebuilt request: ``adu`` (MBAP with tid 0, patched per send), where each written value
     goes (``slots``: struct and offset per write op, in op order), the reply's function code, its
-    exact length and the struct that decodes its data (reads in op order)."""
+    exact length, the struct that decodes its data (reads in op order) and where that data starts
+    (``data_off``). ``tail``: the reply's bytes from offset 2 on that do not vary (protocol id 0,
+    MBAP length, unit, function; FC3's byte count, FC16's echoed address and count), so one
+    ``startswith`` checks a whole reply but its transaction id and data."""
 
-    __slots__ = ("adu", "slots", "fc", "resp_len", "decode", "n_values")
+    __slots__ = ("adu", "slots", "fc", "resp_len", "decode", "data_off", "tail")
 
     def __init__(self, adu: bytearray, slots: list[tuple[struct.Struct, int]], fc: int, resp_len: int,
                  decode: struct.Struct | None) -> None:
         self.adu, self.slots, self.fc, self.resp_len, self.decode = adu, slots, fc, resp_len, decode
-        self.n_values = 0 if decode is None else len(decode.unpack(bytes(decode.size)))
+        self.data_off = resp_len if decode is None else resp_len - decode.size
+        length = resp_len - 6
+        tail = bytes((0, 0, length >> 8, length & 0xFF, adu[6], fc))
+        if fc == FC_READ:
+            tail += bytes((resp_len - 9,))
+        elif fc == FC_WRITE:
+            tail += bytes(adu[8:12])
+        self.tail = tail
 
 
 def _mbap(pdu: bytes, unit: int) -> bytearray:
