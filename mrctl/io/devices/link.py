@@ -108,9 +108,12 @@ class PresetLink(Link):
         self._hz = float(p.data.get("core_timer", {}).get("hz", 1.0))
         io = p.io("dac")
         self._vlo, self._vhi = float(io["min_V"]), float(io["max_V"])
+        self._dac_per, self._dac_off = setup.dac.per_V, setup.dac.offset_V  # setup.dac_volts, inlined
+        self._dac_slot: tuple[Request, struct.Struct, int] | None = None  # where the tick's DAC volts go
         ch = setup.channels
         lo = min(setup.ains)
-        self._ain_lo = lo
+        self._i_after_ain = 1 + max(setup.ains) - lo + 1  # reads: the DAC, the AIN block, then the rest
+        self._estop_high = setup.estop_active_high
 
         def idx(role: str) -> tuple[int, float, float] | None:
             c = ch.get(role)
@@ -264,8 +267,7 @@ class PresetLink(Link):
         self._clock = CounterUnwrap(1 << 32) if self.core_timer else None
         want = self.protocol_config
         if want in (None, "mbfb"):
-            self.protocol, self._reqs = "mbfb", [mbfb_request(only, self.unit_id)]
-            self._roles = [[r for _op, r in ops if r >= 0]]
+            self._use("mbfb", [mbfb_request(only, self.unit_id)], [[r for _op, r in ops if r >= 0]])
             try:
                 self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
                 return
@@ -276,9 +278,13 @@ class PresetLink(Link):
                 if want == "mbfb":
                     raise
             self.setup_report.append(("protocol", "MBFB refused: FC3/FC16 per value"))
-        self.protocol, self._reqs = "plain", plain_requests(only, self.unit_id)
-        self._roles = [[r] if r >= 0 else [] for _op, r in ops]
+        self._use("plain", plain_requests(only, self.unit_id), [[r] if r >= 0 else [] for _op, r in ops])
         self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
+
+    def _use(self, protocol: str, reqs: list[Request], roles: list[list[int]]) -> None:
+        self.protocol, self._reqs, self._roles = protocol, reqs, roles
+        self._dac_slot = next((req, st, off) for req, rs in zip(reqs, roles)
+                              for (st, off), r in zip(req.slots, rs) if r == _DAC)
 
     def _send_safe(self) -> None:
         """0 A on the DAC, the enable output low: the tick's request, or (not set up: device
@@ -317,12 +323,12 @@ class PresetLink(Link):
         return self._tick(current_A, self.enabled, deadline, wake_ns)
 
     def _tick(self, current_A: float, enabled: bool, deadline: float, wake_ns: int) -> Sample:
-        volts = self.setup.dac_volts(current_A if enabled else 0.0)
+        volts = (current_A if enabled else 0.0) * self._dac_per + self._dac_off
         volts = self._vlo if volts < self._vlo else self._vhi if volts > self._vhi else volts
         level = self._next_level(enabled)
         vals = self._vals
         vals[_DAC], vals[_ENABLE], vals[_KEY] = volts, level, self._key
-        reads: list[Any] = []
+        reads: tuple[Any, ...] = ()
         roles = self._roles
         for j, req in enumerate(self._reqs):
             adu = req.adu
@@ -331,11 +337,13 @@ class PresetLink(Link):
             frame = self._rpc(req, deadline, wake_ns)
             wake_ns = 0
             if req.decode is not None:
-                reads.extend(req.decode.unpack_from(frame, req.data_off))
+                got = req.decode.unpack_from(frame, req.data_off)
+                reads = reads + got if reads else got  # MBFB: the one reply's tuple as it is
         if level != self._level:
             self.enable_toggles += 1
             self._level = level
-        return self._sample(reads, _F32.unpack(_F32.pack(volts))[0])
+        dreq, dst, doff = self._dac_slot  # type: ignore[misc]
+        return self._sample(reads, dst.unpack_from(dreq.adu, doff)[0])  # the volts as written (float32)
 
     def _next_level(self, enabled: bool) -> int:
         if self.setup.enable_dio is None or not enabled:
@@ -346,7 +354,7 @@ class PresetLink(Link):
             return self._level ^ 1
         return self._level
 
-    def _sample(self, reads: list[Any], volts_written: float) -> Sample:
+    def _sample(self, reads: tuple[Any, ...], volts_written: float) -> Sample:
         """reads: DAC before the write, the AIN block, [E-stop DIO], [CORE_TIMER]."""
         status = 0
         prev, last = reads[0], self._last_volts
@@ -358,10 +366,9 @@ class PresetLink(Link):
                 status |= _WD_TRIPPED  # the device's watchdog acted (or it restarted) since the last tick
             else:
                 status |= _DRIVER_FAULT  # someone else writes the DAC
-        n_ain = max(self.setup.ains) - self._ain_lo + 1
-        i = 1 + n_ain
+        i = self._i_after_ain
         if self.setup.estop_dio is not None:
-            if (reads[i] == 1) == self.setup.estop_active_high:
+            if (reads[i] == 1) == self._estop_high:
                 status |= _ESTOP
                 self.estop_ticks += 1
             i += 1
@@ -381,7 +388,7 @@ class PresetLink(Link):
         return Sample(seq, t, x, v, F, status, self._phys(self._I, reads))
 
     @staticmethod
-    def _phys(ch: tuple[int, float, float] | None, reads: list[Any]) -> float:
+    def _phys(ch: tuple[int, float, float] | None, reads: tuple[Any, ...]) -> float:
         if ch is None:
             return _NAN
         i, per, off = ch
