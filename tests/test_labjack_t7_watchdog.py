@@ -247,6 +247,29 @@ def test_a_t7_without_mbfb_gets_fc3_fc16_and_an_old_firmware_is_refused(served, 
     assert isinstance(e.value, LinkFailure) and e.value.exit_code == 3
 
 
+def test_a_preset_without_modbus_mbfb_gets_fc3_fc16_without_trying_mbfb(served, tmp_path) -> None:
+    """The MBFB function code is the preset's (modbus.mbfb): without it, no MBFB request is sent."""
+    import dataclasses
+
+    from mrctl.io.devices import Preset
+    from mrctl.io.devices.link import PresetLink
+
+    dev, _state, port = served()
+    link, _ = _link(port, tmp_path)
+    p = link.setup.preset
+    data = {**p.data, "modbus": {k: v for k, v in p.data["modbus"].items() if k != "mbfb"}}
+    setup = dataclasses.replace(link.setup, preset=Preset(p.name, p.description, p.source, data))
+    with pytest.raises(ValueError, match="has no Modbus Feedback"):
+        PresetLink(setup, host="127.0.0.1", port=port, protocol="mbfb")
+    link = PresetLink(setup, host="127.0.0.1", port=port)
+    link.open()
+    try:
+        assert link.protocol == "plain" and math.isfinite(link.exchange(0.1).x_m)
+        assert 76 not in dev.fc_counts
+    finally:
+        link.close()
+
+
 def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) -> None:
     dev, state, port = served(estop={"dio": 4, "active": "low"})
     data = yaml.safe_load(EXPERIMENT.read_text())

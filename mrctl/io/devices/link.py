@@ -38,7 +38,7 @@ from mrctl.io.devices import DeviceSetup
 from mrctl.io.devices.mbfb import Op, Request, mbfb_request, plain_requests
 from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, _tick_ops, model_period_s
 from mrctl.io.devices.watchdog import WatchdogError, configure_watchdog, disarm_watchdog, watchdog_plan
-from mrctl.io.modbus.codec import exception_name
+from mrctl.io.modbus.codec import ILLEGAL_FUNCTION, exception_name
 from mrctl.io.modbus.tcp import next_mbap_frame
 from mrctl.io.modbus.transport import TcpIO
 
@@ -46,7 +46,6 @@ __all__ = ["PresetLink", "DeviceSetupError", "model_period_s"]
 
 _PACK = {"float32": struct.Struct(">f"), "uint32": struct.Struct(">I"), "uint16": struct.Struct(">H")}
 _F32 = _PACK["float32"]
-_ILLEGAL_FUNCTION = 1
 _NO_LOAD_CELL = int(Status.NO_LOAD_CELL)
 _WD_TRIPPED = int(Status.WATCHDOG_TRIPPED)
 _DRIVER_FAULT = int(Status.DRIVER_FAULT)
@@ -74,12 +73,17 @@ class PresetLink(Link):
     def __init__(self, setup: DeviceSetup, *, host: str, port: int | None = None, unit_id: int | None = None,
                  timeout_s: float | None = None, open_timeout_s: float = 1.0, spin_wait: bool = True,
                  protocol: str | None = None) -> None:
-        """``protocol``: "mbfb", "plain" (FC3/FC16), or None to try MBFB at open and fall back."""
+        """``protocol``: "mbfb", "plain" (FC3/FC16), or None to try MBFB at open (if the preset names
+        its function code, ``modbus.mbfb``) and fall back."""
         if protocol not in (None, "mbfb", "plain"):
             raise ValueError(f"protocol must be 'mbfb', 'plain' or None, got {protocol!r}")
         super().__init__(0.01 if timeout_s is None else timeout_s)
         self.setup = setup
         p = setup.preset
+        fc = p.data["modbus"].get("mbfb")
+        self._fc_mbfb = None if fc is None else int(fc)  #: the device's MBFB function code; None: it has none
+        if protocol == "mbfb" and fc is None:
+            raise ValueError(f"protocol 'mbfb': a {p.name} has no Modbus Feedback (no modbus.mbfb in its preset)")
         self.host, self.port = host, int(p.port if port is None else port)
         self.unit_id = int(p.unit_id if unit_id is None else unit_id)
         self.open_timeout_s = float(open_timeout_s)
@@ -266,13 +270,13 @@ class PresetLink(Link):
         only = [op for op, _r in ops]
         self._clock = CounterUnwrap(1 << 32) if self.core_timer else None
         want = self.protocol_config
-        if want in (None, "mbfb"):
-            self._use("mbfb", [mbfb_request(only, self.unit_id)], [[r for _op, r in ops if r >= 0]])
+        if want in (None, "mbfb") and self._fc_mbfb is not None:
+            self._use("mbfb", [mbfb_request(only, self.unit_id, self._fc_mbfb)], [[r for _op, r in ops if r >= 0]])
             try:
                 self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
                 return
             except DeviceError as e:
-                if want == "mbfb" or e.code != _ILLEGAL_FUNCTION:
+                if want == "mbfb" or e.code != ILLEGAL_FUNCTION:
                     raise
             except LinkTimeout:
                 if want == "mbfb":

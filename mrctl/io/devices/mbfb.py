@@ -12,9 +12,11 @@ operation, executed in order:
 The response is the MBAP header, 76, then the read frames' data back to back in request order
 (writes return nothing); a refused request is the usual Modbus exception (``76 | 0x80``, code).
 
-Everything here is pure bytes, built once per link (a tick only patches the written values and
-the transaction id into the request). :class:`Op` lists are the tick's operations; the same list
-serves both protocols: one MBFB request, or one FC3/FC16 request per operation.
+The function code is the device preset's (``modbus.mbfb``: 76 on a T7). Everything here is pure
+bytes, built once per link (a tick only patches the written values and the transaction id into
+the request), the MBAP header and the FC3/FC16 PDUs by :mod:`mrctl.io.modbus.codec`. :class:`Op`
+lists are the tick's operations; the same list serves both protocols: one MBFB request, or one
+FC3/FC16 request per operation.
 """
 
 from __future__ import annotations
@@ -22,12 +24,13 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-__all__ = ["FC_MBFB", "FC_READ", "FC_WRITE", "Op", "Request", "mbfb_request", "plain_requests",
-           "read_pdu", "write_pdu"]
+from mrctl.io.modbus.codec import (
+    FC_READ_HOLDING as FC_READ, FC_WRITE_MULTIPLE as FC_WRITE, MAX_ADU_TCP, mbap_frame, read_request_pdu,
+    write_request_pdu,
+)
 
-FC_MBFB = 76
-FC_READ = 3
-FC_WRITE = 16
+__all__ = ["FC_READ", "FC_WRITE", "Op", "Request", "mbfb_request", "plain_requests"]
+
 _FMT = {"float32": "f", "uint32": "I", "uint16": "H"}
 _NREGS = {"float32": 2, "uint32": 2, "uint16": 1}
 
@@ -69,23 +72,13 @@ class Request:
         self.tail = tail
 
 
-def _mbap(pdu: bytes, unit: int) -> bytearray:
-    return bytearray(struct.pack(">HHHB", 0, 0, len(pdu) + 1, unit) + pdu)
+def _adu(pdu: bytes, unit: int) -> bytearray:
+    return bytearray(mbap_frame(0, unit, pdu))
 
 
-def read_pdu(address: int, n_regs: int) -> bytes:
-    """FC3 (read holding registers)."""
-    return struct.pack(">BHH", FC_READ, address, n_regs)
-
-
-def write_pdu(address: int, data: bytes) -> bytes:
-    """FC16 (write multiple registers)."""
-    return struct.pack(">BHHB", FC_WRITE, address, len(data) // 2, len(data)) + data
-
-
-def mbfb_request(ops: list[Op], unit: int) -> Request:
-    """The whole tick in one MBFB request."""
-    body = bytearray((FC_MBFB,))
+def mbfb_request(ops: list[Op], unit: int, fc: int) -> Request:
+    """The whole tick in one MBFB request (function ``fc``, the preset's ``modbus.mbfb``)."""
+    body = bytearray((fc,))
     slots: list[tuple[struct.Struct, int]] = []
     rfmt = ">"
     for op in ops:
@@ -99,10 +92,11 @@ def mbfb_request(ops: list[Op], unit: int) -> Request:
         else:
             rfmt += _FMT[op.dtype] * op.count
     dec = struct.Struct(rfmt)
-    adu = _mbap(bytes(body), unit)
-    if len(adu) > 260 or 8 + dec.size > 260:
-        raise ValueError(f"MBFB request of {len(adu)} bytes (reply {8 + dec.size}): beyond a Modbus TCP ADU (260)")
-    return Request(adu, slots, FC_MBFB, 8 + dec.size, dec if dec.size else None)
+    adu = _adu(bytes(body), unit)
+    if len(adu) > MAX_ADU_TCP or 8 + dec.size > MAX_ADU_TCP:
+        raise ValueError(f"MBFB request of {len(adu)} bytes (reply {8 + dec.size}): beyond a Modbus TCP ADU "
+                         f"({MAX_ADU_TCP})")
+    return Request(adu, slots, fc, 8 + dec.size, dec if dec.size else None)
 
 
 def plain_requests(ops: list[Op], unit: int) -> list[Request]:
@@ -111,8 +105,9 @@ def plain_requests(ops: list[Op], unit: int) -> list[Request]:
     for op in ops:
         st = struct.Struct(">" + _FMT[op.dtype] * op.count)
         if op.write:
-            adu = _mbap(write_pdu(op.address, bytes(st.size)), unit)
+            adu = _adu(write_request_pdu(op.address, bytes(st.size)), unit)
             out.append(Request(adu, [(st, len(adu) - st.size)], FC_WRITE, 12, None))
         else:
-            out.append(Request(_mbap(read_pdu(op.address, op.n_regs), unit), [], FC_READ, 9 + st.size, st))
+            adu = _adu(read_request_pdu(FC_READ, op.address, op.n_regs), unit)
+            out.append(Request(adu, [], FC_READ, 9 + st.size, st))
     return out
