@@ -35,7 +35,8 @@ from mrctl.io.base import (
     CounterUnwrap, DeviceError, Disconnected, FrameError, Link, LinkTimeout, Sample, Status, network_device_key,
 )
 from mrctl.io.devices import DeviceSetup
-from mrctl.io.devices.mbfb import Op, Request, mbfb_request, plain_requests
+from mrctl.io.devices.mbfb import Op, Request, as_stored, mbfb_request, plain_requests
+from mrctl.io.devices.setup import DeviceSetupError, identify, set_up
 from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, _tick_ops, model_period_s
 from mrctl.io.devices.watchdog import WatchdogError, configure_watchdog, disarm_watchdog, watchdog_plan
 from mrctl.io.modbus.codec import ILLEGAL_FUNCTION, exception_name
@@ -44,21 +45,11 @@ from mrctl.io.modbus.transport import TcpIO
 
 __all__ = ["PresetLink", "DeviceSetupError", "model_period_s"]
 
-_PACK = {"float32": struct.Struct(">f"), "uint32": struct.Struct(">I"), "uint16": struct.Struct(">H")}
-_F32 = _PACK["float32"]
 _NO_LOAD_CELL = int(Status.NO_LOAD_CELL)
 _WD_TRIPPED = int(Status.WATCHDOG_TRIPPED)
 _DRIVER_FAULT = int(Status.DRIVER_FAULT)
 _ESTOP = int(Status.ESTOP)
 _NAN = math.nan
-
-
-class DeviceSetupError(DeviceError):
-    """The device did not take (or read back) a set-up value, is not the device the config names,
-    or its firmware is too old. Exit 3 at start-up."""
-
-    def __init__(self, message: str) -> None:
-        super().__init__(0, message)
 
 
 class PresetLink(Link):
@@ -107,7 +98,7 @@ class PresetLink(Link):
         self._last_volts: float | None = None
         wd = p.watchdog
         self._key = int(wd["strict_key"]) if wd is not None else 0
-        self._wd_volts = _F32.unpack(_F32.pack(setup.dac_volts(0.0)))[0]
+        self._wd_volts = as_stored("float32", setup.dac_volts(0.0))
         self._seq_local = 0
         self._hz = float(p.data.get("core_timer", {}).get("hz", 1.0))
         io = p.io("dac")
@@ -243,8 +234,6 @@ class PresetLink(Link):
         self._reqs = []
         self._step = "connecting"
         try:
-            from mrctl.io.devices.setup import identify, set_up
-
             identify(self)
             if self.configure_on_open:
                 set_up(self)

@@ -29,10 +29,18 @@ from mrctl.io.modbus.codec import (
     write_request_pdu,
 )
 
-__all__ = ["FC_READ", "FC_WRITE", "Op", "Request", "mbfb_request", "plain_requests"]
+__all__ = ["FC_READ", "FC_WRITE", "STRUCTS", "Op", "Request", "as_stored", "mbfb_request", "plain_requests"]
 
 _FMT = {"float32": "f", "uint32": "I", "uint16": "H"}
 _NREGS = {"float32": 2, "uint32": 2, "uint16": 1}
+#: a preset's register types, big-endian (high word first), as a T7 sends them
+STRUCTS = {dtype: struct.Struct(">" + f) for dtype, f in _FMT.items()}
+
+
+def as_stored(dtype: str, value: object) -> object:
+    """``value`` as a register of ``dtype`` holds it (a float32 rounded): what a read-back returns."""
+    st = STRUCTS[dtype]
+    return st.unpack(st.pack(value))[0]
 
 
 @dataclass(frozen=True)
@@ -86,7 +94,7 @@ def mbfb_request(ops: list[Op], unit: int, fc: int) -> Request:
             raise ValueError(f"MBFB frame of {op.n_regs} registers at {op.address}")
         body += struct.pack(">BHB", 1 if op.write else 0, op.address, op.n_regs)
         if op.write:
-            st = struct.Struct(">" + _FMT[op.dtype])
+            st = STRUCTS[op.dtype]
             slots.append((st, 7 + len(body)))
             body += bytes(st.size)
         else:
