@@ -228,6 +228,34 @@ def test_the_link_sends_one_mbfb_request_per_tick_stamped_by_core_timer(served, 
     assert dev.dac_V[0] == 0.0
 
 
+def test_core_timer_going_back_is_counted_and_the_count_outlives_a_reopen(served, tmp_path) -> None:
+    """The emulated T7's CORE_TIMER restarts from 0 under a live connection (what a restart the
+    network survived would look like): one device_clock_reset, in counters(), still there after
+    the link is closed and opened again (the unwrapper is forgotten at open, not replaced)."""
+    dev, state, port = served()
+    link, _ = _link(port, tmp_path)
+
+    def tick(k: int) -> Sample:  # a new conversion of the bench (CORE_TIMER stamps its time), then a tick
+        state.publish(Sample(k, k * 1e-3, 0.001, math.nan, 20.0, 0, 0.1))
+        return link.exchange(0.1)
+
+    link.open()
+    try:
+        t = [tick(k).t_dev_s for k in range(3)]
+        assert t[0] < t[1] < t[2] and link.counters()["device_clock_resets"] == 0
+        with dev._lock:
+            dev.io.boot_ns = dev.clock_ns()  # CORE_TIMER from 0 again
+        assert tick(3).t_dev_s < t[2] and link.counters()["device_clock_resets"] == 1
+    finally:
+        link.close()
+    link.open()
+    try:
+        tick(4)
+        assert link.counters()["device_clock_resets"] == 1
+    finally:
+        link.close()
+
+
 def test_a_t7_without_mbfb_gets_fc3_fc16_and_an_old_firmware_is_refused(served, tmp_path) -> None:
     from mrctl.errors import LinkFailure
     from mrctl.io.devices.link import DeviceSetupError

@@ -58,8 +58,8 @@ class PresetLink(Link):
 
     kinds = ("modbus-tcp",)
     split = False
-    COUNTERS = Link.COUNTERS + ("transactions", "bytes_discarded", "enable_toggles", "watchdog_trips",
-                                "dac_mismatches", "estop_ticks", "invalid_values")
+    COUNTERS = Link.COUNTERS + ("transactions", "bytes_discarded", "device_clock_resets", "enable_toggles",
+                                "watchdog_trips", "dac_mismatches", "estop_ticks", "invalid_values")
 
     def __init__(self, setup: DeviceSetup, *, host: str, port: int | None = None, unit_id: int | None = None,
                  timeout_s: float | None = None, open_timeout_s: float = 1.0, spin_wait: bool = True,
@@ -101,6 +101,9 @@ class PresetLink(Link):
         self._wd_volts = as_stored("float32", setup.dac_volts(0.0))
         self._seq_local = 0
         self._hz = float(p.data.get("core_timer", {}).get("hz", 1.0))
+        # CORE_TIMER (UINT32) unwrapped: one for the link's life, so the base class forgets its last
+        # value at every open and the timer going back is counted across reopens (device_clock_resets)
+        self._clock = CounterUnwrap(1 << 32) if "core_timer" in p.data else None
         io = p.io("dac")
         self._vlo, self._vhi = float(io["min_V"]), float(io["max_V"])
         self._dac_per, self._dac_off = setup.dac.per_V, setup.dac.offset_V  # setup.dac_volts, inlined
@@ -257,7 +260,6 @@ class PresetLink(Link):
         """MBFB once at 0 A, output disabled; ILLEGAL_FUNCTION or silence: FC3/FC16 per value."""
         ops = _tick_ops(self.setup, self.core_timer)
         only = [op for op, _r in ops]
-        self._clock = CounterUnwrap(1 << 32) if self.core_timer else None
         want = self.protocol_config
         if want in (None, "mbfb") and self._fc_mbfb is not None:
             self._use("mbfb", [mbfb_request(only, self.unit_id, self._fc_mbfb)], [[r for _op, r in ops if r >= 0]])
