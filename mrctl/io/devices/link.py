@@ -37,7 +37,7 @@ from mrctl.io.base import (
 from mrctl.io.devices import DeviceSetup
 from mrctl.io.devices.mbfb import Op, Request, as_stored, mbfb_request, plain_requests
 from mrctl.io.devices.setup import DeviceSetupError, identify, set_up
-from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, _tick_ops, model_period_s
+from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, model_period_s, tick_ops
 from mrctl.io.devices.watchdog import WatchdogError, configure_watchdog, disarm_watchdog, watchdog_plan
 from mrctl.io.modbus.codec import ILLEGAL_FUNCTION, exception_name
 from mrctl.io.modbus.tcp import next_mbap_frame
@@ -109,8 +109,8 @@ class PresetLink(Link):
         self._dac_per, self._dac_off = setup.dac.per_V, setup.dac.offset_V  # setup.dac_volts, inlined
         self._dac_slot: tuple[Request, struct.Struct, int] | None = None  # where the tick's DAC volts go
         ch = setup.channels
-        lo = min(setup.ains)
-        self._i_after_ain = 1 + max(setup.ains) - lo + 1  # reads: the DAC, the AIN block, then the rest
+        lo, n_ain = setup.ain_block
+        self._i_after_ain = 1 + n_ain  # reads: the DAC, the AIN block, then the rest
         self._estop_high = setup.estop_active_high
 
         def idx(role: str) -> tuple[int, float, float] | None:
@@ -135,7 +135,7 @@ class PresetLink(Link):
         s = cfg.device
         t = s.preset.data["timing"]
         return (f"{s.preset.name} over Ethernet, one MBFB request per tick (datasheet A-1/A-3-1 model: "
-                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {max(s.ains) - min(s.ains) + 1} AIN x "
+                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {s.ain_block[1]} AIN x "
                 f"{float(t['ain_sample_s'][s.ain_resolution_index]) * 1e3:g} ms at resolution index "
                 f"{s.ain_resolution_index})")
 
@@ -258,7 +258,7 @@ class PresetLink(Link):
 
     def _choose_protocol(self) -> None:
         """MBFB once at 0 A, output disabled; ILLEGAL_FUNCTION or silence: FC3/FC16 per value."""
-        ops = _tick_ops(self.setup, self.core_timer)
+        ops = tick_ops(self.setup, self.core_timer)
         only = [op for op, _r in ops]
         want = self.protocol_config
         if want in (None, "mbfb") and self._fc_mbfb is not None:
