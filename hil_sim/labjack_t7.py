@@ -57,7 +57,7 @@ _HHB = struct.Struct(">HHB")
 _FMT = {"float32": ">f", "uint32": ">I", "uint16": ">H"}
 #: the bench's own setpoint watchdog is the T7's business here: never expire (ms)
 _NO_BENCH_WATCHDOG_MS = 2**31 - 1
-FC_READ_HOLDING, FC_READ_INPUT, FC_WRITE_SINGLE, FC_WRITE_MULTIPLE, FC_MBFB = 3, 4, 6, 16, 76
+FC_READ_HOLDING, FC_READ_INPUT, FC_WRITE_SINGLE, FC_WRITE_MULTIPLE = 3, 4, 6, 16
 
 
 class _Reg:
@@ -90,6 +90,7 @@ class T7Device:
         self.ain_sample_s = {int(k): float(v) for k, v in p.data["timing"]["ain_sample_s"].items()}
         self.max_connections = int(wiring.max_connections)
         self.mbfb = bool(wiring.mbfb)
+        self.fc_mbfb = int(p.data["modbus"]["mbfb"])  #: Modbus Feedback's function code (the preset's)
         self.firmware = float(wiring.firmware)
         self._lock = threading.Lock()
         ain, dac, dio = p.io("ain"), p.io("dac"), p.io("dio")
@@ -396,12 +397,9 @@ class T7Device:
                 data, echo = pdu[6:], pdu[:5]
             err = self._write(address, data)
             return self._exc(fc, err) if err is not None else bytes(echo)
-        if fc == FC_MBFB and self.mbfb:
-            return self._mbfb(pdu)
+        if fc == self.fc_mbfb and self.mbfb:
+            return handle_mbfb(pdu, self._read, self._write, lambda code: self._exc(fc, code))
         return self._exc(fc, ILLEGAL_FUNCTION)
-
-    def _mbfb(self, pdu: bytes) -> bytes:
-        return handle_mbfb(pdu, self._read, self._write, lambda code: self._exc(FC_MBFB, code))
 
     def handle_tcp_frame(self, frame: bytes | bytearray) -> bytes | None:
         """Response ADU for one complete MBAP frame (a T7 answers whatever unit id)."""

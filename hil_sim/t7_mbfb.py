@@ -13,17 +13,18 @@ import struct
 from typing import Callable
 
 from hil_sim.modbus_wire import ILLEGAL_DATA_VALUE
+from mrctl.io.modbus.codec import MAX_ADU_TCP
 
 __all__ = ["handle_mbfb"]
 
 _BHB = struct.Struct(">BHB")
-FC_MBFB = 76
 
 
 def handle_mbfb(pdu: bytes, read: Callable[[int, int], bytes | int], write: Callable[[int, bytes], int | None],
                 exc: Callable[[int], bytes]) -> bytes:
-    """The reply PDU to an MBFB request PDU; ``read``/``write`` return an exception code when refused."""
-    out, pos, n = bytearray((FC_MBFB,)), 1, len(pdu)
+    """The reply PDU to an MBFB request PDU (its function code first, as the request's);
+    ``read``/``write`` return an exception code when refused."""
+    out, pos, n = bytearray(pdu[:1]), 1, len(pdu)
     if n < 5:
         return exc(ILLEGAL_DATA_VALUE)
     while pos < n:
@@ -45,6 +46,6 @@ def handle_mbfb(pdu: bytes, read: Callable[[int, int], bytes | int], write: Call
                 return exc(err)
         else:
             return exc(ILLEGAL_DATA_VALUE)
-    if len(out) + 7 > 260:
+    if len(out) + 7 > MAX_ADU_TCP:
         return exc(ILLEGAL_DATA_VALUE)  # the reply would not fit one Modbus TCP ADU
     return bytes(out)

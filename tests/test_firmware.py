@@ -272,6 +272,24 @@ def test_estop_input_forces_zero_amps_at_once_and_stays_latched_until_cleared_on
     assert not replies[1].status & Status.OUTPUT_ENABLED and replies[4].status & Status.OUTPUT_ENABLED
 
 
+def test_a_setpoint_between_the_estop_opening_and_the_next_tick_does_not_drive_the_output(programs):
+    """The E-stop pin opens between two ticks (the board's ISR has cut the
+    output): a SETPOINT, even with CLEAR_FAULTS, handled before the next tick
+    reads the live input and leaves 0 A and the driver disabled, ESTOP latched."""
+    out = script(programs, [
+        "at 0", "tick", rx(encode_setpoint(1, 0.5, ENABLE, 50)), "state",   # running at 0.5 A
+        "estop 1", "at 400", rx(encode_setpoint(2, 0.5, ENABLE, 50)), "state",          # no tick since
+        rx(encode_setpoint(3, 0.5, ENABLE | CLEAR, 50)), "state",
+    ])
+    st, latched = states(out), estop_latched(out)
+    assert st[0][:2] == (0.5, 1) and latched[0] == 0
+    assert st[1:] == [(0.0, 0, 0, 0, 0)] * 2 and latched[1:] == [1, 1], st
+    replies = decoded(sent(out))
+    assert [r.echo_seq for r in replies] == [1, 2, 3]
+    assert [bool(r.status & Status.ESTOP) for r in replies] == [False, True, True]
+    assert not any(r.status & Status.OUTPUT_ENABLED for r in replies[1:])
+
+
 def test_a_setpoint_received_after_the_ticks_latch_is_not_taken_for_a_stale_one(programs):
     """The timer latches a tick at 1000 us; a setpoint arrives at 1000.4 ms,
     before the main loop serves that tick with its latched (earlier) time:

@@ -124,19 +124,39 @@ def test_velocity_defaults_to_the_observer_without_a_velocity_channel(tmp_path) 
         load_experiment(p)
 
 
-def test_channels_become_the_register_maps_scaling() -> None:
-    """x = (V - offset_V) * m_per_V on the read side; V = I * V_per_A + offset_V on the DAC."""
+def test_channels_become_the_links_scaling() -> None:
+    """x = (V - offset_V) * m_per_V on the read side; V = I * V_per_A + offset_V on the DAC: the
+    link's own tick (one MBFB request) against a wire that answers AIN0 = 2.9 V."""
     from mrctl.io.devices import resolve_device
+    from mrctl.io.devices.link import PresetLink
 
     setup, errors = resolve_device("labjack_t7", {"x": {"ain": 0, "m_per_V": 0.0025, "offset_V": 2.5},
                                                   "current": {"dac": 0, "V_per_A": 2.5, "offset_V": 0.1}}, {})
     assert errors == []
-    rmap = setup.register_map
-    x = rmap.decode_read(struct.pack(">f", 2.9))[2]
-    assert x == pytest.approx((2.9 - 2.5) * 0.0025)
-    buf = rmap.encode_write(0.4)
-    assert struct.unpack(">f", buf)[0] == pytest.approx(0.4 * 2.5 + 0.1)
-    assert rmap.write_block.address == 1000 and rmap.read_blocks[0].address == 0
+    sent: list[bytes] = []
+
+    class Wire:
+        def write(self, adu, deadline) -> None:
+            sent.append(bytes(adu))
+
+        def recv(self, deadline, wake_ns=0) -> bytes:
+            pdu = bytes((76,)) + struct.pack(">ff", 0.1, 2.9)  # DAC0 read back, AIN0
+            return sent[-1][:2] + struct.pack(">HHB", 0, len(pdu) + 1, 1) + pdu
+
+        def close(self) -> None:
+            pass
+
+    link = PresetLink(setup, host="127.0.0.1")
+    link._io = Wire()
+    link._choose_protocol()
+    sample = link._tick(0.4, True, time.monotonic() + 1.0, 0)
+    assert sample.x_m == pytest.approx((2.9 - 2.5) * 0.0025)
+    # the request: read DAC0 (1000), write DAC0 (1000) its volts, the watchdog key, read AIN0 (address 0)
+    assert struct.unpack_from(">BHB", sent[-1], 8) == (0, 1000, 2)
+    kind, address, n, volts = struct.unpack_from(">BHBf", sent[-1], 12)
+    assert (kind, address, n) == (1, 1000, 2) and volts == pytest.approx(0.4 * 2.5 + 0.1)
+    assert struct.unpack_from(">BHB", sent[-1], 28) == (0, 0, 2) and len(sent[-1]) == 32
+    link._io = None
 
 
 # -- the emulator, in process, on a virtual clock ----------------------------------------------

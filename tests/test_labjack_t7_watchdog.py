@@ -228,6 +228,34 @@ def test_the_link_sends_one_mbfb_request_per_tick_stamped_by_core_timer(served, 
     assert dev.dac_V[0] == 0.0
 
 
+def test_core_timer_going_back_is_counted_and_the_count_outlives_a_reopen(served, tmp_path) -> None:
+    """The emulated T7's CORE_TIMER restarts from 0 under a live connection (what a restart the
+    network survived would look like): one device_clock_reset, in counters(), still there after
+    the link is closed and opened again (the unwrapper is forgotten at open, not replaced)."""
+    dev, state, port = served()
+    link, _ = _link(port, tmp_path)
+
+    def tick(k: int) -> Sample:  # a new conversion of the bench (CORE_TIMER stamps its time), then a tick
+        state.publish(Sample(k, k * 1e-3, 0.001, math.nan, 20.0, 0, 0.1))
+        return link.exchange(0.1)
+
+    link.open()
+    try:
+        t = [tick(k).t_dev_s for k in range(3)]
+        assert t[0] < t[1] < t[2] and link.counters()["device_clock_resets"] == 0
+        with dev._lock:
+            dev.io.boot_ns = dev.clock_ns()  # CORE_TIMER from 0 again
+        assert tick(3).t_dev_s < t[2] and link.counters()["device_clock_resets"] == 1
+    finally:
+        link.close()
+    link.open()
+    try:
+        tick(4)
+        assert link.counters()["device_clock_resets"] == 1
+    finally:
+        link.close()
+
+
 def test_a_t7_without_mbfb_gets_fc3_fc16_and_an_old_firmware_is_refused(served, tmp_path) -> None:
     from mrctl.errors import LinkFailure
     from mrctl.io.devices.link import DeviceSetupError
@@ -245,6 +273,29 @@ def test_a_t7_without_mbfb_gets_fc3_fc16_and_an_old_firmware_is_refused(served, 
     with pytest.raises(DeviceSetupError, match=r"firmware 1\.0010 is too old: mrctl needs 1\.0016") as e:
         link.open()
     assert isinstance(e.value, LinkFailure) and e.value.exit_code == 3
+
+
+def test_a_preset_without_modbus_mbfb_gets_fc3_fc16_without_trying_mbfb(served, tmp_path) -> None:
+    """The MBFB function code is the preset's (modbus.mbfb): without it, no MBFB request is sent."""
+    import dataclasses
+
+    from mrctl.io.devices import Preset
+    from mrctl.io.devices.link import PresetLink
+
+    dev, _state, port = served()
+    link, _ = _link(port, tmp_path)
+    p = link.setup.preset
+    data = {**p.data, "modbus": {k: v for k, v in p.data["modbus"].items() if k != "mbfb"}}
+    setup = dataclasses.replace(link.setup, preset=Preset(p.name, p.description, p.source, data))
+    with pytest.raises(ValueError, match="has no Modbus Feedback"):
+        PresetLink(setup, host="127.0.0.1", port=port, protocol="mbfb")
+    link = PresetLink(setup, host="127.0.0.1", port=port)
+    link.open()
+    try:
+        assert link.protocol == "plain" and math.isfinite(link.exchange(0.1).x_m)
+        assert 76 not in dev.fc_counts
+    finally:
+        link.close()
 
 
 def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) -> None:
@@ -272,6 +323,68 @@ def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) ->
         assert not link.exchange(0.3).status & Status.WATCHDOG_TRIPPED
     finally:
         link.close()
+
+
+class _Wire:
+    """A TcpIO stand-in: the requests written, the replies given one segment per recv, what drain drops."""
+
+    def __init__(self, *segments: bytes, queued: int = 0) -> None:
+        self.segments, self.queued, self.sent = list(segments), queued, []
+
+    def write(self, data, deadline) -> None:
+        self.sent.append(bytes(data))
+
+    def recv(self, deadline, wake_ns=0) -> bytes:
+        return self.segments.pop(0) if self.segments else b""
+
+    def drain(self) -> int:
+        n, self.queued = self.queued, 0
+        return n
+
+    def close(self) -> None:
+        pass
+
+
+def _reply(tid: int, pdu: bytes, pid: int = 0, unit: int = 1) -> bytes:
+    return struct.pack(">HHHB", tid, pid, len(pdu) + 1, unit) + pdu
+
+
+def test_the_preset_links_replies_are_checked_whole_on_either_path() -> None:
+    """The PresetLink's wire: a reply alone in its segment (the quick path) and one among others
+    (the MBAP framing ModbusTcpLink uses) are checked alike: a protocol id other than 0 flushes the
+    stream and counts the bytes dropped; a late reply is skipped and counted; FC3's byte count
+    and FC16's echo must match."""
+    from mrctl.io.base import FrameError
+    from mrctl.io.devices import resolve_device
+    from mrctl.io.devices.link import PresetLink
+
+    setup, errors = resolve_device("labjack_t7", {"x": {"ain": 0, "m_per_V": 0.0025},
+                                                  "current": {"dac": 0, "V_per_A": 2.5}}, {})
+    assert errors == []
+    link = PresetLink(setup, host="127.0.0.1")
+    f7 = struct.pack(">f", 7.0)
+    link._io = _Wire(_reply(1, bytes((3, 4)) + f7))  # the quick path
+    assert link.read_value(60000, "float32") == 7.0
+    link._io = _Wire(_reply(1, bytes((3, 4)) + f7) + _reply(2, bytes((3, 4)) + f7))  # a late one first
+    assert link.read_value(60000, "float32") == 7.0 and link.stale_replies == 1
+    bad_pid = _reply(3, bytes((3, 4)) + f7, pid=1)
+    for segments in ((bad_pid,), (bad_pid[:5], bad_pid[5:])):  # alone, or through the framing
+        link._io = _Wire(*segments, queued=5)
+        before = link.bytes_discarded
+        with pytest.raises(FrameError, match="bad MBAP header; stream flushed"):
+            link.read_value(60000, "float32")
+        assert link.bytes_discarded - before == len(bad_pid) + 5 and not link._rx
+        assert link.counters()["bytes_discarded"] == link.bytes_discarded
+    for split in (None, 3):  # byte count 2 in a reply of the right length: alone, or through the framing
+        bad_count = _reply(link._tid + 1, bytes((3, 2)) + f7[:2] + bytes(2))
+        link._io = _Wire(*((bad_count,) if split is None else (bad_count[:split], bad_count[split:])))
+        with pytest.raises(FrameError, match="byte count"):
+            link.read_value(60000, "float32")
+    echo = _reply(link._tid + 1, struct.pack(">BHH", 16, 1002, 2))  # FC16 echoing another address
+    link._io = _Wire(echo)
+    with pytest.raises(FrameError, match="echoed address"):
+        link.write_value(1000, "float32", 1.0)
+    link._io = None
 
 
 @pytest.mark.parametrize("change, message", [

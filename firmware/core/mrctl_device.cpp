@@ -111,9 +111,7 @@ void Device::tick(const RawInputs& raw, uint32_t t_us) {
   ++counters_.ticks;
   driver_fault_input_ = raw.driver_fault;
   if (raw.driver_fault) driver_fault_ = true;
-  if (raw.estop_open && !estop_input_) ++counters_.estops;
-  estop_input_ = raw.estop_open;
-  if (raw.estop_open) estop_ = true;  // 0 A at this tick, before anything else is applied
+  sense_estop();  // 0 A at this tick, before anything else is applied
   if (pending_) {
     pending_ = false;
     apply(pending_A_, pending_enable_);
@@ -187,8 +185,19 @@ void Device::apply(float current_A, bool enable) {
   drive();
 }
 
+// the E-stop input, live: an opening latches ESTOP (and is counted) at once
+void Device::sense_estop() {
+  const bool open = io_.estop_open();
+  if (open && !estop_input_) ++counters_.estops;
+  estop_input_ = open;
+  if (open) estop_ = true;
+}
+
 // the one place the output is set: 0 A and disabled unless every condition holds
+// (the E-stop input is read here, not only at ticks: a SETPOINT or CLEAR_FAULTS
+// handled between the input opening and the next tick must not drive the output)
 void Device::drive() {
+  sense_estop();
   const bool on = armed_ && !starved_ && cmd_enable_ && !driver_fault_ && !estop_;
   const float I = on ? cmd_A_ : 0.0f;
   float counts = I * cfg_.output_counts_per_A + 0.5f;

@@ -41,16 +41,20 @@ struct RawInputs {
   int32_t x_counts;
   int32_t force_counts;
   bool driver_fault;          // the driver's fault output is active
-  bool estop_open;            // the E-stop / interlock input is open (the board applies its polarity)
   float current_monitor_A;    // the driver's measured current, A; NaN = not fitted
 };
 
-// The board's side: bytes to the host, and the driver's control input.
+// The board's side: bytes to the host, the driver's control input, and the
+// E-stop input.
 class DeviceIo {
  public:
   virtual void send(const uint8_t* data, size_t n) = 0;
   // counts for the DAC/PWM (0 = 0 A), and the driver's enable input
   virtual void set_output(uint32_t counts, bool enable) = 0;
+  // the E-stop / interlock input now: true = open (the board applies its
+  // polarity). Read at every tick and before every output change, so no
+  // setpoint between two ticks can drive the output while it is open.
+  virtual bool estop_open() = 0;
 
  protected:
   ~DeviceIo() = default;
@@ -101,6 +105,7 @@ class Device : private FrameSink {
   void apply(float current_A, bool enable);
   void watchdog(uint32_t now_us);
   void drive();
+  void sense_estop();
   uint16_t status(bool clamped) const;
   void send_sample(uint32_t echo_seq, bool clamped);
   void send_error(uint32_t echo_seq, uint8_t code, uint8_t detail = 0);
@@ -143,7 +148,7 @@ class Device : private FrameSink {
   bool driver_fault_ = false; // DRIVER_FAULT (latched)
   bool driver_fault_input_ = false;  // the driver's fault line at the last tick
   bool estop_ = false;        // ESTOP (latched: 0 A until CLEAR_FAULTS once the input closed)
-  bool estop_input_ = false;  // the E-stop input at the last tick
+  bool estop_input_ = false;  // the E-stop input when last read
   uint32_t last_good_seq_ = 0;
 };
 

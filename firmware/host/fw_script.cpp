@@ -10,7 +10,7 @@
 //   at T_US                       set the device clock (µs)
 //   adc X_COUNTS F_COUNTS         the readings of the following ticks
 //   fault 0|1                     the driver's fault line
-//   estop 0|1                     the E-stop input (1 = open)
+//   estop 0|1                     the E-stop input (1 = open), live: the next tick or output change reads it
 //   monitor A|nan                 the driver's current monitor
 //   tick                          a sampling tick at the current time
 //   poll                          the watchdog check at the current time
@@ -41,11 +41,13 @@ class ScriptIo : public mrctl_fw::DeviceIo {
  public:
   uint32_t counts = 0;
   bool enable = false;
+  bool estop = false;
   void send(const uint8_t* data, size_t n) override { print_hex("tx", data, n); }
   void set_output(uint32_t c, bool e) override {
     counts = c;
     enable = e;
   }
+  bool estop_open() override { return estop; }
 };
 
 size_t from_hex(const char* s, uint8_t* out, size_t cap) {
@@ -65,7 +67,7 @@ int main() {
   mrctl_fw::DeviceConfig cfg = board::kDeviceConfig;
   alignas(mrctl_fw::Device) static unsigned char storage[sizeof(mrctl_fw::Device)];
   mrctl_fw::Device* dev = new (storage) mrctl_fw::Device(cfg, io);
-  mrctl_fw::RawInputs raw = {2048, 2048, false, false, NAN};
+  mrctl_fw::RawInputs raw = {2048, 2048, false, NAN};
   uint32_t now = 0;
   char line[4096];
   while (fgets(line, sizeof line, stdin)) {
@@ -117,7 +119,7 @@ int main() {
     } else if (c == "fault") {
       raw.driver_fault = atoi(rest) != 0;
     } else if (c == "estop") {
-      raw.estop_open = atoi(rest) != 0;
+      io.estop = atoi(rest) != 0;
     } else if (c == "monitor") {
       raw.current_monitor_A = strtof(rest, nullptr);
     } else if (c == "tick") {

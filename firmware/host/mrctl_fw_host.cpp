@@ -47,6 +47,7 @@ class PtyIo : public mrctl_fw::DeviceIo {
   uint32_t tx_dropped = 0;  // bytes the pty had no room for (the host stopped reading)
   uint32_t output_counts = 0;
   bool output_enable = false;
+  bool estop = false;  // the E-stop input (the --estop-at-s window)
 
   void send(const uint8_t* data, size_t n) override {
     while (n > 0) {
@@ -64,6 +65,7 @@ class PtyIo : public mrctl_fw::DeviceIo {
     output_counts = counts;
     output_enable = enable;
   }
+  bool estop_open() override { return estop; }
 };
 
 struct Args {
@@ -193,7 +195,7 @@ int main(int argc, char** argv) {
       k = k_now;
       const int64_t t_tick = t0 + k * period_ns;
       const double t_s = static_cast<double>(k * period_ns) * 1e-9;
-      source.estop_open = args.estop_at_s >= 0 && t_s >= args.estop_at_s && t_s < args.estop_at_s + args.estop_for_s;
+      io.estop = args.estop_at_s >= 0 && t_s >= args.estop_at_s && t_s < args.estop_at_s + args.estop_for_s;
       device.tick(source.sample(t_s, device.applied_A()), dev_us(t_tick));
       ++k;
     }

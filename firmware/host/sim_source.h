@@ -52,13 +52,11 @@ class SimSource {
     raw.x_counts = counts(cfg_.x, x_m);
     raw.force_counts = counts(cfg_.force, F_N);
     raw.driver_fault = false;
-    raw.estop_open = estop_open;
     raw.current_monitor_A = NAN;
     return raw;
   }
 
   double x_m = 0, v_mps = 0, F_N = 0;  // the true values of the last sample
-  bool estop_open = false;  // the E-stop input (the host build's --estop-at-s window)
 
  private:
   int32_t counts(const mrctl_fw::AnalogChannel& ch, double value) const {

@@ -1,7 +1,7 @@
 """An experiment's DAQ preset keys (``backend.device``, ``backend.channels``
 and the device options; mrctl/io/devices/, docs/hardware.md): their schema
-fields, and the check that turns them into the register map and the
-device's set-up once the rest of the file is valid."""
+fields, and the check that turns them into the device's set-up once the
+rest of the file is valid."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ __all__ = ["device_fields", "device_checks"]
 
 def device_fields() -> dict[str, Any]:
     """The keys of a device preset (mrctl/io/devices/, docs/hardware.md); checked together in
-    :func:`_device_checks`, where they become the register map and the device's set-up."""
+    :func:`device_checks`, where they become the device's set-up."""
     from mrctl.io.devices import preset_names
 
     def any_value(value: Any, path: str) -> tuple[Any, list[str]]:
@@ -49,8 +49,8 @@ _DEVICE_OPTIONS = ("ain_range_V", "ain_resolution_index", "device_watchdog_s", "
 def device_checks(cfg: Node, data: dict[str, Any]) -> tuple[Node, list[str]]:
     """A device preset's channels and options, checked with the preset (key
     paths under ``backend``); the backend then carries the set-up in
-    ``device`` and the register map it implies. Also settles
-    ``sensing.velocity`` (null: observer when there is no velocity register)."""
+    ``device`` (and no register map). Also settles ``sensing.velocity``
+    (null: observer when there is no velocity register or channel)."""
     backend = cfg.backend
     raw = data.get("backend") if isinstance(data.get("backend"), dict) else {}
     errors: list[str] = []
@@ -74,7 +74,7 @@ def device_checks(cfg: Node, data: dict[str, Any]) -> tuple[Node, list[str]]:
                                      I_max if isinstance(I_max, float) else None)
         errors += errs
         if setup is not None and not errors:
-            backend = backend.replace(device=setup, register_map=setup.register_map, use_fc23=False)
+            backend = backend.replace(device=setup, register_map=None, use_fc23=False)
             if "port" not in raw:
                 backend = backend.replace(port=setup.preset.port)
             cfg = cfg.replace(backend=backend)
@@ -84,8 +84,12 @@ def device_checks(cfg: Node, data: dict[str, Any]) -> tuple[Node, list[str]]:
                 errors.append(f"backend.{k}: only with backend.device (a DAQ preset: {', '.join(_presets())})")
     sensing = cfg.get("sensing")
     if sensing is not None and not errors:
-        rmap = backend.get("register_map") if backend is not None else None
-        no_v = rmap is not None and not rmap.has("v_mps")
+        setup = backend.get("device") if backend is not None else None
+        if setup is not None:  # a preset: a velocity channel or none
+            no_v = "v" not in setup.channels
+        else:
+            rmap = backend.get("register_map") if backend is not None else None
+            no_v = rmap is not None and not rmap.has("v_mps")
         velocity = sensing.velocity
         if velocity is None:
             velocity = "observer" if no_v else "measured"

@@ -4,14 +4,12 @@ A preset is data, one YAML file per device beside this module (``labjack_t7.yaml
 addresses, types and ranges from the vendor's published map, with the source
 named in the file). The user's ``backend.channels`` says which analog input
 carries which sensor and the volts per unit of each; :func:`resolve_device`
-checks both together (every error with its key path) and turns them into
-
-* a :class:`~mrctl.io.registers.RegisterMap` whose linear scaling is the
-  channel calibration (``physical = volts * scale + offset``), so the tick
-  runs through the ordinary :class:`~mrctl.io.modbus.ModbusLink` machinery;
-* the device set-up the link does at open (input range, resolution, negative
-  channel and settling per used input, the device watchdog, the enable output,
-  the E-stop input), each read back.
+checks both together (every error with its key path) and turns them into a
+:class:`DeviceSetup`: each channel's calibration (:class:`ChannelSpec`: physical
+= (volts - offset_V) * per_V on an input, volts = current * V_per_A + offset_V
+on the DAC) and the set-up the link does at open (input range, resolution,
+negative channel and settling per used input, the device watchdog, the enable
+output, the E-stop input), each read back.
 
 The link that does the set-up and the tick is :class:`mrctl.io.devices.link.PresetLink`
 (generic: what differs between devices is in the YAML); the backend table
@@ -27,8 +25,6 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import yaml
-
-from mrctl.io.registers import RegisterMap, validate_register_map
 
 __all__ = ["CHANNEL_ROLES", "ChannelSpec", "DeviceSetup", "Preset", "load_preset", "preset_names", "resolve_device"]
 
@@ -115,7 +111,6 @@ class DeviceSetup:
 
     preset: Preset
     channels: Mapping[str, ChannelSpec]
-    register_map: RegisterMap
     ain_range_V: float
     ain_resolution_index: int
     watchdog_s: int
@@ -132,6 +127,13 @@ class DeviceSetup:
     def ains(self) -> tuple[int, ...]:
         """The analog inputs in use (each gets its range and resolution set at open)."""
         return tuple(sorted(c.n for c in self.channels.values() if c.kind == "ain"))
+
+    @property
+    def ain_block(self) -> tuple[int, int]:
+        """The inputs as the tick reads them, one block from the lowest in use to the highest:
+        (the first, how many; the device converts every input in between too)."""
+        ains = self.ains
+        return ains[0], ains[-1] - ains[0] + 1
 
     @property
     def dac(self) -> ChannelSpec:
@@ -297,22 +299,7 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
     estop_dio, estop_high = _estop(preset, options, dio, dcount, errors)
     if errors:
         return None, errors
-    regs: dict[str, Any] = {}
-    for role, s in specs.items():
-        quantity = CHANNEL_ROLES[role][0]
-        if s.kind == "ain":
-            scale, offset = s.per_V, -s.offset_V * s.per_V
-        else:  # volts = I * V_per_A + offset_V  <=>  I = volts / V_per_A - offset_V / V_per_A
-            scale, offset = 1.0 / s.per_V, -s.offset_V / s.per_V
-        regs[quantity] = {"table": "holding", "address": preset.address(s.kind, s.n),
-                          "type": preset.io(s.kind)["type"], "scale": scale, "offset": offset}
-    rmap, errs = validate_register_map(
-        {"unit_id": preset.unit_id, "word_order": preset.data["modbus"]["word_order"], "registers": regs},
-        f"{cpath} (as a register map)")
-    if errs:
-        return None, errs
-    assert rmap is not None
-    return DeviceSetup(preset, specs, rmap, float(rng), int(res), int(wd_s),
+    return DeviceSetup(preset, specs, float(rng), int(res), int(wd_s),
                        None if dio is None else int(dio), float(tog), ain_settling_us=float(settle),
                        estop_dio=estop_dio, estop_active_high=estop_high), []
 

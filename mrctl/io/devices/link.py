@@ -14,8 +14,9 @@ their class. One tick is **one request** when the device answers LabJack's Modbu
 
 A device that refuses MBFB (ILLEGAL_FUNCTION, or silence) gets the same operations as one FC3/FC16
 each; the start-up line says which was chosen. Every reply is checked (transaction id, protocol
-id, unit, function, exact length); a reply to another transaction is skipped and counted, never
-taken for this tick's.
+id, unit, function, exact length, FC3's byte count, FC16's echo); a reply to another transaction
+is skipped and counted (``stale_replies``), never taken for this tick's; an impossible MBAP header
+flushes the stream (``bytes_discarded``), as :class:`~mrctl.io.modbus.tcp.ModbusTcpLink` does.
 
 At open, each value read back: the identity and firmware (too old for the watchdog block: refused,
 exit 3), range, resolution index, negative channel and settling of every input in use, the enable
@@ -34,30 +35,21 @@ from mrctl.io.base import (
     CounterUnwrap, DeviceError, Disconnected, FrameError, Link, LinkTimeout, Sample, Status, network_device_key,
 )
 from mrctl.io.devices import DeviceSetup
-from mrctl.io.devices.mbfb import FC_READ, FC_WRITE, Request, mbfb_request, plain_requests, read_pdu, write_pdu
-from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, _tick_ops, model_period_s
+from mrctl.io.devices.mbfb import Op, Request, as_stored, mbfb_request, plain_requests
+from mrctl.io.devices.setup import DeviceSetupError, identify, set_up
+from mrctl.io.devices.tick import _DAC, _ENABLE, _KEY, model_period_s, tick_ops
 from mrctl.io.devices.watchdog import WatchdogError, configure_watchdog, disarm_watchdog, watchdog_plan
-from mrctl.io.modbus.codec import exception_name
+from mrctl.io.modbus.codec import ILLEGAL_FUNCTION, exception_name
+from mrctl.io.modbus.tcp import next_mbap_frame
 from mrctl.io.modbus.transport import TcpIO
 
 __all__ = ["PresetLink", "DeviceSetupError", "model_period_s"]
 
-_PACK = {"float32": struct.Struct(">f"), "uint32": struct.Struct(">I"), "uint16": struct.Struct(">H")}
-_F32 = _PACK["float32"]
-_ILLEGAL_FUNCTION = 1
 _NO_LOAD_CELL = int(Status.NO_LOAD_CELL)
 _WD_TRIPPED = int(Status.WATCHDOG_TRIPPED)
 _DRIVER_FAULT = int(Status.DRIVER_FAULT)
 _ESTOP = int(Status.ESTOP)
 _NAN = math.nan
-
-
-class DeviceSetupError(DeviceError):
-    """The device did not take (or read back) a set-up value, is not the device the config names,
-    or its firmware is too old. Exit 3 at start-up."""
-
-    def __init__(self, message: str) -> None:
-        super().__init__(0, message)
 
 
 class PresetLink(Link):
@@ -66,18 +58,23 @@ class PresetLink(Link):
 
     kinds = ("modbus-tcp",)
     split = False
-    COUNTERS = Link.COUNTERS + ("transactions", "enable_toggles", "watchdog_trips", "dac_mismatches",
-                                "estop_ticks", "invalid_values")
+    COUNTERS = Link.COUNTERS + ("transactions", "bytes_discarded", "device_clock_resets", "enable_toggles",
+                                "watchdog_trips", "dac_mismatches", "estop_ticks", "invalid_values")
 
     def __init__(self, setup: DeviceSetup, *, host: str, port: int | None = None, unit_id: int | None = None,
                  timeout_s: float | None = None, open_timeout_s: float = 1.0, spin_wait: bool = True,
                  protocol: str | None = None) -> None:
-        """``protocol``: "mbfb", "plain" (FC3/FC16), or None to try MBFB at open and fall back."""
+        """``protocol``: "mbfb", "plain" (FC3/FC16), or None to try MBFB at open (if the preset names
+        its function code, ``modbus.mbfb``) and fall back."""
         if protocol not in (None, "mbfb", "plain"):
             raise ValueError(f"protocol must be 'mbfb', 'plain' or None, got {protocol!r}")
         super().__init__(0.01 if timeout_s is None else timeout_s)
         self.setup = setup
         p = setup.preset
+        fc = p.data["modbus"].get("mbfb")
+        self._fc_mbfb = None if fc is None else int(fc)  #: the device's MBFB function code; None: it has none
+        if protocol == "mbfb" and fc is None:
+            raise ValueError(f"protocol 'mbfb': a {p.name} has no Modbus Feedback (no modbus.mbfb in its preset)")
         self.host, self.port = host, int(p.port if port is None else port)
         self.unit_id = int(p.unit_id if unit_id is None else unit_id)
         self.open_timeout_s = float(open_timeout_s)
@@ -101,14 +98,20 @@ class PresetLink(Link):
         self._last_volts: float | None = None
         wd = p.watchdog
         self._key = int(wd["strict_key"]) if wd is not None else 0
-        self._wd_volts = _F32.unpack(_F32.pack(setup.dac_volts(0.0)))[0]
+        self._wd_volts = as_stored("float32", setup.dac_volts(0.0))
         self._seq_local = 0
         self._hz = float(p.data.get("core_timer", {}).get("hz", 1.0))
+        # CORE_TIMER (UINT32) unwrapped: one for the link's life, so the base class forgets its last
+        # value at every open and the timer going back is counted across reopens (device_clock_resets)
+        self._clock = CounterUnwrap(1 << 32) if "core_timer" in p.data else None
         io = p.io("dac")
         self._vlo, self._vhi = float(io["min_V"]), float(io["max_V"])
+        self._dac_per, self._dac_off = setup.dac.per_V, setup.dac.offset_V  # setup.dac_volts, inlined
+        self._dac_slot: tuple[Request, struct.Struct, int] | None = None  # where the tick's DAC volts go
         ch = setup.channels
-        lo = min(setup.ains)
-        self._ain_lo = lo
+        lo, n_ain = setup.ain_block
+        self._i_after_ain = 1 + n_ain  # reads: the DAC, the AIN block, then the rest
+        self._estop_high = setup.estop_active_high
 
         def idx(role: str) -> tuple[int, float, float] | None:
             c = ch.get(role)
@@ -132,7 +135,7 @@ class PresetLink(Link):
         s = cfg.device
         t = s.preset.data["timing"]
         return (f"{s.preset.name} over Ethernet, one MBFB request per tick (datasheet A-1/A-3-1 model: "
-                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {max(s.ains) - min(s.ains) + 1} AIN x "
+                f"{float(t['overhead_io_s']['ethernet']) * 1e3:g} ms + {s.ain_block[1]} AIN x "
                 f"{float(t['ain_sample_s'][s.ain_resolution_index]) * 1e3:g} ms at resolution index "
                 f"{s.ain_resolution_index})")
 
@@ -165,40 +168,38 @@ class PresetLink(Link):
     def _where(self) -> str:
         return f"{self.setup.preset.name} at {self.host}:{self.port}"
 
-    def _rpc(self, adu: bytearray, fc: int, resp_len: int, deadline: float, wake_ns: int = 0) -> bytes:
-        """Send ``adu`` with the next transaction id; the reply's whole frame, checked."""
+    def _rpc(self, req: Request, deadline: float, wake_ns: int = 0) -> bytes:
+        """Send ``req`` with the next transaction id; the reply's whole frame, checked. The usual
+        case (exactly the reply, alone in one segment) is one ``startswith`` against ``req.tail``;
+        anything else goes through the MBAP framing ModbusTcpLink uses (:func:`next_mbap_frame`)."""
         io = self._io
         if io is None:
             raise Disconnected(f"{self._where()}: not open")
         tid = self._tid = (self._tid + 1) & 0xFFFF
+        adu = req.adu
         adu[0], adu[1] = tid >> 8, tid & 0xFF
         io.write(adu, deadline)
         self.transactions += 1
         rx = self._rx
         while True:
-            while len(rx) >= 7:
-                if rx[2] or rx[3] or not 2 <= (rx[4] << 8 | rx[5]) <= 254:
-                    rx.clear()
-                    io.drain()
-                    raise FrameError(f"{self._where()}: bad MBAP header; stream flushed")
-                total = 6 + (rx[4] << 8 | rx[5])
-                if len(rx) < total:
-                    break
-                frame = bytes(rx[:total])
-                del rx[:total]
+            frame = next_mbap_frame(self, rx, io) if len(rx) >= 6 else None
+            if frame is not None:
                 if frame[0] << 8 | frame[1] != tid:
                     self.stale_replies += 1  # the late answer to an earlier request
                     continue
-                return self._check(frame, fc, resp_len)
+                return self._check(frame, req)
             chunk = io.recv(deadline, wake_ns)
             wake_ns = 0
             if not chunk:
                 raise LinkTimeout(f"{self._where()}: no reply to tid {tid} within {self.timeout_s * 1e3:.3g} ms")
-            if not rx and len(chunk) == resp_len and chunk[0] << 8 | chunk[1] == tid:
-                return self._check(chunk, fc, resp_len)
+            if not rx and len(chunk) == req.resp_len and chunk[0] << 8 | chunk[1] == tid \
+                    and chunk.startswith(req.tail, 2):
+                return chunk
             rx += chunk
 
-    def _check(self, frame: bytes, fc: int, resp_len: int) -> bytes:
+    def _check(self, frame: bytes, req: Request) -> bytes:
+        """A whole frame with this request's tid (protocol id 0 and its MBAP length: the framing saw to it)."""
+        fc = req.fc
         if frame[6] != self.unit_id:
             raise FrameError(f"{self._where()}: reply from unit {frame[6]}, asked unit {self.unit_id}")
         got = frame[7]
@@ -206,28 +207,27 @@ class PresetLink(Link):
             raise DeviceError(frame[8], f"{self._where()}: function {fc} refused: {exception_name(frame[8])}")
         if got != fc:
             raise FrameError(f"{self._where()}: reply with function {got}, asked {fc}")
-        if len(frame) != resp_len:
-            raise FrameError(f"{self._where()}: function {fc} reply of {len(frame)} bytes, expected {resp_len}")
+        if len(frame) != req.resp_len:
+            raise FrameError(f"{self._where()}: function {fc} reply of {len(frame)} bytes, expected {req.resp_len}")
+        if not frame.startswith(req.tail, 2):  # FC3's byte count, FC16's echo
+            raise FrameError(f"{self._where()}: function {fc} reply {frame[8:2 + len(req.tail)].hex()}, expected "
+                             f"{req.tail[6:].hex()} (FC3's byte count, FC16's echoed address and count)")
         return frame
 
     def read_value(self, address: int, dtype: str, deadline: float | None = None) -> Any:
         """One register value (FC3), outside the tick."""
         self._step = f"reading register {address}"
-        st = _PACK[dtype]
-        frame = self._rpc(bytearray(struct.pack(">HHHB", 0, 0, 6, self.unit_id) + read_pdu(address, st.size // 2)),
-                          FC_READ, 9 + st.size, deadline or time.monotonic() + self.open_timeout_s)
-        if frame[8] != st.size:
-            raise FrameError(f"{self._where()}: read of {address}: byte count {frame[8]}, expected {st.size}")
-        return st.unpack_from(frame, 9)[0]
+        req = plain_requests([Op(False, address, dtype)], self.unit_id)[0]
+        frame = self._rpc(req, deadline or time.monotonic() + self.open_timeout_s)
+        return req.decode.unpack_from(frame, req.data_off)[0]  # type: ignore[union-attr]
 
     def write_value(self, address: int, dtype: str, value: Any, deadline: float | None = None) -> None:
         """One register value (FC16), outside the tick."""
         self._step = f"writing {value!r} to register {address}"
-        pdu = write_pdu(address, _PACK[dtype].pack(value))
-        frame = self._rpc(bytearray(struct.pack(">HHHB", 0, 0, len(pdu) + 1, self.unit_id) + pdu), FC_WRITE, 12,
-                          deadline or time.monotonic() + self.open_timeout_s)
-        if frame[8:12] != pdu[1:5]:
-            raise FrameError(f"{self._where()}: write of {address} echoed {frame[8:12].hex()}")
+        req = plain_requests([Op(True, address, dtype)], self.unit_id)[0]
+        st, off = req.slots[0]
+        st.pack_into(req.adu, off, value)
+        self._rpc(req, deadline or time.monotonic() + self.open_timeout_s)
 
     # -- open: set-up ----------------------------------------------------------------------------
     def _open_transport(self) -> None:
@@ -237,8 +237,6 @@ class PresetLink(Link):
         self._reqs = []
         self._step = "connecting"
         try:
-            from mrctl.io.devices.setup import identify, set_up
-
             identify(self)
             if self.configure_on_open:
                 set_up(self)
@@ -260,26 +258,28 @@ class PresetLink(Link):
 
     def _choose_protocol(self) -> None:
         """MBFB once at 0 A, output disabled; ILLEGAL_FUNCTION or silence: FC3/FC16 per value."""
-        ops = _tick_ops(self.setup, self.core_timer)
+        ops = tick_ops(self.setup, self.core_timer)
         only = [op for op, _r in ops]
-        self._clock = CounterUnwrap(1 << 32) if self.core_timer else None
         want = self.protocol_config
-        if want in (None, "mbfb"):
-            self.protocol, self._reqs = "mbfb", [mbfb_request(only, self.unit_id)]
-            self._roles = [[r for _op, r in ops if r >= 0]]
+        if want in (None, "mbfb") and self._fc_mbfb is not None:
+            self._use("mbfb", [mbfb_request(only, self.unit_id, self._fc_mbfb)], [[r for _op, r in ops if r >= 0]])
             try:
                 self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
                 return
             except DeviceError as e:
-                if want == "mbfb" or e.code != _ILLEGAL_FUNCTION:
+                if want == "mbfb" or e.code != ILLEGAL_FUNCTION:
                     raise
             except LinkTimeout:
                 if want == "mbfb":
                     raise
             self.setup_report.append(("protocol", "MBFB refused: FC3/FC16 per value"))
-        self.protocol, self._reqs = "plain", plain_requests(only, self.unit_id)
-        self._roles = [[r] if r >= 0 else [] for _op, r in ops]
+        self._use("plain", plain_requests(only, self.unit_id), [[r] if r >= 0 else [] for _op, r in ops])
         self._tick(0.0, False, time.monotonic() + self.open_timeout_s, 0)
+
+    def _use(self, protocol: str, reqs: list[Request], roles: list[list[int]]) -> None:
+        self.protocol, self._reqs, self._roles = protocol, reqs, roles
+        self._dac_slot = next((req, st, off) for req, rs in zip(reqs, roles)
+                              for (st, off), r in zip(req.slots, rs) if r == _DAC)
 
     def _send_safe(self) -> None:
         """0 A on the DAC, the enable output low: the tick's request, or (not set up: device
@@ -318,32 +318,27 @@ class PresetLink(Link):
         return self._tick(current_A, self.enabled, deadline, wake_ns)
 
     def _tick(self, current_A: float, enabled: bool, deadline: float, wake_ns: int) -> Sample:
-        volts = self.setup.dac_volts(current_A if enabled else 0.0)
+        volts = (current_A if enabled else 0.0) * self._dac_per + self._dac_off
         volts = self._vlo if volts < self._vlo else self._vhi if volts > self._vhi else volts
         level = self._next_level(enabled)
         vals = self._vals
         vals[_DAC], vals[_ENABLE], vals[_KEY] = volts, level, self._key
-        reads: list[Any] = []
+        reads: tuple[Any, ...] = ()
         roles = self._roles
         for j, req in enumerate(self._reqs):
             adu = req.adu
             for (st, off), role in zip(req.slots, roles[j]):
                 st.pack_into(adu, off, vals[role])
-            frame = self._rpc(adu, req.fc, req.resp_len, deadline, wake_ns)
+            frame = self._rpc(req, deadline, wake_ns)
             wake_ns = 0
-            if req.fc == FC_WRITE:
-                if frame[8:12] != adu[8:12]:
-                    raise FrameError(f"{self._where()}: write echoed {frame[8:12].hex()}")
-            elif req.fc == FC_READ:
-                if frame[8] != req.resp_len - 9:
-                    raise FrameError(f"{self._where()}: byte count {frame[8]}, expected {req.resp_len - 9}")
-                reads.extend(req.decode.unpack_from(frame, 9))  # type: ignore[union-attr]
-            elif req.decode is not None:
-                reads.extend(req.decode.unpack_from(frame, 8))
+            if req.decode is not None:
+                got = req.decode.unpack_from(frame, req.data_off)
+                reads = reads + got if reads else got  # MBFB: the one reply's tuple as it is
         if level != self._level:
             self.enable_toggles += 1
             self._level = level
-        return self._sample(reads, _F32.unpack(_F32.pack(volts))[0])
+        dreq, dst, doff = self._dac_slot  # type: ignore[misc]
+        return self._sample(reads, dst.unpack_from(dreq.adu, doff)[0])  # the volts as written (float32)
 
     def _next_level(self, enabled: bool) -> int:
         if self.setup.enable_dio is None or not enabled:
@@ -354,7 +349,7 @@ class PresetLink(Link):
             return self._level ^ 1
         return self._level
 
-    def _sample(self, reads: list[Any], volts_written: float) -> Sample:
+    def _sample(self, reads: tuple[Any, ...], volts_written: float) -> Sample:
         """reads: DAC before the write, the AIN block, [E-stop DIO], [CORE_TIMER]."""
         status = 0
         prev, last = reads[0], self._last_volts
@@ -366,10 +361,9 @@ class PresetLink(Link):
                 status |= _WD_TRIPPED  # the device's watchdog acted (or it restarted) since the last tick
             else:
                 status |= _DRIVER_FAULT  # someone else writes the DAC
-        n_ain = max(self.setup.ains) - self._ain_lo + 1
-        i = 1 + n_ain
+        i = self._i_after_ain
         if self.setup.estop_dio is not None:
-            if (reads[i] == 1) == self.setup.estop_active_high:
+            if (reads[i] == 1) == self._estop_high:
                 status |= _ESTOP
                 self.estop_ticks += 1
             i += 1
@@ -389,7 +383,7 @@ class PresetLink(Link):
         return Sample(seq, t, x, v, F, status, self._phys(self._I, reads))
 
     @staticmethod
-    def _phys(ch: tuple[int, float, float] | None, reads: list[Any]) -> float:
+    def _phys(ch: tuple[int, float, float] | None, reads: tuple[Any, ...]) -> float:
         if ch is None:
             return _NAN
         i, per, off = ch

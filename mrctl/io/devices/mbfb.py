@@ -12,9 +12,11 @@ operation, executed in order:
 The response is the MBAP header, 76, then the read frames' data back to back in request order
 (writes return nothing); a refused request is the usual Modbus exception (``76 | 0x80``, code).
 
-Everything here is pure bytes, built once per link (a tick only patches the written values and
-the transaction id into the request). :class:`Op` lists are the tick's operations; the same list
-serves both protocols: one MBFB request, or one FC3/FC16 request per operation.
+The function code is the device preset's (``modbus.mbfb``: 76 on a T7). Everything here is pure
+bytes, built once per link (a tick only patches the written values and the transaction id into
+the request), the MBAP header and the FC3/FC16 PDUs by :mod:`mrctl.io.modbus.codec`. :class:`Op`
+lists are the tick's operations; the same list serves both protocols: one MBFB request, or one
+FC3/FC16 request per operation.
 """
 
 from __future__ import annotations
@@ -22,14 +24,23 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-__all__ = ["FC_MBFB", "FC_READ", "FC_WRITE", "Op", "Request", "mbfb_request", "plain_requests",
-           "read_pdu", "write_pdu"]
+from mrctl.io.modbus.codec import (
+    FC_READ_HOLDING as FC_READ, FC_WRITE_MULTIPLE as FC_WRITE, MAX_ADU_TCP, mbap_frame, read_request_pdu,
+    write_request_pdu,
+)
 
-FC_MBFB = 76
-FC_READ = 3
-FC_WRITE = 16
+__all__ = ["FC_READ", "FC_WRITE", "STRUCTS", "Op", "Request", "as_stored", "mbfb_request", "plain_requests"]
+
 _FMT = {"float32": "f", "uint32": "I", "uint16": "H"}
 _NREGS = {"float32": 2, "uint32": 2, "uint16": 1}
+#: a preset's register types, big-endian (high word first), as a T7 sends them
+STRUCTS = {dtype: struct.Struct(">" + f) for dtype, f in _FMT.items()}
+
+
+def as_stored(dtype: str, value: object) -> object:
+    """``value`` as a register of ``dtype`` holds it (a float32 rounded): what a read-back returns."""
+    st = STRUCTS[dtype]
+    return st.unpack(st.pack(value))[0]
 
 
 @dataclass(frozen=True)
@@ -49,33 +60,33 @@ class Op:
 class Request:
     """One prebuilt request: ``adu`` (MBAP with tid 0, patched per send), where each written value
     goes (``slots``: struct and offset per write op, in op order), the reply's function code, its
-    exact length and the struct that decodes its data (reads in op order)."""
+    exact length, the struct that decodes its data (reads in op order) and where that data starts
+    (``data_off``). ``tail``: the reply's bytes from offset 2 on that do not vary (protocol id 0,
+    MBAP length, unit, function; FC3's byte count, FC16's echoed address and count), so one
+    ``startswith`` checks a whole reply but its transaction id and data."""
 
-    __slots__ = ("adu", "slots", "fc", "resp_len", "decode", "n_values")
+    __slots__ = ("adu", "slots", "fc", "resp_len", "decode", "data_off", "tail")
 
     def __init__(self, adu: bytearray, slots: list[tuple[struct.Struct, int]], fc: int, resp_len: int,
                  decode: struct.Struct | None) -> None:
         self.adu, self.slots, self.fc, self.resp_len, self.decode = adu, slots, fc, resp_len, decode
-        self.n_values = 0 if decode is None else len(decode.unpack(bytes(decode.size)))
+        self.data_off = resp_len if decode is None else resp_len - decode.size
+        length = resp_len - 6
+        tail = bytes((0, 0, length >> 8, length & 0xFF, adu[6], fc))
+        if fc == FC_READ:
+            tail += bytes((resp_len - 9,))
+        elif fc == FC_WRITE:
+            tail += bytes(adu[8:12])
+        self.tail = tail
 
 
-def _mbap(pdu: bytes, unit: int) -> bytearray:
-    return bytearray(struct.pack(">HHHB", 0, 0, len(pdu) + 1, unit) + pdu)
+def _adu(pdu: bytes, unit: int) -> bytearray:
+    return bytearray(mbap_frame(0, unit, pdu))
 
 
-def read_pdu(address: int, n_regs: int) -> bytes:
-    """FC3 (read holding registers)."""
-    return struct.pack(">BHH", FC_READ, address, n_regs)
-
-
-def write_pdu(address: int, data: bytes) -> bytes:
-    """FC16 (write multiple registers)."""
-    return struct.pack(">BHHB", FC_WRITE, address, len(data) // 2, len(data)) + data
-
-
-def mbfb_request(ops: list[Op], unit: int) -> Request:
-    """The whole tick in one MBFB request."""
-    body = bytearray((FC_MBFB,))
+def mbfb_request(ops: list[Op], unit: int, fc: int) -> Request:
+    """The whole tick in one MBFB request (function ``fc``, the preset's ``modbus.mbfb``)."""
+    body = bytearray((fc,))
     slots: list[tuple[struct.Struct, int]] = []
     rfmt = ">"
     for op in ops:
@@ -83,16 +94,17 @@ def mbfb_request(ops: list[Op], unit: int) -> Request:
             raise ValueError(f"MBFB frame of {op.n_regs} registers at {op.address}")
         body += struct.pack(">BHB", 1 if op.write else 0, op.address, op.n_regs)
         if op.write:
-            st = struct.Struct(">" + _FMT[op.dtype])
+            st = STRUCTS[op.dtype]
             slots.append((st, 7 + len(body)))
             body += bytes(st.size)
         else:
             rfmt += _FMT[op.dtype] * op.count
     dec = struct.Struct(rfmt)
-    adu = _mbap(bytes(body), unit)
-    if len(adu) > 260 or 8 + dec.size > 260:
-        raise ValueError(f"MBFB request of {len(adu)} bytes (reply {8 + dec.size}): beyond a Modbus TCP ADU (260)")
-    return Request(adu, slots, FC_MBFB, 8 + dec.size, dec if dec.size else None)
+    adu = _adu(bytes(body), unit)
+    if len(adu) > MAX_ADU_TCP or 8 + dec.size > MAX_ADU_TCP:
+        raise ValueError(f"MBFB request of {len(adu)} bytes (reply {8 + dec.size}): beyond a Modbus TCP ADU "
+                         f"({MAX_ADU_TCP})")
+    return Request(adu, slots, fc, 8 + dec.size, dec if dec.size else None)
 
 
 def plain_requests(ops: list[Op], unit: int) -> list[Request]:
@@ -101,8 +113,9 @@ def plain_requests(ops: list[Op], unit: int) -> list[Request]:
     for op in ops:
         st = struct.Struct(">" + _FMT[op.dtype] * op.count)
         if op.write:
-            adu = _mbap(write_pdu(op.address, bytes(st.size)), unit)
+            adu = _adu(write_request_pdu(op.address, bytes(st.size)), unit)
             out.append(Request(adu, [(st, len(adu) - st.size)], FC_WRITE, 12, None))
         else:
-            out.append(Request(_mbap(read_pdu(op.address, op.n_regs), unit), [], FC_READ, 9 + st.size, st))
+            adu = _adu(read_request_pdu(FC_READ, op.address, op.n_regs), unit)
+            out.append(Request(adu, [], FC_READ, 9 + st.size, st))
     return out

@@ -11,18 +11,24 @@
 
 from __future__ import annotations
 
-import struct
 from typing import Any
 
-__all__ = ["identify", "set_up"]
+from mrctl.io.base import DeviceError
+from mrctl.io.devices.mbfb import as_stored
 
-_PACK = {"float32": struct.Struct(">f"), "uint32": struct.Struct(">I"), "uint16": struct.Struct(">H")}
+__all__ = ["DeviceSetupError", "identify", "set_up"]
+
+
+class DeviceSetupError(DeviceError):
+    """The device did not take (or read back) a set-up value, is not the device the config names,
+    or its firmware is too old. Exit 3 at start-up."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(0, message)
 
 
 def identify(link: Any) -> None:
     """Identity and firmware; refuses (DeviceSetupError) a device that is not the preset's or too old."""
-    from mrctl.io.devices.link import DeviceSetupError
-
     p = link.setup.preset
     link.setup_report = []
     for name, ident in (p.data.get("identity") or {}).items():
@@ -45,20 +51,15 @@ def identify(link: Any) -> None:
 
 
 def _set(link: Any, name: str, address: int, dtype: str, value: Any) -> None:
-    from mrctl.io.devices.link import DeviceSetupError
-
     link.write_value(address, dtype, value)
     got = link.read_value(address, dtype)
-    want = _PACK[dtype].unpack(_PACK[dtype].pack(value))[0]
-    if got != want:
+    if got != as_stored(dtype, value):
         raise DeviceSetupError(f"{link._where()}: {name} = {value!r} written, read back {got!r}")
     link.setup_report.append((name, got))
 
 
 def set_up(link: Any) -> None:
     """Inputs, the enable output, the E-stop input, the watchdog (each read back)."""
-    from mrctl.io.devices.link import DeviceSetupError
-
     s = link.setup
     p = s.preset
     ain = p.io("ain")

@@ -15,7 +15,7 @@ def model_period_s(setup: DeviceSetup, medium: str = "ethernet", mbfb: bool = Tr
     t = setup.preset.data["timing"]
     per_ain = float(t["ain_sample_s"][setup.ain_resolution_index]) + setup.ain_settling_us * 1e-6
     n_req = 1 if mbfb else len(tick_ops(setup))
-    return n_req * float(t["overhead_io_s"][medium]) + (max(setup.ains) - min(setup.ains) + 1) * per_ain
+    return n_req * float(t["overhead_io_s"][medium]) + setup.ain_block[1] * per_ain
 
 
 #: what a written op carries: the DAC's volts, the enable output's level, the watchdog key
@@ -32,13 +32,10 @@ def tick_ops(setup: DeviceSetup, core_timer: bool = True) -> list[tuple[Op, int]
     wd = p.watchdog
     if wd is not None:
         ops.append((Op(True, int(wd["strict_clear"]["address"]), wd["strict_clear"]["type"]), _KEY))
-    lo, hi = min(setup.ains), max(setup.ains)
-    ops.append((Op(False, p.address("ain", lo), p.io("ain")["type"], hi - lo + 1), -1))
+    lo, n = setup.ain_block
+    ops.append((Op(False, p.address("ain", lo), p.io("ain")["type"], n), -1))
     if setup.estop_dio is not None:
         ops.append((Op(False, p.address("dio", setup.estop_dio), p.io("dio")["type"]), -1))
     if core_timer and "core_timer" in p.data:
         ops.append((Op(False, int(p.data["core_timer"]["address"]), p.data["core_timer"]["type"]), -1))
     return ops
-
-
-_tick_ops = tick_ops

@@ -19,12 +19,11 @@ registers refuse writes while it is) and enabled last, and everything is read ba
 
 from __future__ import annotations
 
-import struct
 from typing import Any, Callable, Mapping
 
-__all__ = ["watchdog_plan", "configure_watchdog", "disarm_watchdog", "WatchdogError"]
+from mrctl.io.devices.mbfb import as_stored
 
-_PACK = {"float32": struct.Struct(">f"), "uint32": struct.Struct(">I"), "uint16": struct.Struct(">H")}
+__all__ = ["watchdog_plan", "configure_watchdog", "disarm_watchdog", "WatchdogError"]
 
 Read = Callable[[int, str], Any]
 Write = Callable[[int, str, Any], None]
@@ -35,8 +34,7 @@ class WatchdogError(Exception):
 
 
 def _same(dtype: str, got: Any, want: Any) -> bool:
-    st = _PACK[dtype]
-    return bool(got == st.unpack(st.pack(want))[0])
+    return bool(got == as_stored(dtype, want))
 
 
 def watchdog_plan(wd: Mapping[str, Any], timeout_s: int, dac_n: int, dac_volts_0A: float,

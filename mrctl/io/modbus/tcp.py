@@ -19,7 +19,24 @@ from mrctl.io.modbus.codec import FC_WRITE_MULTIPLE, MAX_ADU_TCP, Tx, decode_tcp
 from mrctl.io.modbus.link import DEFAULT_TCP_TIMEOUT_S, ModbusLink
 from mrctl.io.modbus.transport import TcpIO
 
-__all__ = ["ModbusTcpLink"]
+__all__ = ["ModbusTcpLink", "next_mbap_frame"]
+
+
+def next_mbap_frame(link: Any, rx: bytearray, io: TcpIO) -> bytes | None:
+    """The first whole MBAP frame in ``rx`` (6 bytes or more; removed from it), or None while it is
+    incomplete. An impossible header (protocol id not 0, length outside 2..254) drops ``rx`` and what
+    ``io`` has queued, counts them in ``link.bytes_discarded`` and raises :class:`FrameError` (naming
+    ``link._where()``): every frame returned has protocol id 0 and its MBAP length."""
+    if rx[2] or rx[3] or not 2 <= (rx[4] << 8 | rx[5]) <= MAX_ADU_TCP - 6:
+        link.bytes_discarded += len(rx) + io.drain()
+        rx.clear()
+        raise FrameError(f"{link._where()}: bad MBAP header; stream flushed")
+    total = 6 + (rx[4] << 8 | rx[5])
+    if len(rx) < total:
+        return None
+    frame = bytes(rx[:total])
+    del rx[:total]
+    return frame
 
 
 class ModbusTcpLink(ModbusLink):
@@ -71,7 +88,7 @@ class ModbusTcpLink(ModbusLink):
         io.write(adu, deadline)
         rx = self._rx
         while True:
-            frame = self._next_frame() if len(rx) >= 6 else None
+            frame = next_mbap_frame(self, rx, io) if len(rx) >= 6 else None
             if frame is not None:
                 if frame[0] << 8 | frame[1] != tid:
                     self.stale_replies += 1
@@ -91,18 +108,3 @@ class ModbusTcpLink(ModbusLink):
                 elif chunk[2:9] == tx.resp_tail:
                     return chunk[9:]
             rx += chunk
-
-    def _next_frame(self) -> bytes | None:
-        """The first whole MBAP frame buffered (removed from the buffer), or None."""
-        rx = self._rx
-        if rx[2] or rx[3] or not 2 <= (rx[4] << 8 | rx[5]) <= MAX_ADU_TCP - 6:
-            # after an impossible MBAP header: drop what we have and what's queued
-            self.bytes_discarded += len(rx) + self._io.drain()
-            rx.clear()
-            raise FrameError(f"{self.host}:{self.port}: bad MBAP header; stream flushed")
-        total = 6 + (rx[4] << 8 | rx[5])
-        if len(rx) < total:
-            return None
-        frame = bytes(rx[:total])
-        del rx[:total]
-        return frame

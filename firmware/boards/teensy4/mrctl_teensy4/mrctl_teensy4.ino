@@ -10,10 +10,12 @@
 // Safety chain on the board: the core applies 0 A on its millisecond watchdog
 // (no SETPOINT for watchdog_ms), on a driver fault, on ENABLE clear and while
 // the E-stop input is open (latched: ESTOP until a CLEAR_FAULTS once it has
-// closed); the timer ISR itself cuts the output at the tick the E-stop input
-// opens, and if the main loop stops serving ticks (a hang), after kStallTicks
-// ticks. The E-stop chain's hard-wired contacts remove the driver's power
-// whatever this board does (docs/hardware.md).
+// closed); TeensyIo::set_output writes 0 and the enable LOW whatever it is
+// asked while the E-stop pin reads open, so no path drives the output then;
+// the timer ISR itself cuts the output at the tick the E-stop input opens, and
+// if the main loop stops serving ticks (a hang), after kStallTicks ticks. The
+// E-stop chain's hard-wired contacts remove the driver's power whatever this
+// board does (docs/hardware.md).
 #include <Arduino.h>
 
 #include "board_config.h"
@@ -28,7 +30,6 @@ struct Latch {
   int32_t force_counts;
   int32_t current_counts;
   bool driver_fault;
-  bool estop_open;
   uint32_t t_us;
 };
 
@@ -36,6 +37,9 @@ IntervalTimer sample_timer;
 volatile Latch latch;
 volatile uint32_t ticks_latched = 0;  // written by the ISR
 volatile uint32_t ticks_served = 0;   // written by the main loop, read by the ISR
+
+// the E-stop pin, open (stop) or closed (run), with the board's polarity
+bool estop_pin_open() { return (digitalReadFast(board::kPinEstop) == HIGH) == board::kEstopOpenHigh; }
 
 class TeensyIo : public mrctl_fw::DeviceIo {
  public:
@@ -50,10 +54,19 @@ class TeensyIo : public mrctl_fw::DeviceIo {
     Serial.send_now();  // do not wait for the USB buffer to fill: the reply is due now
   }
   uint32_t tx_dropped = 0;
+  // 0 and the enable LOW while the E-stop pin reads open, whatever is asked;
+  // interrupts off so the timer ISR's cut cannot fall between the read and the writes
   void set_output(uint32_t counts, bool enable) override {
+    noInterrupts();
+    if (estop_pin_open()) {
+      counts = 0;
+      enable = false;
+    }
     analogWrite(board::kPinDriverPwm, static_cast<int>(counts));
     digitalWriteFast(board::kPinDriverEnable, enable ? HIGH : LOW);
+    interrupts();
   }
+  bool estop_open() override { return estop_pin_open(); }
 };
 
 TeensyIo io;
@@ -66,10 +79,8 @@ void on_sample_timer() {
   latch.force_counts = analogRead(board::kPinLoadCell);
   latch.current_counts = board::kHasCurrentMonitor ? analogRead(board::kPinCurrentMon) : -1;
   latch.driver_fault = digitalReadFast(board::kPinDriverFault) == LOW;
-  const bool estop_open = (digitalReadFast(board::kPinEstop) == HIGH) == board::kEstopOpenHigh;
-  latch.estop_open = estop_open;
   ticks_latched = ticks_latched + 1;
-  if (estop_open || ticks_latched - ticks_served > kStallTicks) {  // E-stop, or the main loop hangs: 0 A here
+  if (estop_pin_open() || ticks_latched - ticks_served > kStallTicks) {  // E-stop, or the main loop hangs: 0 A here
     analogWrite(board::kPinDriverPwm, 0);
     digitalWriteFast(board::kPinDriverEnable, LOW);
   }
@@ -105,7 +116,6 @@ void loop() {
     raw.x_counts = latch.x_counts;
     raw.force_counts = latch.force_counts;
     raw.driver_fault = latch.driver_fault;
-    raw.estop_open = latch.estop_open;
     const int32_t current_counts = latch.current_counts;
     t_us = latch.t_us;
     ticks_served = ticks_latched;  // ticks the loop missed are dropped, never queued
