@@ -76,6 +76,14 @@ def add_out_options(p: argparse.ArgumentParser, what: str, default: str | None =
 OUT_COMPANIONS = {"run": (".json",), "simulate": (".json",), "identify": (".json",), "sweep": (".partial.csv",)}
 
 
+def out_outputs(command: str, out: str) -> list[str]:
+    """``out`` and what ``command`` writes beside it (:data:`OUT_COMPANIONS`;
+    ``.json``: the sidecar's name, :func:`mrctl.runlog.files.sidecar_path`)."""
+    from mrctl.runlog.files import sidecar_path
+
+    return [out, *(str(sidecar_path(out)) if c == ".json" else out + c for c in OUT_COMPANIONS.get(command, ()))]
+
+
 def command_inputs(args: argparse.Namespace) -> list[str]:
     """The files a command reads that its command line names (a run's sidecar with it)."""
     from mrctl.runlog.files import sidecar_path
@@ -104,8 +112,7 @@ def out_path(args: argparse.Namespace, default: str | None = None, inputs: list[
     if "%" in out:
         out = time.strftime(out)
     check_out_parent(out, getattr(args, "mkdir", False))
-    companions = OUT_COMPANIONS.get(getattr(args, "command", ""), ())
-    outputs = [out, *(str(Path(out).with_suffix(c)) if c == ".json" else out + c for c in companions)]
+    outputs = out_outputs(getattr(args, "command", ""), out)
     refuse_special(outputs)  # /dev/null, a FIFO, a directory: never replaced, --force or not
     refuse_inputs(outputs, command_inputs(args) if inputs is None else inputs)
     return out
@@ -165,7 +172,7 @@ def _load_simulated(args: argparse.Namespace):
         from mrctl.offline.replay import load_with_law
 
         return build(load_with_law(args.config, args.law, allow_outside=args.allow_outside_paths))
-    outputs = () if args.out is None else (args.out, str(Path(args.out).with_suffix(".json")))
+    outputs = () if args.out is None else tuple(out_outputs("simulate", args.out))
     return _load(args, outputs)  # a series the config names is no place for the run log
 
 
@@ -227,7 +234,9 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, 
     for note in res.notices:
         print(f"mrctl: {note}", file=sys.stderr)
     if args.out is not None:
-        _say(args, f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+        from mrctl.runlog.files import sidecar_path
+
+        _say(args, f"wrote {args.out} and {sidecar_path(args.out)}")
     if res.fault is not None:  # the run ended at the fault, at 0 A (docs/laws.md)
         _err(str(res.fault))
         return EXIT_FAILURE

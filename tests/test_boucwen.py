@@ -8,7 +8,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from mrctl.config.plants import load_bouc_wen_file
-from mrctl.model.boucwen import SPENCER_1997, BoucWenModel, BoucWenParams, BoucWenPlant, bw_params_from_mapping
+from mrctl.model.boucwen import (SPENCER_1997, BoucWenModel, BoucWenParams, BoucWenPlant, bw_errors,
+                                 bw_params_from_mapping)
 from mrctl.model.params import TABLE_I
 from mrctl.model.plant import DamperPlant
 
@@ -167,3 +168,7 @@ def test_parameter_checks():
     with pytest.raises(ValueError, match="finite"):
         bw_params_from_mapping({**FITTED.as_dict(), "A": math.nan})
     assert isinstance(bw_params_from_mapping(FITTED.as_dict()), BoucWenParams)
+    # every problem at once, one line each: the config layer reports them so
+    errors = bw_errors({**{k: v for k, v in FITTED.as_dict().items() if k != "c0a"}, "c0A": 1.0, "A": math.nan})
+    assert errors == ["c0A: unknown parameter (expected one of " + ", ".join(BoucWenParams.names()) + ")",
+                      "A: must be a finite number, got nan", "missing parameter(s): c0a"]

@@ -66,6 +66,9 @@ class Spy:
         self.k = k
         self.inner.begin_tick(k)
 
+    def request_clear_faults(self):
+        return self.inner.request_clear_faults()
+
     @property
     def true_force_N(self):
         return self.inner.true_force_N

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from mrctl.util.schema import Custom, Num, Section, check_num
+from mrctl.util.schema import Custom, Num, Section, auto_or
 
 #: ``max_force_nrmse: auto`` for a force-tracking law. The shipped experiments
 #: simulate at 0.3-3.8 % (the c_des 750 robust scenarios, saturating at the
@@ -45,15 +45,6 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
-def _auto_or(spec: Num) -> Any:
-    def check(value: Any, path: str) -> tuple[Any, list[str]]:
-        if value == "auto":
-            return "auto", []
-        return check_num(spec, value, path)
-
-    return check
-
-
 def acceptance_section() -> Section:
     """The schema of ``acceptance`` (every key optional, defaults above)."""
     return Section({
@@ -67,7 +58,7 @@ def acceptance_section() -> Section:
                              "run; mrctl run only"),
         "max_zero_stretch_s": Num(default=DEFAULTS["max_zero_stretch_s"], min=0.0, min_exclusive=True, max=3600.0,
                                   doc="longest stretch the supervisor forced 0 A (no usable sample or FAULT) (s)"),
-        "max_force_nrmse": Custom(_auto_or(Num(optional=True, min=0.0, min_exclusive=True, max=10.0)),
+        "max_force_nrmse": Custom(auto_or(Num(optional=True, min=0.0, min_exclusive=True, max=10.0)),
                                   default=DEFAULTS["max_force_nrmse"],
                                   doc=f"largest force NRMSE over the settled window (0.02 = 2 %); auto = "
                                       f"{AUTO_FORCE_NRMSE:g} for a force-tracking law, not judged for a "
@@ -75,7 +66,7 @@ def acceptance_section() -> Section:
         "max_latched_s": Num(default=DEFAULTS["max_latched_s"], min=0.0, max=1e7,
                              doc="longest total time latched (an E-stop, the device's watchdog, a long link loss: "
                                  "0 A until mrctl arm) (s); mrctl run only"),
-        "max_share_at_I_max": Custom(_auto_or(Num(optional=True, min=0.0, max=1.0)),
+        "max_share_at_I_max": Custom(auto_or(Num(optional=True, min=0.0, max=1.0)),
                                      default=DEFAULTS["max_share_at_I_max"],
                                      doc=f"largest share of the settled window's ticks at safety.I_max (a damper "
                                          f"asked for more than it can give); auto = {AUTO_SHARE_AT_I_MAX:g} for a "

@@ -30,6 +30,7 @@ from mrctl.util.schema import (
     Section,
     Str,
     Union,
+    auto_or,
     check_num,
     file_check,
     load_yaml_lines,
@@ -57,18 +58,6 @@ def _cpu_list(value: Any, path: str) -> tuple[Any, list[str]]:
         cpus.append(n)
         errors += errs
     return (frozenset(cpus) if not errors else None), errors
-
-
-def _slew_check(value: Any, path: str) -> tuple[Any, list[str]]:
-    if value == "auto":
-        return "auto", []
-    return check_num(Num(optional=True, min=0.0, min_exclusive=True, max=1e6), value, path)
-
-
-def _lead_check(value: Any, path: str) -> tuple[Any, list[str]]:
-    if value == "auto":
-        return "auto", []
-    return check_num(Num(min=0.0, max=0.1), value, path)
 
 
 def _register_map(value: Any, path: str) -> tuple[Any, list[str]]:
@@ -134,7 +123,8 @@ def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, A
         **law_unions(base_dir, fence),
         "safety": Section({
             "I_max": Num(min=0.0, min_exclusive=True, max=2.0, doc="current limit (A); RD-1097-01 rating is 1 A"),
-            "max_slew_A_per_s": Custom(_slew_check, default="auto",
+            "max_slew_A_per_s": Custom(auto_or(Num(optional=True, min=0.0, min_exclusive=True, max=1e6)),
+                                       default="auto",
                                        doc="slew limit of the command (A/s) on every path: the law's output, the "
                                            "first tick, recovery after a fault or a re-arm (a ramp from 0 A); "
                                            "a fault's 0 A is immediate. auto = 50 A/s on a real link (serial, "
@@ -166,7 +156,7 @@ def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, A
             "estop": estop_section(),
         }),
         "latency": Section({
-            "lead_s": Custom(_lead_check, default=0.0,
+            "lead_s": Custom(auto_or(Num(min=0.0, max=0.1)), default=0.0,
                              doc="latency compensation: predict v this far ahead (s); 'auto' = 1.5 ticks on "
                                  "exchange links (serial, Modbus), 0 on the in-process sim. Off by default: "
                                  "not yet shown to help (docs/performance.md)"),

@@ -13,13 +13,12 @@ name table, :data:`PLANT_MODELS`; :mod:`mrctl.experiment` builds them):
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Callable
 
-from mrctl.model.boucwen import BoucWenParams, bw_params_from_mapping
+from mrctl.model.boucwen import BoucWenParams, bw_errors, bw_params_from_mapping
 from mrctl.util.files import Fence
-from mrctl.util.schema import ConfigError, Custom, Num, Union, key_repr, load_yaml, read_named_yaml, short_repr
+from mrctl.util.schema import ConfigError, Custom, Num, Union, load_yaml, read_named_yaml, short_repr
 
 #: metadata keys a plant parameters file may carry besides the constants
 _META = ("version", "description", "source", "fit")
@@ -35,23 +34,15 @@ def load_bouc_wen_file(path: str | Path) -> BoucWenParams:
 
 def bouc_wen_from_data(data: Any, source: str | None = None, file: bool = True) -> BoucWenParams:
     """The constants of a parsed Bouc–Wen file (its metadata keys aside) or
-    of an inline mapping (``file`` False); every key and value checked here,
-    so an error names a key as :func:`key_repr` allows and quotes a value
-    only as :func:`short_repr` does."""
+    of an inline mapping (``file`` False); every key and value checked by
+    :func:`mrctl.model.boucwen.bw_errors`, all errors at once."""
     if not isinstance(data, dict):
         raise ConfigError([f"must be a mapping of {', '.join(BoucWenParams.names())}"], source)
     values = {k: v for k, v in data.items() if not (file and k in _META)}
-    known = BoucWenParams.names()
-    errors = [f"{key_repr(k)}: unknown parameter (expected one of {', '.join(known)})" for k in values
-              if k not in known]
-    errors += [f"{k}: must be a finite number, got {short_repr(v)}" for k, v in values.items() if k in known
-               and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)))]
+    errors = bw_errors(values)
     if errors:
         raise ConfigError(errors, source)
-    try:
-        return bw_params_from_mapping(values)
-    except ValueError as exc:
-        raise ConfigError([str(exc)], source) from None
+    return bw_params_from_mapping(values)
 
 
 def _bw_file_check(base_dir: Path, fence: Fence | None) -> Callable[[Any, str], tuple[Any, list[str]]]:

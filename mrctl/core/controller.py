@@ -151,8 +151,9 @@ class Controller:
         self.law = law
         self.demand = demand
 
-    def _take_reload(self) -> None:
-        """A reload (SIGHUP) is taken at the tick boundary."""
+    def _take_requests(self) -> None:
+        """At the tick boundary (called when either is pending): a reload
+        (SIGHUP), then ``mrctl arm``."""
         if self.pending is not None:
             law, demand = self.pending
             self.pending = None
@@ -161,6 +162,8 @@ class Controller:
             except BaseException as exc:  # noqa: BLE001 - a plugin's reset may raise anything
                 self.law = law  # the new law failed: it is the one to blame, 0 A follows
                 self._law_failed("raised", law.name, self.ticks, NAN, f"in reset(): {type(exc).__name__}: {exc}")
+        if self.arm_request:
+            self._take_arm()
 
     def _take_arm(self) -> None:
         """``mrctl arm`` at the tick boundary: the device is asked to clear its
@@ -176,10 +179,8 @@ class Controller:
 
     def tick(self, k: int, now_ns: int) -> bool:
         """One control period; returns False to end the run (driver lost)."""
-        if self.pending is not None:
-            self._take_reload()
-        if self.arm_request:
-            self._take_arm()
+        if self.pending is not None or self.arm_request:
+            self._take_requests()
         if self._host_clocked:
             self.backend.begin_tick(k)
         t0 = self.clock_ns()
@@ -195,10 +196,8 @@ class Controller:
         returns at the device's next tick (the SYNC flag). Never None: a
         failed exchange is a tick too, for the safety hold and link loss,
         and comes no sooner than one period after the previous tick."""
-        if self.pending is not None:
-            self._take_reload()
-        if self.arm_request:
-            self._take_arm()
+        if self.pending is not None or self.arm_request:
+            self._take_requests()
         self._acquire()
         if self._sample is None and self._prev_now and self.loop is not None:
             # No reply, so no device clock: a link that fails at once (closed,

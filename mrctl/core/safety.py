@@ -495,7 +495,7 @@ class SafetySupervisor:
     def shown_state(self) -> SafetyState:
         """:attr:`state` as status, the live line and Prometheus show it:
         LATCHED for a FAULT that waits for ``mrctl arm``."""
-        if self._state == _FAULT and self._latched:
+        if self.latched:
             return SafetyState.LATCHED
         return SafetyState(self._state)
 

@@ -20,6 +20,7 @@ jitter is noise in the fit. The exchanges are paced at ``rate_hz``
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import math
 import os
@@ -194,12 +195,8 @@ def calibrate(exp: Any, opts: CalibrationOptions, say: Any = print) -> dict[str,
     link = exp.make_link()
     # the same lock as mrctl run: calibrating under a running loop would rewrite the device's set-up
     # and step its current under the loop's feet (refused here, exit 3, before a byte goes out)
-    lock = ownership.own(link, opts.note, lambda msg: say(f"calibrate: {msg}"))
-    try:
+    with ownership.own(link, opts.note, lambda msg: say(f"calibrate: {msg}")) or contextlib.nullcontext():
         return _calibrate_open(link, setup, opts, step_A, period, say)
-    finally:
-        if lock is not None:
-            lock.release()
 
 
 def _calibrate_open(link: Any, setup: Any, opts: CalibrationOptions, step_A: float, period: float,

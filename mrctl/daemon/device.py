@@ -11,6 +11,7 @@ not 0 already, reads it back, and leaves the DAC at the volts of 0 A and the ena
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any, Callable
 
 from mrctl.daemon import ownership
@@ -29,8 +30,7 @@ def disarm(exp: Any, config_path: str, say: Callable[[str], None], warn: Callabl
     link = exp.make_link()
     if not hasattr(link, "disarm"):
         raise BadInput(f"{config_path}: device disarm: {backend.device.preset.name} has no watchdog to disarm")
-    lock = ownership.own(link, f"mrctl device disarm {config_path}", warn)
-    try:
+    with ownership.own(link, f"mrctl device disarm {config_path}", warn) or contextlib.nullcontext():
         link.configure_on_open = False
         try:
             link.open()
@@ -39,9 +39,6 @@ def disarm(exp: Any, config_path: str, say: Callable[[str], None], warn: Callabl
             raise LinkFailure(f"device disarm: {link.describe().split(';')[0]}: {e}") from None
         finally:
             link.close()
-    finally:
-        if lock is not None:
-            lock.release()
     name = backend.device.preset.name
     say(f"{name} at {backend.host}:{link.port}: watchdog " + ("disarmed (WATCHDOG_ENABLE_DEFAULT 1 -> 0, read back 0)"
                                                              if was else "was not armed (WATCHDOG_ENABLE_DEFAULT "

@@ -64,6 +64,7 @@ from mrctl.daemon.reload import validate_in_child
 from mrctl.daemon.observe import Observe, stream_settings
 from mrctl.daemon.rt import RtSettings, apply_rt, restore
 from mrctl.core.safety import SafetyConfig, SafetySupervisor
+from mrctl.core.safety_config import LATCH_STATUS
 from mrctl.daemon.instances import server_socket
 from mrctl.daemon.status import StatusServer
 from mrctl.daemon.timing import format_summary as format_timing
@@ -237,7 +238,7 @@ class Service:
             stack.callback(self._zero_on_exit)  # runs before close, also after a refusal below
         if getattr(link, "setup_report", None):  # a device preset: what open chose and read back
             self.say(f"opened: {link.describe()}")
-        _clear_faults(link)  # a new run starts clean: what is still tripped is refused below
+        link.request_clear_faults()  # a new run starts clean: what is still tripped is refused below
         err = safe_zero(link)
         if err:
             raise LinkFailure(f"could not command 0 A at start: {err}")
@@ -256,7 +257,7 @@ class Service:
         stack.callback(self._zero_on_exit)  # the first thing on the way out of the loop
         # the device was at 0 A through start-up; its watchdog may have expired meanwhile (no
         # setpoint since the probe): the first tick clears that, any later trip latches
-        _clear_faults(link)
+        link.request_clear_faults()
         self.notifier.send("READY=1", f"STATUS=running {exp.name}")
         if exp.config.loop.pacing == "device":
             loop.run_device_paced(ctl.acquire, ctl.tick_paced, duration_s=duration)
@@ -327,9 +328,8 @@ class Service:
         # the answer is read until it is clean, asking again each time, for up to 0.5 s; a lost reply
         # on a busy host is tried again as the start-up 0 A is
         deadline, n, last = time.monotonic() + 0.5, 0, ""
-        latching = int(Status.ESTOP | Status.WATCHDOG_TRIPPED)
         status: int | None = None
-        while status is None or status & latching:
+        while status is None or status & LATCH_STATUS:
             if n and time.monotonic() > deadline:
                 break
             n += 1
@@ -338,8 +338,8 @@ class Service:
             except LinkError as exc:
                 last = str(exc)
                 continue
-            if status & latching:
-                _clear_faults(link)
+            if status & LATCH_STATUS:
+                link.request_clear_faults()
                 time.sleep(0.005)
         if status is None:
             raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
@@ -637,14 +637,6 @@ class Service:
         self.say(f"safety: {_state_text(s)}, faults entered {s.counters().faults_entered}, "
                  f"link errors {self.ctl.link_errors}")
         return exit_code
-
-
-def _clear_faults(link: Any) -> None:
-    """The device's latched status cleared with the next exchange (a stand-in
-    link of a test may not have the method: every Link has)."""
-    clear = getattr(link, "request_clear_faults", None)
-    if clear is not None:
-        clear()
 
 
 def _state_text(sup: SafetySupervisor) -> str:

@@ -274,7 +274,7 @@ class ClosedLoopInverse(SmoothInverse):
         if not Ic >= 0.0:  # NaN: fall back on what this law sent
             Ic = self.I_prev
         Ia0 = self._I_coil0
-        a1 = self._a1 if Ic >= Ia0 else self._a1f  # the driver's rise or fall: monotone while Ic is held
+        a1 = self._lag_gain(Ic, Ia0)  # the driver's rise or fall: monotone while Ic is held
         if dk <= 1:
             return Ia0 + a1 * (Ic - Ia0), 1
         return Ic + (Ia0 - Ic) * (1.0 - a1) ** dk, dk
@@ -380,8 +380,6 @@ class ClosedLoopInverse(SmoothInverse):
         else:
             z = self._first(v)
         zdot = self.model.zdot(v, Ia)
-        if self._vd:
-            zdot *= self.model.damping_weight(v)
         (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
         D = s0A * z + s1A * zdot + s2A * v
         # the reversal detector and the table's feed-forward for the coming ticks
@@ -426,8 +424,7 @@ class ClosedLoopInverse(SmoothInverse):
         self._lg = lg
         self.ff = ff
         F_t = F_des - Fb - self.d - ff
-        if self._hys:  # the hysteretic stiffness's force at this tick, held over the horizon
-            F_t -= self.model.hys_force(v)
+        F_t -= self.model.hys_force(v)  # the hysteretic stiffness's force at this tick, held over the horizon
         num = D * (F_t - (s0B * z + s1B * zdot + s2B * v))
         den = D * D
         if self.horizon:
@@ -456,6 +453,6 @@ class ClosedLoopInverse(SmoothInverse):
         self._sat = sat
         self.I_prev = I
         self._I_coil0 = Ia
-        self.I_coil = Ia + (self._a1 if I >= Ia else self._a1f) * (I - Ia)
+        self.I_coil = Ia + self._lag_gain(I, Ia) * (I - Ia)
         self._Fb, self._Fd = Fb, F_des
         return I

@@ -91,10 +91,9 @@ class _ModelBasedLaw(InverseLaw):
         # per-level bench terms when the table has them (None: the paper's laws)
         self._table: ThetaTable | None = params.table
         self._tbench = params.table is not None and params.table.has_bench()
-        # the optional terms: σ1's weight exp(-(v/v_d)²) on ż, the hysteretic stiffness's force
-        # (independent of I: subtracted from the demand, as the bench terms are)
-        self._vd = params.sigma1_vd > 0.0
-        self._hys = params.has_hysteresis
+        # the optional terms act in the model: σ1's weight exp(-(v/v_d)²) in its zdot(), the hysteretic
+        # stiffness's force from its hys_force() (independent of I: subtracted from the demand, as the
+        # bench terms are; 0.0 when off)
 
     @classmethod
     def from_config(cls, cfg: Any, ctx: LawContext) -> "_ModelBasedLaw":
@@ -156,10 +155,7 @@ class PaperInverse(_ModelBasedLaw):
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)  # step 3: z with I_{i-1}
         # steps 1-2: Fc(I_{i-1}) (F0 at 0 A) inside g, and ż from eq (2)
         zdot = self.model.zdot(v, Ip)
-        if self._vd:
-            zdot *= self.model.damping_weight(v)
-        if self._hys:
-            F_des -= self.model.hys_force(v)
+        F_des -= self.model.hys_force(v)
         num = F_des - (s0B * z + s1B * zdot + s2B * v)
         den = s0A * z + s1A * zdot + s2A * v
         if den != 0.0:
@@ -244,10 +240,14 @@ class SmoothInverse(_ModelBasedLaw):
         super().reset(I0, z0, v0)
         self.I_coil = self._I_coil0 = I0
 
+    def _lag_gain(self, I: float, I0: float) -> float:
+        """The lag model's per-tick gain for a command I to a coil at I0: the rise's, or the fall's."""
+        return self._a1 if I >= I0 else self._a1f
+
     def applied(self, I: float) -> None:
         self.I_prev = I
         I0 = self._I_coil0
-        self.I_coil = I0 + (self._a1 if I >= I0 else self._a1f) * (I - I0)
+        self.I_coil = I0 + self._lag_gain(I, I0) * (I - I0)
 
     def current(self, m: Measurement, F_des: float) -> float:
         if self._a1 != 1.0 or self._a1f != 1.0:
@@ -258,10 +258,7 @@ class SmoothInverse(_ModelBasedLaw):
         (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ip)
         z = self.model.advance(v, Ip, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ip)  # as in eq (12): ż with the previous current
-        if self._vd:
-            zdot *= self.model.damping_weight(v)
-        if self._hys:
-            F_des -= self.model.hys_force(v)
+        F_des -= self.model.hys_force(v)
         B = s0B * z + s1B * zdot + s2B * v
         D = s0A * z + s1A * zdot + s2A * v
         den = D * D + self.eps2
@@ -288,10 +285,7 @@ class SmoothInverse(_ModelBasedLaw):
         (s0A, s1A, s2A), (s0B, s1B, s2B) = self._slopes(Ia)
         z = self.model.advance(v, Ia, self.dt) if self._started else self._first(v)
         zdot = self.model.zdot(v, Ia)
-        if self._vd:
-            zdot *= self.model.damping_weight(v)
-        if self._hys:
-            F_des -= self.model.hys_force(v)
+        F_des -= self.model.hys_force(v)
         B = s0B * z + s1B * zdot + s2B * v
         D = s0A * z + s1A * zdot + s2A * v
         den = D * D + self.eps2
@@ -305,7 +299,7 @@ class SmoothInverse(_ModelBasedLaw):
         I = (I if I < self.I_max else self.I_max) if I > 0.0 else 0.0
         self.I_prev = I
         self._I_coil0 = Ia
-        self.I_coil = Ia + (self._a1 if I >= Ia else self._a1f) * (I - Ia)
+        self.I_coil = Ia + self._lag_gain(I, Ia) * (I - Ia)
         return I
 
 

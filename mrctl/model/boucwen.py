@@ -41,7 +41,9 @@ import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-__all__ = ["BoucWenParams", "BoucWenModel", "SPENCER_1997", "bw_params_from_mapping"]
+from mrctl.util.yamlfile import key_repr, short_repr
+
+__all__ = ["BoucWenParams", "BoucWenModel", "SPENCER_1997", "bw_errors", "bw_params_from_mapping"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,25 +121,33 @@ SPENCER_1997 = BoucWenParams(
 )
 
 
+def bw_errors(data: dict[Any, Any]) -> list[str]:
+    """Every problem of a mapping of the names above (unknown keys, values
+    that are not finite numbers, the names missing: all but alpha_c are
+    required), one line each, naming a key as :func:`key_repr` allows and a
+    value as :func:`short_repr` does (a file's content is not echoed)."""
+    known = BoucWenParams.names()
+    errors = [f"{key_repr(k)}: unknown parameter (expected one of {', '.join(known)})" for k in data
+              if k not in known]
+    errors += [f"{k}: must be a finite number, got {short_repr(v)}" for k, v in data.items() if k in known
+               and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)))]
+    missing = [k for k in known if k not in data and k != "alpha_c"]
+    if missing:
+        errors.append(f"missing parameter(s): {', '.join(missing)}")
+    return errors
+
+
 def bw_params_from_mapping(data: Any) -> BoucWenParams:
     """A parameter set from a mapping of the names above (all but alpha_c required).
 
-    Raises ``ValueError`` naming the offending key; the config layer adds
-    the file and key path."""
+    Raises ``ValueError`` listing every problem (:func:`bw_errors`); the
+    config layer adds the file and key path."""
     if not isinstance(data, dict):
         raise ValueError(f"must be a mapping of {', '.join(BoucWenParams.names())}")
-    known = BoucWenParams.names()
-    values: dict[str, float] = {}
-    for key, value in data.items():
-        if key not in known:
-            raise ValueError(f"{key}: unknown parameter (expected one of {', '.join(known)})")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-            raise ValueError(f"{key}: must be a finite number, got {value!r}")
-        values[key] = float(value)
-    missing = [k for k in known if k not in values and k != "alpha_c"]
-    if missing:
-        raise ValueError(f"missing parameter(s): {', '.join(missing)}")
-    return BoucWenParams(**values)
+    errors = bw_errors(data)
+    if errors:
+        raise ValueError("; ".join(errors))
+    return BoucWenParams(**{k: float(v) for k, v in data.items()})
 
 
 class BoucWenModel:

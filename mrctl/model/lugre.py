@@ -70,7 +70,7 @@ class LuGreModel:
     per tick a plant or a law asks twice about the same current.
 
     The set's optional terms (:class:`LuGreParams`) act here when on: the
-    bristle damping's weight exp(−(v/v_d)²) in the force, and the
+    bristle damping's weight exp(−(v/v_d)²) on ż (:meth:`zdot`, :meth:`force`), and the
     hysteretic stiffness's state ``zh`` (m), advanced with z by the same
     exact step, its force k_hys·zh in :meth:`force` (:meth:`hys_force`
     alone; a table's per-level stiffness at the present current). Off, each
@@ -100,11 +100,6 @@ class LuGreModel:
         self.z = z0
         self.v_prev = v0
         self.zh = 0.0
-
-    def damping_weight(self, v: float) -> float:
-        """exp(−(v/v_d)²), the share of σ1 acting at velocity v (1.0 with v_d off)."""
-        vd2 = self._vd2
-        return math.exp(-v * v * vd2) if vd2 > 0.0 else 1.0
 
     def hys_force(self, v: float) -> float:
         """The hysteretic stiffness's force (N) at the present zh for velocity v (0.0 when off)."""
@@ -243,12 +238,18 @@ class LuGreModel:
             v = v1
 
     def zdot(self, v: float, I: float) -> float:
-        """ż (m/s) from eq (2) at the present z, velocity v and current I."""
+        """ż (m/s) from eq (2) at the present z, velocity v and current I, as
+        σ1 sees it: weighted by exp(−(v/v_d)²) when the set has ``sigma1_vd``
+        (as in :meth:`force`)."""
         if I != self._I:
             self._set_current(I)
         Fc = self._Fc
         r = v / self._vs
-        return v - self._s0 * abs(v) * self.z / (Fc + (self._Fs - Fc) * math.exp(-r * r))
+        zdot = v - self._s0 * abs(v) * self.z / (Fc + (self._Fs - Fc) * math.exp(-r * r))
+        vd2 = self._vd2
+        if vd2 > 0.0:
+            zdot *= math.exp(-v * v * vd2)
+        return zdot
 
     def force(self, v: float, I: float) -> float:
         """Force (N) at the present state for velocity v (m/s) and current I (A),

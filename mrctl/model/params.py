@@ -285,7 +285,7 @@ class LuGreParams:
 
     def extras(self) -> dict[str, float]:
         """The optional model terms that are on (non-zero), by name."""
-        return {f.name: getattr(self, f.name) for f in fields(self)[16:22] if getattr(self, f.name) != 0.0}
+        return {n: getattr(self, n) for n in self.extra_names() if getattr(self, n) != 0.0}
 
     def as_dict(self) -> dict[str, Any]:
         """The sixteen constants by name, the optional terms that are on; with a

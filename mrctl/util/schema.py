@@ -37,7 +37,8 @@ _REQUIRED = object()
 
 __all__ = [
     "ConfigError", "load_yaml", "Num", "Str", "Bool", "Section", "Union", "Custom", "Node", "REQUIRED",
-    "FilePath", "bind_paths", "check_num", "validate_fields", "validate_union", "file_check", "range_check", "optional_bool",
+    "FilePath", "bind_paths", "auto_or", "check_num", "validate_fields", "validate_union", "file_check", "range_check",
+    "optional_bool",
     "schema_markdown", "short_repr", "key_repr", "quoting", "load_yaml_lines", "read_named_yaml",
     "MAX_YAML_BYTES", "MAX_YAML_ALIASES", "MAX_YAML_NODES",
 ]
@@ -282,6 +283,16 @@ def file_check(base_dir: Path, fence: Fence | None = None) -> Callable[[Any, str
     def check(value: Any, path: str) -> tuple[Any, list[str]]:
         full, err = fence.admit(value, base_dir, path)
         return (str(full), []) if full is not None else (None, [str(err)])
+
+    return check
+
+
+def auto_or(spec: Num) -> Callable[[Any, str], tuple[Any, list[str]]]:
+    """A :class:`Custom` check: the word ``auto``, or a number as ``spec`` takes it."""
+    def check(value: Any, path: str) -> tuple[Any, list[str]]:
+        if value == "auto":
+            return "auto", []
+        return check_num(spec, value, path)
 
     return check
 
