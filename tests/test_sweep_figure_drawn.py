@@ -7,12 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib.figure
 import numpy as np
-import pytest
 
-pytest.importorskip("matplotlib")
-
-from mrctl.cli import main  # noqa: E402
+from mrctl.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,8 +24,6 @@ def test_heat_map_panels_share_one_scale_at_200_dpi(tmp_path, monkeypatch, capsy
                      "  plant.driver_tau_s: [0.0, 0.01]\n  inverse.law: [smooth, paper]\nmetrics: [force_nrmse]\n")
     table = tmp_path / "r.csv"
     assert main(["sweep", str(sweep), "--out", str(table), "--workers", "1", "-q"]) == 0
-    import matplotlib.figure
-
     drawn = []
     real = matplotlib.figure.Figure.savefig
 
@@ -73,8 +69,6 @@ def test_monte_carlo_cdfs_keep_overlapping_laws_visible_and_say_so(tmp_path, mon
                      "metrics: [force_nrmse]\n")
     table = tmp_path / "mc.csv"
     assert main(["sweep", str(sweep), "--out", str(table), "--workers", "1", "-q"]) == 0
-    import matplotlib.figure
-
     drawn = []
     real = matplotlib.figure.Figure.savefig
 

@@ -138,7 +138,7 @@ def test_a_hand_edited_csv_table_is_refused_naming_the_line(sweep_file, monkeypa
 
 
 def test_a_corrupt_or_foreign_parquet_is_refused_before_any_journal(sweep_file, monkeypatch, capsys):
-    pa = pytest.importorskip("pyarrow")
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
     out = sweep_file.parent / "r.parquet"
@@ -191,7 +191,7 @@ def _serve(reply: bytes | None) -> str:
     ((3).to_bytes(8, "little") + (1 << 62).to_bytes(8, "little") + bytes(64), "not a Dask scheduler"),
 ], ids=["mute", "random-bytes", "http", "bad-frame"])
 def test_a_scheduler_that_is_mute_or_not_dask_is_a_link_failure(reply, needle):
-    pytest.importorskip("distributed")
+    import distributed  # noqa: F401 - a test dependency: missing, the test fails
     address = _serve(reply)
     got: list[BaseException] = []
     t = threading.Thread(target=lambda: got.append(_raises(lambda: probe_scheduler(address, timeout=1.0))),
@@ -211,7 +211,7 @@ def _raises(fn) -> BaseException | None:
 
 
 def test_the_command_says_not_a_dask_scheduler_and_exits_3(sweep_file, monkeypatch, capsys):
-    pytest.importorskip("distributed")
+    import distributed  # noqa: F401 - a test dependency: missing, the test fails
     _no_point(monkeypatch)
     out = sweep_file.parent / "r.csv"
     assert main(["sweep", str(sweep_file), "--out", str(out), "--scheduler", _serve(os.urandom(4096))]) == 3
@@ -299,8 +299,6 @@ def test_a_killed_sweep_leaves_no_worker_and_no_lock(sweep_file):
 @pytest.mark.parametrize("suffix", ["csv", "parquet"])
 def test_a_table_larger_than_a_sort_chunk_is_merged_from_disk_in_point_order(tmp_path, monkeypatch, suffix):
     """The rewrite in point order never holds the table: chunks sorted, spilled, merged; duplicates dropped."""
-    if suffix == "parquet":
-        pytest.importorskip("pyarrow")
     import random
 
     from mrctl.sweep import rows
