@@ -29,35 +29,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+from loop_timing import child_env, run_loop_timing
+
 ROOT = Path(__file__).resolve().parents[1]
 BUILDS = (("compiled", {}), ("pure Python", {"MRCTL_PURE_PYTHON": "1"}))
-
-
-def _env(extra: dict[str, str]) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k != "MRCTL_PURE_PYTHON"}
-    env.update(extra)
-    return env
 
 
 def loop_round(tick: str, seconds: float, extra: dict[str, str], root: Path = ROOT) -> dict[str, float]:
     """One paced run of ``tick`` (the bench scripts and mrctl of the tree at
     ``root``): compute p50/p99 (µs), skipped deadlines, cyclictest p99."""
-    with tempfile.TemporaryDirectory() as d:
-        out = Path(d) / "rows.json"
-        res = subprocess.run([sys.executable, str(root / "bench" / "loop_timing.py"), "--tick",
-                              f"controller_tick:{tick}", "--strategies", "hybrid", "--seconds", str(seconds),
-                              "--json", str(out)], cwd=root / "bench", env=_env(extra), capture_output=True,
-                             text=True, timeout=seconds * 10 + 120)
-        if res.returncode != 0:
-            raise SystemExit(f"loop_timing failed: {res.stderr[-1000:]}")
-        row = json.loads(out.read_text())[0]
+    row = run_loop_timing(root, f"controller_tick:{tick}", seconds, child_env(**extra))
     ct = row.get("cyclictest") or {}
     return {"p50": row["compute_p50_us"], "p99": row["compute_p99_us"], "skipped": row.get("skipped_deadlines", 0),
             "ct_p99": ct.get("p99_us", float("nan"))}
@@ -67,7 +54,7 @@ def simulate_round(extra: dict[str, str], out: Path) -> float:
     """One ``mrctl simulate`` of fig5_robust: the loop's wall time (s) from the sidecar."""
     res = subprocess.run([sys.executable, "-m", "mrctl.cli", "simulate",
                           str(ROOT / "config" / "experiments" / "fig5_robust.yaml"), "--out", str(out), "--force"],
-                         env=_env(extra), capture_output=True, text=True, timeout=600)
+                         env=child_env(**extra), capture_output=True, text=True, timeout=600)
     if res.returncode != 0:
         raise SystemExit(f"simulate failed: {res.stderr[-1000:]}")
     return float(json.loads(out.with_suffix(".json").read_text())["summary"]["wall_s"])

@@ -40,6 +40,7 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from hil_sim.testing.peers import ReplyingServer, free_port  # noqa: E402
 from mrctl.util.gendoc import replace_block  # noqa: E402
 
 DATE = time.strftime("%Y-%m-%d")
@@ -383,21 +384,13 @@ def d10_tap_reply() -> tuple[bool, str]:
     return r.code == 3 and r.clean and "not a tap reply" in r.err, r.say()
 
 
-def _free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def d10_exporter() -> tuple[bool, str]:
     if importlib.util.find_spec("prometheus_client") is None:
         return True, "not run: prometheus_client not installed"
     import urllib.request
 
     serve(str(Path("s.sock").resolve()), b"[" * 200_000)
-    port = _free_port()
+    port = free_port()
     p = subprocess.Popen([sys.executable, "-m", "mrctl", "exporter", "--listen", f"127.0.0.1:{port}", "--socket",
                           "s.sock"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)}, preexec_fn=_limit)
@@ -454,7 +447,7 @@ def d17_exporter_ipv6() -> tuple[bool, str]:
         return True, "not run: prometheus_client not installed"
     if not socket.has_ipv6:
         return True, "not run: no IPv6 on this host"
-    p = subprocess.Popen([sys.executable, "-m", "mrctl", "exporter", "--listen", f"[::1]:{_free_port()}", "--socket",
+    p = subprocess.Popen([sys.executable, "-m", "mrctl", "exporter", "--listen", f"[::1]:{free_port()}", "--socket",
                           "s.sock"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)}, preexec_fn=_limit)
     line = ""
@@ -629,37 +622,14 @@ def h3_out_fifo() -> tuple[bool, str]:
     return refused(mrctl("sweep", "s.yaml", "--out", "r.csv"), "FIFO")
 
 
-def _server(reply: bytes | None) -> str:
-    srv = socket.socket()
-    srv.bind(("127.0.0.1", 0))
-    srv.listen(8)
-    held: list[socket.socket] = []
-
-    def run() -> None:
-        while True:
-            try:
-                c, _a = srv.accept()
-            except OSError:
-                return
-            held.append(c)
-            if reply is not None:
-                with contextlib.suppress(OSError):
-                    c.settimeout(1.0)
-                    with contextlib.suppress(OSError):
-                        c.recv(65536)
-                    c.sendall(reply)
-
-    threading.Thread(target=run, daemon=True).start()
-    return f"tcp://127.0.0.1:{srv.getsockname()[1]}"
-
-
 def _scheduler(reply: bytes | None, needle: str) -> Callable[[], tuple[bool, str]]:
     def fn() -> tuple[bool, str]:
         if importlib.util.find_spec("distributed") is None:
             return True, "not run: dask.distributed not installed"
         _sweep_base()
         Path("s.yaml").write_text("base: base.yaml\ngrid: {demand.c_des: [250]}\n")
-        r = mrctl("sweep", "s.yaml", "--out", "r.csv", "--scheduler", _server(reply))
+        with ReplyingServer(reply) as srv:
+            r = mrctl("sweep", "s.yaml", "--out", "r.csv", "--scheduler", srv.address)
         return r.code == 3 and r.clean and needle in r.err, r.say() + f" after {r.secs:.1f} s"
 
     return fn

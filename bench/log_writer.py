@@ -36,12 +36,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
+
+from loop_timing import child_env, run_loop_timing
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -140,15 +140,9 @@ def formatter_round() -> dict[str, float]:
 HOG = "import time\nend = time.monotonic() + {s}\nx = 0.0\nwhile time.monotonic() < end:\n    x += 1.0\n"
 
 
-def _env(tree: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k != "MRCTL_PURE_PYTHON"}
-    env["PYTHONPATH"] = str(tree)
-    return env
-
-
 def cpu_round(tree: Path, rows: int) -> dict[str, float]:
     res = subprocess.run([sys.executable, "-c", CPU_PROBE, str(rows)], cwd=tree,
-                         env=_env(tree), capture_output=True, text=True, timeout=900)
+                         env=child_env(PYTHONPATH=str(tree)), capture_output=True, text=True, timeout=900)
     if res.returncode != 0:
         raise SystemExit(f"{tree}: cpu probe failed: {res.stderr[-1500:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -157,15 +151,7 @@ def cpu_round(tree: Path, rows: int) -> dict[str, float]:
 def loop_round(tree: Path, seconds: float, hogs: int) -> dict[str, float]:
     procs = [subprocess.Popen([sys.executable, "-c", HOG.format(s=seconds + 15)]) for _ in range(hogs)]
     try:
-        with tempfile.TemporaryDirectory() as d:
-            out = Path(d) / "rows.json"
-            res = subprocess.run([sys.executable, str(tree / "bench" / "loop_timing.py"), "--tick",
-                                  "controller_tick:make_tick", "--strategies", "hybrid", "--seconds", str(seconds),
-                                  "--json", str(out)], cwd=tree / "bench", env=_env(tree), capture_output=True,
-                                 text=True, timeout=seconds * 10 + 120)
-            if res.returncode != 0:
-                raise SystemExit(f"{tree}: loop_timing failed: {res.stderr[-1500:]}")
-            row = json.loads(out.read_text())[0]
+        row = run_loop_timing(tree, "controller_tick:make_tick", seconds, child_env(PYTHONPATH=str(tree)))
     finally:
         for p in procs:
             p.kill()

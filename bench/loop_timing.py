@@ -297,6 +297,29 @@ def run_bench(
                          use_cyclictest) for s in strategies]
 
 
+def child_env(**extra: str) -> dict[str, str]:
+    """This process's environment for a bench child, without ``MRCTL_PURE_PYTHON``
+    (the child runs the compiled build unless ``extra`` sets it), plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if k != "MRCTL_PURE_PYTHON"}
+    env.update(extra)
+    return env
+
+
+def run_loop_timing(tree: Path, tick: str, seconds: float, env: dict[str, str]) -> dict[str, Any]:
+    """One paced run (hybrid wait, ``seconds``) of ``tick`` (``MODULE:FACTORY`` of the tree's
+    bench/) by the ``bench/loop_timing.py`` of the source tree at ``tree``, in its own process
+    with ``env``: its row (what ``--json`` writes)."""
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "rows.json"
+        res = subprocess.run([sys.executable, str(tree / "bench" / "loop_timing.py"), "--tick", tick,
+                              "--strategies", "hybrid", "--seconds", str(seconds), "--json", str(out)],
+                             cwd=tree / "bench", env=env, capture_output=True, text=True, timeout=seconds * 10 + 120)
+        if res.returncode != 0:
+            raise SystemExit(f"{tree}: loop_timing failed: {res.stderr[-1500:]}")
+        row: dict[str, Any] = json.loads(out.read_text())[0]
+        return row
+
+
 def _f(x: Any, nd: int = 1) -> str:
     return "-" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
 

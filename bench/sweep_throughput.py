@@ -28,7 +28,6 @@ import argparse
 import os
 import resource
 import shutil
-import socket
 import statistics
 import subprocess
 import sys
@@ -41,6 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 import yaml  # noqa: E402
 
+from hil_sim.testing.peers import free_port  # noqa: E402
 from mrctl.sweep.point import run_point  # noqa: E402
 from mrctl.sweep.runner import run_sweep  # noqa: E402
 from mrctl.sweep.spec import expand, load_sweep  # noqa: E402
@@ -56,17 +56,11 @@ def _sweep_file(d: Path, n: int) -> Path:
     return p
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class LoopbackCluster:
     """``dask scheduler`` + 2 ``dask worker`` on 127.0.0.1, each stopped by its pid."""
 
     def __init__(self, workers: int = 2) -> None:
-        self.port = _free_port()
+        self.port = free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
         self.workers = workers
         self.procs: list[subprocess.Popen] = []

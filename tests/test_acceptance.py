@@ -13,6 +13,7 @@ import pytest
 
 from mrctl.cli import main
 from mrctl.config import ConfigError, load_experiment
+from mrctl.config.acceptance import AUTO_FORCE_NRMSE
 from mrctl.daemon.recorder import read_sidecar
 from mrctl.daemon.service import RunOptions, Service
 from mrctl.runlog.acceptance import format_verdict, judge, row_figures
@@ -154,7 +155,8 @@ def test_simulate_is_judged_on_what_it_has(tmp_path, capsys):
 def test_check_prints_the_bounds(tmp_path, capsys):
     assert main(["check", str(_cfg(tmp_path, extra="acceptance: {max_fault_share: 0.1}\n"))]) == 0
     line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("acceptance:"))
-    assert "max_fault_share 10.0 %" in line and "max_gap_s 100 ms" in line and "max_force_nrmse 5.0 %" in line
+    assert "max_fault_share 10.0 %" in line and "max_gap_s 100 ms" in line
+    assert f"max_force_nrmse {100 * AUTO_FORCE_NRMSE:.1f} %" in line  # fig5's law tracks force: the auto bound
 
 
 def test_run_without_out_logs_under_runs_and_says_so_first(tmp_path, monkeypatch, capsys):

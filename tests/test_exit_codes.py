@@ -25,6 +25,7 @@ import yaml
 
 import mrctl.cli as cli
 from hil_sim.testing.harness import env
+from hil_sim.testing.peers import free_port
 from mrctl.cli import main
 from mrctl.runlog.format import COMMAND_EXITS
 
@@ -245,14 +246,8 @@ def _sweep_2(tmp_path, capsys, monkeypatch):
 
 @drives("sweep", 3)
 def _sweep_3(tmp_path, capsys, monkeypatch):
-    import socket
-
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()  # a port nobody listens on
     assert main(["sweep", str(_sweep(tmp_path, 2)), "--out", str(tmp_path / "x.csv"), "--allow-outside-paths",
-                 "--scheduler", f"tcp://127.0.0.1:{port}", "-q"]) == 3
+                 "--scheduler", f"tcp://127.0.0.1:{free_port()}", "-q"]) == 3  # a port nobody listens on
 
 
 # -- report, identify, calibrate, check ----------------------------------------------------------------------------
@@ -302,13 +297,7 @@ def _calibrate_2(tmp_path, capsys, monkeypatch):
 def _calibrate_3(tmp_path, capsys, monkeypatch):
     from test_labjack_t7 import _exp_for
 
-    import socket
-
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    assert main(["calibrate", str(_exp_for(tmp_path, port)), "--out", str(tmp_path / "cal.yaml")]) == 3
+    assert main(["calibrate", str(_exp_for(tmp_path, free_port())), "--out", str(tmp_path / "cal.yaml")]) == 3
 
 
 @drives("check", 0)
@@ -366,11 +355,11 @@ def _tap_0(tmp_path, capsys, monkeypatch, daemon):
     assert main(["tap", "--socket", daemon, "-n", "5"]) == 0
     for sig in (signal.SIGINT, signal.SIGTERM):  # until stopped
         p = _mrctl("tap", "--socket", daemon)
-        time.sleep(1.0)
+        first = p.stdout.readline()  # tapping: its header is out
         p.send_signal(sig)
-        out, err = p.communicate(timeout=30)
+        _, err = p.communicate(timeout=30)
         assert p.returncode == 0, err
-        assert out.startswith("t,") or "t," in out.splitlines()[0]
+        assert first.startswith("t,") or "t," in first
 
 
 @drives("tap", 2)

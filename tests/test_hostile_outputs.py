@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import stat
 from pathlib import Path
 
@@ -11,6 +12,8 @@ import yaml
 
 from mrctl.cli import main
 from mrctl.config import load_yaml
+from mrctl.errors import BadInput
+from mrctl.util.files import refuse_special
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG5 = ROOT / "config" / "experiments" / "fig5.yaml"
@@ -85,8 +88,19 @@ def test_examples_refuse_a_symlinked_dir_and_a_linked_file(tmp_path, capsys):
     assert (tmp_path / "secret").read_text() == "keep\n"
 
 
-# -- --force replaces a file, never a device, FIFO or directory ----------------------------------
-@pytest.mark.parametrize("kind", ["fifo", "device", "directory"])
+# -- --force replaces a file, never a device, FIFO, socket or directory ---------------------------
+def test_refuse_special_names_dev_null_a_character_device():
+    """The real /dev/null, looked at with lstat only (never opened, never a CLI --force at it):
+    without root, the device case of the test below."""
+    with pytest.raises(BadInput, match=r"^/dev/null: --out names a character device, not a regular file;"):
+        refuse_special(["/dev/null"])
+
+
+#: a device node takes root to make: as any other user the unit test above is the device case
+SPECIAL = ["fifo", "socket", "directory"] + (["device"] if os.geteuid() == 0 else [])
+
+
+@pytest.mark.parametrize("kind", SPECIAL)
 @pytest.mark.parametrize("argv", [
     lambda d, o: ["simulate", str(FIG5), "--out", str(o), "--force", "--duration", "0.1", "-q"],
     lambda d, o: ["run", str(FIG5), "--out", str(o), "--force", "--duration", "0.1", "-q"],
@@ -94,15 +108,16 @@ def test_examples_refuse_a_symlinked_dir_and_a_linked_file(tmp_path, capsys):
     lambda d, o: ["report", str(d / "r.csv"), "--out", str(o), "--force"],
     lambda d, o: ["simulate", str(FIG5), "--out", str(d / "x.csv"), "--force", "--duration", "0.1", "-q"],
 ], ids=["simulate", "run", "calibrate", "report", "simulate-sidecar"])
-def test_force_never_replaces_a_device_a_fifo_or_a_directory(tmp_path, capsys, kind, argv):
+def test_force_never_replaces_a_device_a_fifo_a_socket_or_a_directory(tmp_path, capsys, kind, argv):
     """As root, `run --out /dev/null --force` once replaced /dev/null with the run log (a clone of it here)."""
-    if kind == "device" and os.geteuid() != 0:
-        pytest.skip("making a device node needs root")
     (tmp_path / "t7.yaml").write_bytes(T7.read_bytes())
     assert main(["simulate", str(FIG5), "--out", str(tmp_path / "r.csv"), "--duration", "0.1", "-q"]) == 0
     victim = tmp_path / ("x.json" if "x.csv" in argv(tmp_path, tmp_path / "o")[3] else "o.png")
     if kind == "fifo":
         os.mkfifo(victim)
+    elif kind == "socket":
+        with socket.socket(socket.AF_UNIX) as s:
+            s.bind(str(victim))  # the name stays a socket once closed
     elif kind == "device":
         os.mknod(victim, 0o666 | stat.S_IFCHR, os.makedev(1, 3))  # what /dev/null is
     else:

@@ -154,7 +154,6 @@ def test_progress_without_tqdm_prints_plain_lines(bb_dir, monkeypatch, capsys):
 def test_the_summary_shows_the_held_out_record_and_its_score(result):
     """Broadband: the held-out record's force and loop beside its NRMSE,
     no empty panel, no unit twice on an axis, the legend told apart."""
-    pytest.importorskip("matplotlib")
     from figure_checks import axes_without_data, doubled_units, legends_with_lookalikes
 
     from mrctl.offline.identify_figure import build_identification_figure

@@ -156,7 +156,6 @@ def test_the_summary_page_has_the_conditions_and_the_per_level_table(result):
     """Two files at two strokes and frequencies: the summary adds the NRMSE
     against each and the per-level table, one colour and marker per level
     in both; nothing empty, no unit twice, every legend told apart."""
-    pytest.importorskip("matplotlib")
     from figure_checks import axes_without_data, doubled_units, legends_with_lookalikes
 
     from mrctl.offline.identify_figure import build_identification_figure

@@ -494,16 +494,20 @@ def test_a_bad_calibration_file_is_a_clear_error(tmp_path, capsys) -> None:
 
 
 def test_sigkill_while_another_client_polls_dac0_and_enable_drop_within_the_timeout(tmp_path) -> None:
-    """Issue 32: a second Modbus client polling the T7 every 100 ms (Kipling, an IOC) no longer
-    keeps DAC0 or the enable alive after mrctl is SIGKILLed: the strict watchdog ignores it."""
-    hil, port = _start(tmp_path, _bench(tmp_path, enable=True))
-    polls: list[tuple[int, float, int]] = []
+    """Issue 32: a second Modbus client polling the T7 every 100 ms (Kipling, an IOC) does not
+    keep DAC0 or the enable alive after mrctl is SIGKILLed: the strict watchdog ignores it.
+    The trip is the emulator's own record (its truth summary); every poll sent after it reads
+    0 V and the enable low."""
+    truth = tmp_path / "truth.csv"
+    hil, port = _start(tmp_path, _bench(tmp_path, enable=True), "--truth", str(truth))
+    polls: list[tuple[int, float, int]] = []  # (sent at, DAC0, DIO0)
     stop = [False]
 
     def poller() -> None:
         with socket.create_connection(("127.0.0.1", port), timeout=2.0) as s:
             tid = 0
             while not stop[0]:
+                sent = time.monotonic_ns()
                 got = []
                 for address in (1000, 2800):  # DAC0 (FLOAT32), DIO_STATE (UINT32)
                     tid += 1
@@ -515,7 +519,7 @@ def test_sigkill_while_another_client_polls_dac0_and_enable_drop_within_the_time
                             return
                         data += chunk
                     got.append(data[9:13])
-                polls.append((time.monotonic_ns(), struct.unpack(">f", got[0])[0], struct.unpack(">I", got[1])[0] & 1))
+                polls.append((sent, struct.unpack(">f", got[0])[0], struct.unpack(">I", got[1])[0] & 1))
                 time.sleep(0.1)
 
     try:
@@ -525,21 +529,30 @@ def test_sigkill_while_another_client_polls_dac0_and_enable_drop_within_the_time
         assert st is not None, run.stderr()
         t = threading.Thread(target=poller, daemon=True)
         t.start()
-        time.sleep(1.0)
+        deadline = time.monotonic() + 10.0
+        while len(polls) < 10 and time.monotonic() < deadline:  # a second of polls of the driven DAC0
+            time.sleep(0.02)
         t_kill = time.monotonic_ns()
         os.kill(run.pid, signal.SIGKILL)
         run.wait(10)
-        time.sleep(2.5)
+        # polls sent after the watchdog's 1 s + 1 s (the bound on the trip checked below)
+        deadline = time.monotonic() + 10.0
+        while sum(p[0] > t_kill + 2.0e9 for p in polls) < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
         stop[0] = True
         t.join(3)
     finally:
         hil.stop()
+    t7 = json.loads(truth.with_suffix(".json").read_text())["modbus"]
+    trips = [t for t in t7["watchdog_trips_ns"] if t >= t_kill]
+    assert trips and trips[0] - t_kill <= 2.0e9, (trips, t_kill)  # the watchdog's 1 s + 1 s
     before = [p for p in polls if p[0] < t_kill]
-    after = [p for p in polls if p[0] > t_kill + 2.0e9]  # the watchdog's 1 s + 1 s
+    after = [p for p in polls if p[0] > trips[0]]
     assert before and max(p[1] for p in before) > 0.05, before
     assert after and all(p[1] == 0.0 and p[2] == 0 for p in after), after
     off = [p[0] for p in polls if p[0] > t_kill and p[1] == 0.0 and p[2] == 0]
-    print(f"DAC0 0 V and enable low {(off[0] - t_kill) / 1e6:.0f} ms after SIGKILL with a 100 ms poller")
+    print(f"watchdog trip {(trips[0] - t_kill) / 1e6:.0f} ms after SIGKILL (the emulator's record); "
+          f"DAC0 0 V and enable low at the 100 ms poller {(off[0] - t_kill) / 1e6:.0f} ms after SIGKILL")
 
 
 def test_estop_on_the_t7s_dio_latches_the_run_until_mrctl_arm_then_ramps(tmp_path) -> None:

@@ -141,8 +141,8 @@ def served():
 
     made = []
 
-    def start(**changes):
-        dev, state = _device(**changes)
+    def start(clock=None, **changes):
+        dev, state = _device(clock, **changes)
         srv = ModbusTcpInline(state, "127.0.0.1", 0, device=dev, max_clients=dev.max_connections)
         stop = threading.Event()
 
@@ -192,12 +192,13 @@ def test_a_raw_mbfb_frame_built_by_hand_is_answered_and_a_third_client_is_refuse
             assert c.recv(16) == b""  # the third connection is closed at once
 
 
-def _link(port: int, tmp_path: Path, **backend):
+def _link(port: int, tmp_path: Path, safety: dict | None = None, **backend):
     from mrctl.config import load_experiment
     from mrctl.io import link_class_for
 
     data = yaml.safe_load(EXPERIMENT.read_text())
     data["backend"].update(port=port, **backend)
+    data["safety"].update(safety or {})
     p = tmp_path / "exp.yaml"
     p.write_text(yaml.safe_dump(data, sort_keys=False))
     cfg = load_experiment(p)
@@ -299,17 +300,9 @@ def test_a_preset_without_modbus_mbfb_gets_fc3_fc16_without_trying_mbfb(served, 
 
 
 def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) -> None:
-    dev, state, port = served(estop={"dio": 4, "active": "low"})
-    data = yaml.safe_load(EXPERIMENT.read_text())
-    link, exp = _link(port, tmp_path)
-    data["backend"]["port"] = port
-    data["safety"]["estop"] = {"input": "FIO4", "active": "low"}
-    exp.write_text(yaml.safe_dump(data, sort_keys=False))
-    from mrctl.config import load_experiment
-    from mrctl.io import link_class_for
-
-    cfg = load_experiment(exp)
-    link = link_class_for(cfg.backend).from_config(cfg.backend)
+    clock = _Clock()  # the emulator's watchdog runs on it
+    dev, state, port = served(clock, estop={"dio": 4, "active": "low"})
+    link, _ = _link(port, tmp_path, safety={"estop": {"input": "FIO4", "active": "low"}})
     link.open()
     try:
         assert not link.exchange(0.3).status & (Status.ESTOP | Status.WATCHDOG_TRIPPED)
@@ -317,8 +310,11 @@ def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) ->
         assert link.exchange(0.3).status & Status.ESTOP
         state.estop_input = False
         assert not link.exchange(0.3).status & Status.ESTOP
-        time.sleep(1.3)  # no request: the strict watchdog (1 s) puts DAC0 at 0 V
-        assert dev.watchdog_trips
+        clock.ns += 1_300_000_000  # 1.3 s without a request: the strict watchdog (1 s) puts DAC0 at 0 V
+        deadline = time.monotonic() + 10.0  # until the serving thread has run the timer
+        while not dev.watchdog_trips and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert dev.watchdog_trips == [clock.ns]
         assert link.exchange(0.3).status & Status.WATCHDOG_TRIPPED
         assert not link.exchange(0.3).status & Status.WATCHDOG_TRIPPED
     finally:

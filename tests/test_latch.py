@@ -11,7 +11,6 @@ Everything on a virtual tick count: no clock is read.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import pytest
 
@@ -22,14 +21,6 @@ from mrctl.io.base import Sample, Status
 DT = 1e-3
 ESTOP = int(Status.ESTOP)
 TRIPPED = int(Status.WATCHDOG_TRIPPED)
-
-
-class S(NamedTuple):
-    seq: int
-    x_m: float = 0.0
-    v_mps: float = 0.0
-    F_N: float = math.nan
-    status: int = 0
 
 
 def sup_for(**kw) -> SafetySupervisor:

@@ -56,6 +56,7 @@ from hil_sim.modbus_wire import (  # noqa: E402
     rtu_request_length,
 )
 from hil_sim.state import DeviceState  # noqa: E402
+from hil_sim.testing.peers import free_port  # noqa: E402
 from mrctl.io.base import (  # noqa: E402
     DeviceError,
     Disconnected,
@@ -982,12 +983,8 @@ def test_rtu_gone_is_disconnected() -> None:
 
 
 def test_open_failures_are_disconnected() -> None:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()  # nothing listens there now
     with pytest.raises(Disconnected):
-        ModbusLink("tcp", host="127.0.0.1", port=port).open()
+        ModbusLink("tcp", host="127.0.0.1", port=free_port()).open()  # nothing listens there
     with pytest.raises(Disconnected):
         ModbusLink("rtu", url="/dev/nonexistent-tty").open()
     with pytest.raises(ValueError):

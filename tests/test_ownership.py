@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import socket
 import stat
 import subprocess
 import sys
@@ -16,6 +15,7 @@ import pytest
 
 from fake_devices import Listener
 
+from hil_sim.testing.peers import free_port
 from mrctl.daemon.service import RunOptions, Service
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,10 +78,7 @@ def test_lock_is_released_on_every_exit(tmp_path, monkeypatch):
     from mrctl.daemon.ownership import acquire
 
     monkeypatch.setenv("MRCTL_LOCK_DIR", str(tmp_path / "locks"))
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()  # a port nobody listens on
+    port = free_port()  # a port nobody listens on
     cfg = tmp_path / "exp.yaml"
     cfg.write_text(TCP_EXP.replace("port: 5020", f"port: {port}"))
     err = io.StringIO()

@@ -196,7 +196,6 @@ def test_a_run_log_of_every_backend_replays(start, tmp_path, capsys):
 def _like_with_like(run: Path, replay: Path) -> None:
     """The report of a run and its replay: one force quantity (the load cell's
     when the run has no plant force), one window, both said on the figure."""
-    pytest.importorskip("matplotlib")
     from mrctl.offline.report import build_figure
 
     fig, (a, b) = build_figure([run, replay])
@@ -216,7 +215,6 @@ def test_a_simulated_run_and_its_replay_are_drawn_on_one_force(tmp_path, capsys)
     assert main(["simulate", str(EXP / "fig5.yaml"), "--duration", str(RUN_S), "--out", str(log), "-q"]) == 0
     _replay(log, capsys)
     _like_with_like(log, log.with_name("sim-replay.csv"))
-    pytest.importorskip("matplotlib")
     from mrctl.offline.report import build_figure
     from mrctl.runlog.read import read_run
 

@@ -13,12 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("matplotlib")
+from matplotlib.colors import to_hex
 
-from matplotlib.colors import to_hex  # noqa: E402
-
-from mrctl.offline.report import build_figure  # noqa: E402
-from mrctl.offline.report_marks import EDGE_STRIP, LATCHED_BIT, MIN_WIDTH_SHARE  # noqa: E402
+from mrctl.offline.report import build_figure
+from mrctl.offline.report_marks import EDGE_STRIP, LATCHED_BIT, MIN_WIDTH_SHARE
 
 DT = 1e-3
 

@@ -7,27 +7,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib.figure
 import numpy as np
-import pytest
 
-pytest.importorskip("matplotlib")
-
-from mrctl.cli import main  # noqa: E402
+from mrctl.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_heat_map_panels_share_one_scale_at_200_dpi(tmp_path, monkeypatch, capsys):
-    base = tmp_path / "base.yaml"
-    base.write_text((ROOT / "config" / "experiments" / "fig5.yaml").read_text()
-                    .replace("duration_s: 4.0", "duration_s: 1.5"))
-    sweep = tmp_path / "s.yaml"
-    sweep.write_text("version: 1\nname: s\nbase: base.yaml\ngrid:\n  demand.c_des: [250, 750]\n"
-                     "  plant.driver_tau_s: [0.0, 0.01]\n  inverse.law: [smooth, paper]\nmetrics: [force_nrmse]\n")
-    table = tmp_path / "r.csv"
+def _swept_and_drawn(tmp_path, monkeypatch, capsys, sweep_text: str, report_args: list[str]):
+    """fig5 at 1.5 s swept as ``sweep_text`` says (its base: base.yaml), then ``mrctl report`` of the
+    table with ``report_args``: the (figure, savefig keywords) of each figure it saved."""
+    (tmp_path / "base.yaml").write_text((ROOT / "config" / "experiments" / "fig5.yaml").read_text()
+                                        .replace("duration_s: 4.0", "duration_s: 1.5"))
+    sweep, table = tmp_path / "s.yaml", tmp_path / "r.csv"
+    sweep.write_text(sweep_text)
     assert main(["sweep", str(sweep), "--out", str(table), "--workers", "1", "-q"]) == 0
-    import matplotlib.figure
-
     drawn = []
     real = matplotlib.figure.Figure.savefig
 
@@ -35,9 +30,17 @@ def test_heat_map_panels_share_one_scale_at_200_dpi(tmp_path, monkeypatch, capsy
         drawn.append((fig, k))
         return real(fig, *a, **k)
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    assert main(["report", str(table), *report_args]) == 0, capsys.readouterr().err
+    return drawn
+
+
+def test_heat_map_panels_share_one_scale_at_200_dpi(tmp_path, monkeypatch, capsys):
     out = tmp_path / "map.png"
-    assert main(["report", str(table), "--out", str(out)]) == 0, capsys.readouterr().err
-    (fig, kw), = drawn
+    (fig, kw), = _swept_and_drawn(
+        tmp_path, monkeypatch, capsys,
+        "version: 1\nname: s\nbase: base.yaml\ngrid:\n  demand.c_des: [250, 750]\n"
+        "  plant.driver_tau_s: [0.0, 0.01]\n  inverse.law: [smooth, paper]\nmetrics: [force_nrmse]\n",
+        ["--out", str(out)])
     assert kw["dpi"] == 200
     panels = [ax for ax in fig.axes if ax.images]
     assert len(panels) == 2
@@ -63,28 +66,12 @@ def test_monte_carlo_cdfs_keep_overlapping_laws_visible_and_say_so(tmp_path, mon
     a third that differs: each CDF in its own colour, line style and marker,
     markers staggered so an identical curve's do not cover the other's, the
     overlap said in the legend, and the shares saying what they count."""
-    base = tmp_path / "base.yaml"
-    base.write_text((ROOT / "config" / "experiments" / "fig5.yaml").read_text()
-                    .replace("duration_s: 4.0", "duration_s: 1.5"))
-    sweep = tmp_path / "mc.yaml"
-    sweep.write_text("version: 1\nname: mc\nbase: base.yaml\ngrid:\n"
-                     "  acceptance.max_fault_share: [0.02, 0.5]\n"  # judged after the run: the same figures
-                     "random:\n  n: 20\n  seed: 3\n  plant.driver_tau_s: {uniform: [0.0, 0.01]}\n"
-                     "metrics: [force_nrmse]\n")
-    table = tmp_path / "mc.csv"
-    assert main(["sweep", str(sweep), "--out", str(table), "--workers", "1", "-q"]) == 0
-    import matplotlib.figure
-
-    drawn = []
-    real = matplotlib.figure.Figure.savefig
-
-    def keep(fig, *a, **k):
-        drawn.append(fig)
-        return real(fig, *a, **k)
-    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
-    assert main(["report", str(table), "--out", str(tmp_path / "cdf.png"), "--bound", "0.01"]) == 0, \
-        capsys.readouterr().err
-    (fig,) = drawn
+    (fig, _), = _swept_and_drawn(
+        tmp_path, monkeypatch, capsys,
+        "version: 1\nname: mc\nbase: base.yaml\ngrid:\n"
+        "  acceptance.max_fault_share: [0.02, 0.5]\n"  # judged after the run: the same figures
+        "random:\n  n: 20\n  seed: 3\n  plant.driver_tau_s: {uniform: [0.0, 0.01]}\nmetrics: [force_nrmse]\n",
+        ["--out", str(tmp_path / "cdf.png"), "--bound", "0.01"])
     cdf = fig.axes[0]
     curves = [ln for ln in cdf.lines if len(ln.get_xdata()) > 2]
     assert len(curves) == 2

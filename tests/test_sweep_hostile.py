@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -23,6 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from hil_sim.testing.peers import ReplyingServer
 from mrctl.cli import main
 from mrctl.config import load_yaml
 from mrctl.errors import LinkFailure
@@ -138,7 +138,7 @@ def test_a_hand_edited_csv_table_is_refused_naming_the_line(sweep_file, monkeypa
 
 
 def test_a_corrupt_or_foreign_parquet_is_refused_before_any_journal(sweep_file, monkeypatch, capsys):
-    pa = pytest.importorskip("pyarrow")
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
     out = sweep_file.parent / "r.parquet"
@@ -155,35 +155,6 @@ def test_a_corrupt_or_foreign_parquet_is_refused_before_any_journal(sweep_file, 
 
 
 # -- item 3, 7: a scheduler that is mute, or not a Dask scheduler ------------------------------
-def _serve(reply: bytes | None) -> str:
-    """A TCP server answering each connection with ``reply`` (None: never a byte)."""
-    srv = socket.socket()
-    srv.bind(("127.0.0.1", 0))
-    srv.listen(8)
-    held: list[socket.socket] = []
-
-    def run() -> None:
-        while True:
-            try:
-                c, _ = srv.accept()
-            except OSError:
-                return
-            held.append(c)
-            if reply is not None:
-                c.settimeout(1.0)
-                try:
-                    c.recv(65536)
-                except OSError:
-                    pass
-                try:
-                    c.sendall(reply)
-                except OSError:
-                    pass
-
-    threading.Thread(target=run, daemon=True).start()
-    return f"tcp://127.0.0.1:{srv.getsockname()[1]}"
-
-
 @pytest.mark.parametrize("reply, needle", [
     (None, "no answer within"),
     (bytes(range(256)) * 16, "not a Dask scheduler"),
@@ -191,13 +162,13 @@ def _serve(reply: bytes | None) -> str:
     ((3).to_bytes(8, "little") + (1 << 62).to_bytes(8, "little") + bytes(64), "not a Dask scheduler"),
 ], ids=["mute", "random-bytes", "http", "bad-frame"])
 def test_a_scheduler_that_is_mute_or_not_dask_is_a_link_failure(reply, needle):
-    pytest.importorskip("distributed")
-    address = _serve(reply)
+    import distributed  # noqa: F401 - a test dependency: missing, the test fails
     got: list[BaseException] = []
-    t = threading.Thread(target=lambda: got.append(_raises(lambda: probe_scheduler(address, timeout=1.0))),
-                         daemon=True)
-    t.start()
-    t.join(60)
+    with ReplyingServer(reply) as srv:
+        t = threading.Thread(target=lambda: got.append(_raises(lambda: probe_scheduler(srv.address, timeout=1.0))),
+                             daemon=True)
+        t.start()
+        t.join(60)
     assert not t.is_alive(), "the probe did not return"
     assert isinstance(got[0], LinkFailure) and needle in str(got[0]), got
 
@@ -211,10 +182,11 @@ def _raises(fn) -> BaseException | None:
 
 
 def test_the_command_says_not_a_dask_scheduler_and_exits_3(sweep_file, monkeypatch, capsys):
-    pytest.importorskip("distributed")
+    import distributed  # noqa: F401 - a test dependency: missing, the test fails
     _no_point(monkeypatch)
     out = sweep_file.parent / "r.csv"
-    assert main(["sweep", str(sweep_file), "--out", str(out), "--scheduler", _serve(os.urandom(4096))]) == 3
+    with ReplyingServer(os.urandom(4096)) as srv:
+        assert main(["sweep", str(sweep_file), "--out", str(out), "--scheduler", srv.address]) == 3
     err = capsys.readouterr().err
     assert "not a Dask scheduler" in err and "internal error" not in err
     assert not out.exists()  # refused before the table was opened
@@ -299,8 +271,6 @@ def test_a_killed_sweep_leaves_no_worker_and_no_lock(sweep_file):
 @pytest.mark.parametrize("suffix", ["csv", "parquet"])
 def test_a_table_larger_than_a_sort_chunk_is_merged_from_disk_in_point_order(tmp_path, monkeypatch, suffix):
     """The rewrite in point order never holds the table: chunks sorted, spilled, merged; duplicates dropped."""
-    if suffix == "parquet":
-        pytest.importorskip("pyarrow")
     import random
 
     from mrctl.sweep import rows

@@ -14,13 +14,13 @@ from __future__ import annotations
 import contextlib
 import json
 import signal
-import socket
 import subprocess
 import time
 from pathlib import Path
 from typing import Any, Iterator
 
 from hil_sim.testing.harness import ROOT, HilSim, Run
+from hil_sim.testing.peers import free_port
 
 BENCH = ROOT / "config" / "hil_fig5_bench.yaml"
 EXPERIMENTS = {"serial": "hil_serial.yaml", "modbus-tcp": "hil_modbus_tcp.yaml"}
@@ -102,9 +102,7 @@ def ownership(transport: str, workdir: Path, lock_dir: Path | None = None) -> di
         # errors A logs meanwhile are the load of a start on this box
         errors_before = (st or {}).get("link_errors")
         if port:
-            with socket.socket() as free:
-                free.bind(("127.0.0.1", 0))
-                nowhere = {"port": free.getsockname()[1]}
+            nowhere = {"port": free_port()}
         else:
             nowhere = {"link": str(workdir / "absent-tty")}
         ctl_cfg = hil_experiment(transport, workdir, file="control.yaml", **nowhere)
