@@ -14,7 +14,11 @@ Details: docs/hil_sim.md.
 
 from __future__ import annotations
 
-import argparse
+from mrctl.util.blas import limit_blas_threads
+
+limit_blas_threads()  # before anything imports numpy (mrctl/util/blas.py)
+
+import argparse  # noqa: E402
 import math
 import os
 import signal

@@ -15,7 +15,11 @@ help with the exit codes, also for subcommands added later.
 
 from __future__ import annotations
 
-import argparse
+from mrctl.util.blas import limit_blas_threads
+
+limit_blas_threads()  # before anything imports numpy (mrctl/util/blas.py)
+
+import argparse  # noqa: E402
 import json
 import sys
 from pathlib import Path
