@@ -14,8 +14,12 @@ observer's velocity error against the emulator's true velocity (rms over
 t >= 1 s; each logged sample joined to the bench tick it was read from by its
 CORE_TIMER, which the run logs as ``seq`` with either kind of time stamp).
 Then the medians, the targets and the load average before and after.
+``--firmware N``: beside it, N runs of config/experiments/firmware_host.yaml at
+``--firmware-rate`` (1 kHz) against the reference firmware's host build
+(firmware/README.md, built here with g++), with ``mrctl simulate`` of that file
+at that rate (its plant is the Table I damper, the host build's is a stand-in).
 
-    python bench/t7_campaign.py [--runs 8] [--seconds 4] [--json out.json]
+    python bench/t7_campaign.py [--runs 8] [--seconds 4] [--firmware 8] [--json out.json]
 """
 
 from __future__ import annotations
@@ -155,6 +159,64 @@ def one_run(tmp: Path, cal: Path, stamps: str, seconds: float, i: int) -> dict:
     return r
 
 
+def firmware_runs(tmp: Path, n: int, rate_hz: float, seconds: float) -> tuple[float, list[dict]]:
+    """The reference firmware's host build at ``rate_hz``, ``n`` runs of firmware_host.yaml."""
+    import shutil
+    import subprocess
+
+    gxx = shutil.which("g++")
+    if gxx is None:
+        raise SystemExit("--firmware: g++ builds the firmware's host program")
+    fw, exe = ROOT / "firmware", tmp / "mrctl_fw_host"
+    res = subprocess.run([gxx, "-std=c++17", "-O2", f"-I{fw / 'core'}", f"-I{fw / 'boards/teensy4/mrctl_teensy4'}",
+                          *sorted(str(p) for p in (fw / "core").glob("*.cpp")), str(fw / "host" / "mrctl_fw_host.cpp"),
+                          "-o", str(exe)], capture_output=True, text=True, timeout=300)
+    if res.returncode != 0:
+        raise SystemExit(f"--firmware: g++ failed: {res.stderr}")
+    base = yaml.safe_load((ROOT / "config" / "experiments" / "firmware_host.yaml").read_text())
+    base.update(rate_hz=rate_hz, duration_s=seconds)
+    sim_cfg = write_yaml(tmp / "fw-sim.yaml", base)
+    res = mrctl("simulate", str(sim_cfg), "--out", str(tmp / "fw-sim.csv"))
+    if res.returncode not in (0, 5):
+        raise SystemExit(f"--firmware: mrctl simulate failed: {res.stderr}")
+    sim = load_cell_nrmse(tmp / "fw-sim.csv")
+    runs = []
+    for i in range(n):
+        link = tmp / f"fw-tty-{i}"
+        proc = subprocess.Popen([str(exe), "--link", str(link), "--rate-hz", f"{rate_hz:g}"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        ready = proc.stdout.readline() if proc.stdout is not None else ""
+        data = dict(base, backend=dict(base["backend"], url=str(link)))
+        cfg = write_yaml(tmp / f"fw-{i}.yaml", data)
+        out = tmp / f"fw-run-{i}.csv"
+        try:
+            if not ready.startswith("mrctl_fw_host ready"):
+                raise SystemExit(f"--firmware: the host build did not start: {ready!r}")
+            res = mrctl("run", str(cfg), "--out", str(out), "--quiet", "--status-socket", str(tmp / "fw.sock"))
+        finally:
+            proc.terminate()
+            fw_out, _ = proc.communicate(timeout=10)
+        r: dict = {"round": i, "exit": res.returncode}
+        m = re.search(r"Running at (\d+(?:\.\d+)?) Hz instead", res.stderr)
+        if not out.exists() or res.returncode not in (0, 5):
+            r["error"] = res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}"
+        else:
+            side = read_sidecar(out)
+            timing = side["summary"]["timing"]
+            r.update(rate_hz=float(m.group(1)) if m else float(side["rate_hz"]), ticks=timing["ticks"],
+                     skipped=timing["skipped_deadlines"], nrmse=load_cell_nrmse(out),
+                     verdict_reasons=side.get("verdict_reasons", []))
+            r["ratio"] = r["nrmse"] / sim
+            late = re.search(r"late_ticks=(\d+)", fw_out or "")
+            r["device_late_ticks"] = int(late.group(1)) if late else None
+        runs.append(r)
+        print("firmware " + (f"round {i}: exit {r['exit']}: {r.get('error')}" if "error" in r else
+              f"round {i}: exit {r['exit']}, {r['rate_hz']:g} Hz, {r['ticks']} ticks, skipped {r['skipped']}, "
+              f"host build late ticks {r['device_late_ticks']}, NRMSE {100 * r['nrmse']:.3f} % "
+              f"(ratio {r['ratio']:.2f})" + "".join(f"; {w}" for w in r["verdict_reasons"])), flush=True)
+    return sim, runs
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=8)
@@ -163,6 +225,9 @@ def main() -> int:
                     help="which time stamps to run (default both, device first in each round)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change the experiment, e.g. --set sensing.x_noise_m=5e-6 (YAML value)")
+    ap.add_argument("--firmware", type=int, default=0, metavar="N",
+                    help="also N runs of firmware_host.yaml against the reference firmware's host build")
+    ap.add_argument("--firmware-rate", type=float, default=1000.0)
     ap.add_argument("--keep", metavar="DIR", help="keep the logs, truth logs and calibration here")
     ap.add_argument("--json")
     a = ap.parse_args()
@@ -203,6 +268,7 @@ def main() -> int:
                     r["ratio"] = r["nrmse"] / sim
                 runs.append(r)
                 print(fmt(r), flush=True)
+        fw_sim, fw = firmware_runs(tmp, a.firmware, a.firmware_rate, a.seconds) if a.firmware else (math.nan, [])
     load1 = os.getloadavg()
     print(f"load average before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, "
           f"after {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
@@ -231,6 +297,15 @@ def main() -> int:
               f"{statistics.median(ratios):.2f} (target <= 0.5); <= 0.5 in {sum(q <= 0.5 for q in ratios)}/"
               f"{len(ratios)}")
         summary["v_ratio_per_round"] = ratios
+    if fw:
+        good = [r for r in fw if "nrmse" in r]
+        print(f"firmware host build at {a.firmware_rate:g} Hz: simulate NRMSE {100 * fw_sim:.3f} %; exit 0 in "
+              f"{sum(r['exit'] == 0 for r in fw)}/{len(fw)}" + (
+                  f"; median rate {statistics.median(r['rate_hz'] for r in good):g} Hz, skipped "
+                  f"{statistics.median(r['skipped'] for r in good):g}, NRMSE "
+                  f"{100 * statistics.median(r['nrmse'] for r in good):.3f} % (ratio "
+                  f"{statistics.median(r['ratio'] for r in good):.2f})" if good else ""))
+        summary["firmware"] = {"simulate_nrmse": fw_sim, "rate_hz": a.firmware_rate, "runs": fw}
     if a.json:
         Path(a.json).write_text(json.dumps({"simulate_nrmse": sim, "load_before": load0, "load_after": load1,
                                             "runs": runs, "summary": summary}, indent=2) + "\n")
