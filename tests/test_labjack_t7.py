@@ -1,8 +1,8 @@
 """The LabJack T7 preset (mrctl/io/devices), hil_sim's T7 emulation, mrctl calibrate (issue 25).
 
 Runs the daemon against ``python -m hil_sim --device labjack_t7`` on loopback
-at the rate its start-up probe chooses (250 Hz with the emulator's 1 ms
-command-response time), a rate this machine holds.
+at the rate its start-up probe chooses (500 Hz with the emulator's datasheet
+latency model, 1.22 ms a tick, when the machine holds it).
 """
 
 from __future__ import annotations
