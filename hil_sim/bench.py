@@ -200,8 +200,10 @@ class BenchDevice:
         b.command(I)
         t = b.t
         I_app = b.I_applied
+        t0 = self.loop.t_start_ns  # the sample is the bench at its deadline, however late this tick runs
         state.publish(Sample(seq, t, x_m, v_m, F_m, status, I_app),
-                      tuple(self._channels.values()) if self._channels else ())
+                      tuple(self._channels.values()) if self._channels else (),
+                      0 if t0 is None else t0 + k * self.loop.period_ns)
         if state.owed_now:  # device pacing: answer SYNC requests with this sample
             state.run_owed()
         if self.truth is not None:

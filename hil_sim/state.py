@@ -63,8 +63,9 @@ class DeviceState:
         #: input closed (firmware-like devices); False: the latch is the host's (the emulated T7)
         self.estop_latches = True
         self._sample = Sample(seq=0, t_dev_s=0.0, x_m=0.0, v_mps=0.0, F_N=float("nan"), status=0)
-        #: monotonic ns at which the latest sample was published (0 = none yet): when its
-        #: inputs were "converted", for a device that stamps its samples (the emulated T7's CORE_TIMER)
+        #: monotonic ns the latest sample stands for (0 = none yet): its tick's deadline, when
+        #: its inputs were "converted" (the bench's time k·dt), for a device that stamps its samples
+        #: (the emulated T7's CORE_TIMER); not when a late clock thread got round to publishing it
         self.sample_ns = 0
         #: the bench's extra channels (names fixed at start) and their values,
         #: published with each sample (docs/protocol.md §2.5, docs/registers.md)
@@ -92,12 +93,15 @@ class DeviceState:
         self.starts: list[tuple[int, float, bool]] = []
 
     # -- clock side -------------------------------------------------------
-    def publish(self, sample: Sample, channels: tuple[float, ...] = ()) -> None:
-        now = time.monotonic_ns()
+    def publish(self, sample: Sample, channels: tuple[float, ...] = (), at_ns: int = 0) -> None:
+        """The clock's sample of its tick; ``at_ns``: the monotonic ns it stands for (the tick's
+        deadline; 0: now)."""
+        if at_ns <= 0:
+            at_ns = time.monotonic_ns()
         with self._lock:
             self._sample = sample
             self._channels = channels
-            self.sample_ns = now
+            self.sample_ns = at_ns
 
     def latest_sample_ns(self) -> tuple[Sample, int]:
         """The latest sample and the monotonic ns it was published at, in one step."""

@@ -146,6 +146,17 @@ class Experiment:
         return make_sim_bench(self.plant_params, self.excitation, self.dt, p.driver_tau_s, self.make_sensors(),
                               p.sensors.load_cell, p.model, p.sensors.velocity, quarter_car_params(p), trajectory)
 
+    @property
+    def command_delay_ticks(self) -> int:
+        """Ticks from a sample to its current at the driver, as ``mrctl simulate``
+        models them (``plant.command_delay_ticks``): explicit, or 'auto' = 1 on
+        an exchange link (the current computed from a sample goes out with the
+        next tick's request), 0 on a split link (the in-process sim)."""
+        d = self.config.plant.command_delay_ticks
+        if d == "auto":
+            return 0 if link_class_for(self.config.backend).split else 1
+        return int(d)
+
     def make_observer(self) -> KinematicObserver | None:
         """The velocity observer (``sensing.velocity: observer``), None when off."""
         return make_observer(self.config.sensing, self.dt)

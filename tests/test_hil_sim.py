@@ -462,6 +462,18 @@ def _device(**over) -> tuple[BenchDevice, DeviceState]:
     return BenchDevice(_cfg(**over), state), state
 
 
+def test_a_late_tick_publishes_its_sample_as_of_its_deadline() -> None:
+    """The sample is the bench at deadline k (its time k*dt): a device that stamps its samples (the
+    emulated T7's CORE_TIMER) stamps that, not when a late clock thread published it."""
+    dev, state = _device()
+    t0 = 5_000_000_000
+    dev.loop.t_start_ns = t0
+    dev.tick(3, t0 + 3 * dev.loop.period_ns + 700_000)  # 0.7 ms late
+    assert state.latest_sample_ns()[1] == t0 + 3 * dev.loop.period_ns
+    dev.tick(7, t0 + 7 * dev.loop.period_ns)
+    assert state.latest_sample_ns()[1] == t0 + 7 * dev.loop.period_ns
+
+
 def test_watchdog_trips_after_watchdog_ms_and_latches() -> None:
     dev, state = _device(load_cell=False)
     dev.tick(0, 1_000_000)  # no setpoint yet: 0 A, no trip

@@ -1,8 +1,8 @@
 """The LabJack T7 preset (mrctl/io/devices), hil_sim's T7 emulation, mrctl calibrate (issue 25).
 
 Runs the daemon against ``python -m hil_sim --device labjack_t7`` on loopback
-at the rate its start-up probe chooses (250 Hz with the emulator's 1 ms
-command-response time), a rate this machine holds.
+at the rate its start-up probe chooses (500 Hz with the emulator's datasheet
+latency model, 1.22 ms a tick, when the machine holds it).
 """
 
 from __future__ import annotations
@@ -96,6 +96,7 @@ def _experiment(tmp_path: Path, **backend_changes) -> Path:
     ({"enable_dio": 23}, "backend.enable_dio: 23 not allowed: a labjack_t7 has DIO0-DIO22"),
     ({"register_map": {}}, "backend.register_map: a device preset builds the register map"),
     ({"device": "labjack_t4"}, "backend.device: 'labjack_t4' not allowed (allowed: labjack_t7)"),
+    ({"time_stamps": "sometimes"}, "backend.time_stamps: 'sometimes' not allowed"),
 ])
 def test_check_refuses_bad_device_input(tmp_path, capsys, change, message) -> None:
     assert mrctl_main(["check", str(_experiment(tmp_path, **change))]) == 2
@@ -108,6 +109,15 @@ def test_check_refuses_device_keys_without_a_device(tmp_path, capsys) -> None:
     p = _experiment(tmp_path, device=None)
     assert mrctl_main(["check", str(p)]) == 2
     assert "backend.channels: only with backend.device" in capsys.readouterr().err
+
+
+def test_time_stamps_default_to_the_devices_and_host_is_recorded(tmp_path) -> None:
+    """backend.time_stamps: null = device; host is carried in the set-up and the sidecar's form."""
+    from mrctl.config import load_experiment
+
+    assert load_experiment(_experiment(tmp_path)).backend.device.device_time_stamps is True
+    setup = load_experiment(_experiment(tmp_path, time_stamps="host")).backend.device
+    assert setup.device_time_stamps is False and setup.to_dict()["time_stamps"] == "host"
 
 
 def test_velocity_defaults_to_the_observer_without_a_velocity_channel(tmp_path) -> None:

@@ -229,6 +229,30 @@ def test_the_link_sends_one_mbfb_request_per_tick_stamped_by_core_timer(served, 
     assert dev.dac_V[0] == 0.0
 
 
+def test_host_time_stamps_still_tell_a_stale_sample_by_core_timer(served, tmp_path) -> None:
+    """backend.time_stamps: host: each sample is stamped by the host's clock when its reply
+    arrives; CORE_TIMER is still read in the same request and is the sample's seq, so a reply
+    without a new conversion is still stale to the supervisor."""
+    dev, state, port = served()
+    link, _ = _link(port, tmp_path, time_stamps="host")
+    link.open()
+    try:
+        assert link.core_timer and "host clock (CORE_TIMER for staleness)" in link.describe()
+        seqs = []
+        for k in range(5):
+            state.publish(Sample(k, k * 1e-3, 0.001, math.nan, 20.0, 0, 0.1))
+            before = time.monotonic()
+            s = link.exchange(0.2)
+            assert before <= s.t_dev_s <= time.monotonic()  # the host's clock, read at the reply
+            seqs.append(s.seq)
+            time.sleep(0.002)
+        assert len(set(seqs)) == 5
+        s1, s2 = link.exchange(0.2), link.exchange(0.2)
+        assert s1.seq == s2.seq and s2.t_dev_s > s1.t_dev_s  # stale by the device's timer, not by the stamps
+    finally:
+        link.close()
+
+
 def test_core_timer_going_back_is_counted_and_the_count_outlives_a_reopen(served, tmp_path) -> None:
     """The emulated T7's CORE_TIMER restarts from 0 under a live connection (what a restart the
     network survived would look like): one device_clock_reset, in counters(), still there after

@@ -168,3 +168,72 @@ def test_updates_several_ticks_apart_stay_stable():
             if i > 100:
                 worst = max(worst, abs(v - 0.02 * math.pi * math.cos(2 * math.pi * t)))
         assert worst < 2e-3, (gap, worst)
+
+
+def _irregular_times(n: int, dt: float) -> list[float]:
+    """Sample times of a DAQ that serves the latest of its own 1 ms conversions to a 2 ms loop
+    (the emulated T7 at 500 Hz): 1, 2 and 3 ms apart, on no grid of dt."""
+    rnd = random.Random(7)
+    t, out = 0.0, []
+    for _ in range(n):
+        t += rnd.choice((0.001, 0.002, 0.002, 0.003))
+        out.append(t)
+    return out
+
+
+def test_a_fractional_step_predicts_over_the_real_time_between_samples():
+    dt = 0.002
+    times = _irregular_times(1500, dt)
+    errs = {}
+    for use_h in (False, True):
+        obs = KinematicObserver(dt, 2e-6, 1.0)
+        prev, e = 0.0, []
+        for i, t in enumerate(times):
+            d = t - prev
+            prev = t
+            n = max(1, int(d / dt + 0.5))
+            v = obs.update(0.01 * math.sin(W * t), math.nan, n, d if use_h else 0.0)
+            if i > 200:
+                e.append(v - 0.01 * W * math.cos(W * t))
+        errs[use_h] = math.sqrt(sum(x * x for x in e) / len(e))
+    assert errs[True] < 0.2 * errs[False], errs  # rounding 1 or 3 ms to whole ticks is the error
+    assert errs[True] < 1e-3, errs
+
+
+def test_a_whole_number_of_ticks_as_h_is_the_same_update_bit_for_bit():
+    a, b = KinematicObserver(0.002, 2e-6, 1.0), KinematicObserver(0.002, 2e-6, 1.0)
+    for i in range(300):
+        n = 1 + i % 3
+        x = 0.01 * math.sin(W * 0.002 * i)
+        assert a.update(x, math.nan, n) == b.update(x, math.nan, n, 0.002 * n)
+
+
+class StampedXLink(XOnlyLink):
+    """x sampled at the device's own times (t_dev), not on the controller's tick grid."""
+
+    def __init__(self, times):
+        super().__init__()
+        self.times = times
+
+    def read(self):
+        self.k += 1
+        t = self.times[self.k]
+        return Sample(self.k, t, 0.01 * math.sin(W * t), math.nan, math.nan, 0)
+
+
+def test_the_controller_steps_the_observer_by_the_device_time_between_samples():
+    """Device stamps between the ticks (1-3 ms apart at 500 Hz): the observer predicts over the
+    stamps' real step, so its velocity follows the motion as closely as on a regular grid."""
+    dt = 0.002
+    times = _irregular_times(800, dt)
+    link = StampedXLink(times)
+    sup = SafetySupervisor(SafetyConfig(I_max=0.6, hold_ticks=0))
+    ctl = Controller(link, SmoothInverse(TABLE_I, 0.6, dt), Viscous(500.0), sup, dt,
+                     observer=KinematicObserver(dt, 2e-6, 1.0))
+    worst = 0.0
+    for k in range(800):
+        ctl.tick(k, 0)
+        if k > 200:
+            worst = max(worst, abs(ctl.last_v - 0.01 * W * math.cos(W * times[k])))
+    assert sup.counters().faults_entered == 0
+    assert worst < 2e-3, worst

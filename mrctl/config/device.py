@@ -39,11 +39,16 @@ def device_fields() -> dict[str, Any]:
         "ain_settling_us": Num(default=None, optional=True,
                                doc="device: settling time of every input used (µs), set and read back; "
                                    "null = 0 (the device's automatic)"),
+        "time_stamps": Str(default=None, optional=True, choices=("device", "host"),
+                           doc="device: what time stamps the samples for the velocity observer: device = its "
+                               "clock (T7: CORE_TIMER, read in the tick's request) when its firmware has one, "
+                               "host = the host's clock when the reply arrives (the device's clock, if read, "
+                               "still tells a stale sample); null = device"),
     }
 
 
 _DEVICE_OPTIONS = ("ain_range_V", "ain_resolution_index", "device_watchdog_s", "enable_dio", "enable_toggle_s",
-                   "ain_settling_us")
+                   "ain_settling_us", "time_stamps")
 
 
 def device_checks(cfg: Node, data: dict[str, Any]) -> tuple[Node, list[str]]:

@@ -207,6 +207,11 @@ def experiment_schema(base_dir: Path, fence: Fence | None = None) -> dict[str, A
             "driver_tau_s": Num(default=None, optional=True, min=0.0, max=1.0,
                                 doc="input lag of the simulated damper's driver (s), 0 = ideal; null = the plant "
                                     "parameter set's tau_input (its tau_field, the field's own lag, follows)"),
+            "command_delay_ticks": Custom(auto_or(Num(integer=True, min=0, max=1000)), default=0,
+                                         doc="mrctl simulate: ticks from a sample to its current reaching the "
+                                             "driver; 'auto' = the backend's: 1 on an exchange link (serial, "
+                                             "Modbus, a DAQ preset: the current goes out with the next tick's "
+                                             "request), 0 on the in-process sim (mrctl run's sim backend has none)"),
             **bench_fields(),
             "sensors": Section({
                 "seed": Num(default=0, integer=True, min=0, doc="noise seed (runs are reproducible)"),

@@ -48,6 +48,9 @@ from mrctl.laws.guard import LawCall, law_fault, law_name
 from mrctl.runlog.format import RUN_COLUMNS, RUN_FORMATS  # noqa: F401 - re-exported for callers
 
 NAN: Final = math.nan
+#: a device-time step further than this share of a tick from a whole number of ticks is a real
+#: fraction (a sample taken between the host's ticks), not float rounding of k·dt
+_OFF_GRID: Final = 1e-3
 
 
 class Controller:
@@ -366,7 +369,10 @@ class Controller:
 
     def _observe(self, t_dev: float, x: float, v: float) -> float:
         """v from the observer. Its time step is the device's (t_dev), so
-        skipped ticks and a reduced rate keep it on the right clock; a
+        skipped ticks and a reduced rate keep it on the right clock, and a
+        sample stamped off the tick grid (a device clock: the reading was taken
+        earlier or later than the host's tick) is predicted over its real step,
+        with the gains of the nearest whole number of ticks; a
         repeated sample (stale) does not update it, a device clock that
         went back (a restart) starts it over."""
         obs = self.observer
@@ -377,8 +383,13 @@ class Controller:
         if d < 0.0:
             obs.reset()
         self._t_obs = t_dev
-        n = int(d / self.dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
-        return obs.update(x, v, n if n > 0 else 1)
+        dt = self.dt
+        n = int(d / dt + 0.5) if d > 0.0 else 1  # NaN (first sample, or no device time): one tick
+        if n < 1:
+            n = 1
+        if d > 0.0 and abs(d - n * dt) > _OFF_GRID * dt:  # stamped between ticks: predict over the real step
+            return obs.update(x, v, n, d)
+        return obs.update(x, v, n)
 
     def _write(self, I: float) -> bool:
         for _ in range(self.driver_retries + 1):

@@ -4,7 +4,10 @@ One loop for every bench (the shaker's :class:`mrctl.model.bench.SimBench`,
 the quarter car): each tick ``begin_tick`` → ``sample`` → the observer → the
 guarded laws (:class:`mrctl.laws.guard.LawCall`) → clamp → ``command``,
 the daemon's sim-link order, with the bench's channels handed to the laws
-in place. Compiled with the tick (mrctl/build.py): the built-in laws, the
+in place. ``delay_ticks``: the current computed from tick k's sample reaches
+the bench at tick k + delay_ticks (0: at once, as the sim link does; 1: as
+an exchange link sends it, with the next tick's request); the bench holds
+0 A before the first one arrives. Compiled with the tick (mrctl/build.py): the built-in laws, the
 observer, the plant and the shaker bench are native calls.
 
 Columns (``cols``, preallocated ``array('d')`` by name, one block's rows):
@@ -33,7 +36,10 @@ class OfflineLoop:
     the run (None while it goes on)."""
 
     def __init__(self, bench: Any, law: CurrentLaw, demand: DemandLaw | None,
-                 observer: KinematicObserver | None, m: Measurement, I_max: float, dt: float) -> None:
+                 observer: KinematicObserver | None, m: Measurement, I_max: float, dt: float,
+                 delay_ticks: int = 0) -> None:
+        if delay_ticks < 0:
+            raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
         self.bench = bench
         self.law = law
         self.demand = demand
@@ -45,6 +51,8 @@ class OfflineLoop:
         self.I = 0.0
         self.k = 0
         self.fault: LawFault | None = None
+        #: the currents computed but not yet at the bench, oldest first (delay_ticks of them)
+        self.pending: list[float] = [0.0] * delay_ticks
 
     def run(self, cols: dict[str, Any], n: int) -> int:
         """Run up to ``n`` more ticks into rows 0 .. n − 1 of ``cols``; the rows
@@ -67,6 +75,8 @@ class OfflineLoop:
         ch_cols = [(cols[c], c) for c in ch]
         a_sprung = cols["a_sprung"] if "a_sprung" in ch else None
         plant = bench.plant
+        pending = self.pending
+        delayed = len(pending) > 0
         I = self.I
         k0 = self.k
         for i in range(n):
@@ -98,7 +108,11 @@ class OfflineLoop:
             except BaseException as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
                 fault = law_fault(exc, law_name(call.who), k, t)
                 I = 0.0  # the run ends at this tick, at 0 A
-            bench.command(I)
+            if delayed:
+                pending.append(I)
+                bench.command(pending.pop(0))
+            else:
+                bench.command(I)
             ct[i] = t
             cx[i] = bench.x
             cv[i] = bench.v

@@ -84,16 +84,20 @@ class KinematicObserver:
         self.x = self.v = self.a = 0.0
         self._started = False
 
-    def update(self, x: float, v: float = math.nan, ticks: int = 1) -> float:
+    def update(self, x: float, v: float = math.nan, ticks: int = 1, h: float = 0.0) -> float:
         """Feed this tick's readings; ``ticks`` since the last update. Returns v̂
-        (m/s). A non-finite x only predicts (the supervisor judges the sample)."""
+        (m/s). A non-finite x only predicts (the supervisor judges the sample).
+        ``h`` (s, > 0): the time since the last update when it is not ``ticks``
+        whole periods (a device clock's stamps): the prediction spans ``h``, the
+        gains are those of ``ticks`` periods (the nearest)."""
         if not self._started:
             if x != x or x in (math.inf, -math.inf):
                 return v
             self._started = True
             self.x, self.v, self.a = x, (v if v == v and self.kxv is not None else 0.0), 0.0
             return self.v
-        h = self.dt * ticks
+        if not h > 0.0:
+            h = self.dt * ticks
         gains = self._gap_gains.get(ticks)
         if gains is None:
             gains = self._gains(ticks)

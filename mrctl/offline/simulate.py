@@ -3,7 +3,9 @@
 No pacing, no threads: excitation → (sensors) → demand → inverse law →
 clamp → plant, once per tick, with the same objects the daemon uses. The
 tick order is the daemon's: sample at t_k, command I_k, the plant's force
-at t_k is with I_k applied (a driver lag, if configured, delays that).
+at t_k is with I_k applied (a driver lag, if configured, delays that), or,
+with ``plant.command_delay_ticks`` d, with I_(k-d): an exchange link's
+current goes out with the next tick's request.
 
 The loop runs in blocks of :data:`BLOCK_TICKS` ticks
 (:func:`simulate_blocks`): each block goes to whoever consumes it (the run
@@ -137,7 +139,8 @@ def simulate_blocks(exp: Experiment, duration_s: float, on_block: BlockSink | No
     law.reset()
     if dem is not None:
         dem.reset()
-    loop = OfflineLoop(bench, law, dem, exp.make_observer(), Measurement(channels=channels), exp.I_max, exp.dt)
+    loop = OfflineLoop(bench, law, dem, exp.make_observer(), Measurement(channels=channels), exp.I_max, exp.dt,
+                       exp.command_delay_ticks)
     size = max(1, min(int(block_ticks), n))
     cols = {c: array("d", bytes(8 * size)) for c in (*BLOCK_COLUMNS, *channels)}
     views = {c: np.frombuffer(a, dtype=float) for c, a in cols.items()}

@@ -122,6 +122,9 @@ class DeviceSetup:
     #: the E-stop input (safety.estop): its DIO and whether high is the active (stop) level
     estop_dio: int | None = None
     estop_active_high: bool = False
+    #: the device's clock stamps the samples the observer sees (backend.time_stamps: device), when it has one;
+    #: False: the host's clock at the reply (the device's clock still tells a stale sample)
+    device_time_stamps: bool = True
 
     @property
     def ains(self) -> tuple[int, ...]:
@@ -154,7 +157,8 @@ class DeviceSetup:
                 "enable_toggle_s": self.enable_toggle_s, "ain_settling_us": self.ain_settling_us,
                 "negative_ain": {r: c.negative for r, c in self.channels.items() if c.negative is not None},
                 "estop_dio": self.estop_dio, "estop_active": None if self.estop_dio is None
-                else ("high" if self.estop_active_high else "low")}
+                else ("high" if self.estop_active_high else "low"),
+                "time_stamps": "device" if self.device_time_stamps else "host"}
 
     def describe(self) -> str:
         wired = ", ".join(f"{r}={c.kind.upper()}{c.n}" + (f"-AIN{c.negative}" if c.negative is not None else "")
@@ -226,7 +230,7 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
     ``name``; return (set-up or None, every error with its key path).
 
     ``options``: ``ain_range_V``, ``ain_resolution_index``, ``device_watchdog_s``,
-    ``enable_dio``, ``enable_toggle_s``, ``ain_settling_us`` (None = the preset's default),
+    ``enable_dio``, ``enable_toggle_s``, ``ain_settling_us``, ``time_stamps`` (None = the preset's default),
     ``estop_dio``/``estop_input``/``estop_active`` (safety.estop on a DIO, or None).
     ``I_max_A`` (safety.I_max): the DAC must reach it within its range."""
     try:
@@ -301,7 +305,8 @@ def resolve_device(name: Any, channels: Any, options: Mapping[str, Any], path: s
         return None, errors
     return DeviceSetup(preset, specs, float(rng), int(res), int(wd_s),
                        None if dio is None else int(dio), float(tog), ain_settling_us=float(settle),
-                       estop_dio=estop_dio, estop_active_high=estop_high), []
+                       estop_dio=estop_dio, estop_active_high=estop_high,
+                       device_time_stamps=options.get("time_stamps") != "host"), []
 
 
 def _estop(preset: Preset, options: Mapping[str, Any], enable_dio: Any, dcount: int,

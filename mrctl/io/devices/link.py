@@ -151,7 +151,8 @@ class PresetLink(Link):
     def describe(self) -> str:
         how = {"mbfb": "one MBFB request per tick", "plain": "FC3/FC16 per value (no MBFB)",
                None: "MBFB (tried at open)"}[self.protocol]
-        clock = "device clock CORE_TIMER" if self.core_timer else "host clock"
+        clock = ("host clock" if not self.core_timer else "device clock CORE_TIMER"
+                 if self.setup.device_time_stamps else "host clock (CORE_TIMER for staleness)")
         return (f"modbus-tcp {self.host}:{self.port}, {how}, {clock}, timeout {self.timeout_s * 1e3:.3g} ms; "
                 f"{self.setup.describe()}")
 
@@ -370,6 +371,8 @@ class PresetLink(Link):
         if self.core_timer:
             raw = int(reads[i])
             seq, t = raw, self._clock(raw) / self._hz  # type: ignore[misc]
+            if not self.setup.device_time_stamps:  # the timer tells stale samples; the host's clock stamps them
+                t = time.monotonic()
         else:
             self._seq_local = (self._seq_local + 1) & 0xFFFFFFFF
             seq, t = self._seq_local, time.monotonic()
