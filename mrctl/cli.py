@@ -125,14 +125,9 @@ def out_path(args: argparse.Namespace, default: str | None = None, inputs: list[
 def _stop_on_sigterm() -> None:
     """SIGTERM ends a command that runs until stopped (sweep, exporter, tap)
     as Ctrl-C does: a KeyboardInterrupt it turns into exit 0 (docs/cli.md)."""
-    import signal
-    import threading
+    from mrctl.util import interrupt
 
-    def stop(signum: int, _frame: Any) -> None:
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, stop)
+    interrupt.install(sigterm=True)
 
 
 def _say(args: argparse.Namespace, msg: str) -> None:
@@ -776,6 +771,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from mrctl.daemon.signals import install_startup
 
         install_startup()
+    else:  # a Ctrl-C is the user's, wherever it lands (a law's call too: mrctl/util/interrupt.py)
+        from mrctl.util import interrupt
+
+        interrupt.install()
     command = None
     try:
         args = build_parser().parse_args(argv)

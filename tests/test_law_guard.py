@@ -5,6 +5,9 @@ The misbehaving laws are plugins named as module:Class (tests/plugins/bad_laws.p
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -193,3 +196,36 @@ def test_simulate_a_law_whose_applied_raises_is_a_fault_not_a_crash(tmp_path, ca
     assert "raised at tick 40" in err and "RuntimeError: applied() lost its state" in err
     data = np.genfromtxt(out, delimiter=",", names=True)
     assert len(data) == 41 and data["I"][-1] == 0.0
+
+
+def _mrctl(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent / "plugins"), str(ROOT)])}
+    return subprocess.run([sys.executable, "-m", "mrctl", *args], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_simulate_a_ctrl_c_inside_a_law_is_the_users_stop_not_a_law_fault(tmp_path):
+    """The signal lands while a (Python) law computes: mrctl simulate stops as
+    interrupted (exit 130, nothing left behind), not 'law raised KeyboardInterrupt'."""
+    cfg = _cfg(tmp_path, "{law: 'bad_laws:CtrlC', after_ticks: 300}")
+    p = _mrctl(tmp_path, "simulate", str(cfg), "--out", str(tmp_path / "sim.csv"))
+    assert p.returncode == ExitCode.INTERRUPTED, p.stderr
+    assert "interrupted" in p.stderr and "law" not in p.stderr, p.stderr
+    assert not (tmp_path / "sim.csv").exists() and not (tmp_path / "sim.json").exists()
+
+
+def test_sweep_a_ctrl_c_inside_a_law_stops_the_sweep_and_records_no_fault(tmp_path):
+    """In-process points (--workers 1): the point under way is not written as a
+    law fault and the sweep does not go on; the table holds the points before."""
+    cfg = _cfg(tmp_path, "{law: 'bad_laws:CtrlC', after_ticks: 300}")
+    cfg.write_text(cfg.read_text().replace("duration_s: 4.0", "duration_s: 0.5"))
+    sweep = tmp_path / "s.yaml"
+    sweep.write_text("version: 1\nname: s\nbase: exp.yaml\ngrid:\n  demand.c_des: [100, 200, 300]\n"
+                     "metrics: [force_nrmse]\n")
+    out = tmp_path / "t.csv"
+    p = _mrctl(tmp_path, "sweep", str(sweep), "--out", str(out), "--workers", "1", "--no-progress")
+    assert p.returncode == 0 and "interrupted" in p.stderr and "resume" in p.stderr, p.stderr
+    table = out if out.exists() else out.with_name(out.name + ".partial.csv")
+    rows = table.read_text().splitlines()[1:] if table.exists() else []
+    assert all("KeyboardInterrupt" not in r and ",fault," not in r for r in rows), rows
+    assert len(rows) < 3

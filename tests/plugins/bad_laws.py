@@ -74,6 +74,21 @@ class Interrupts(_Bad):
         raise KeyboardInterrupt
 
 
+class CtrlC(_Bad):
+    """The user's Ctrl-C arriving while the law computes: SIGINT to this
+    process, handled inside this call (the loop after the kill gives the
+    interpreter its chance to run the handler here, not after the return)."""
+
+    def bad(self) -> float:
+        import os
+        import signal
+
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(100_000):
+            pass
+        return 0.2
+
+
 class ReturnsComplex(_Bad):
     def bad(self) -> float:
         return complex(0.2, 0.0)  # type: ignore[return-value]
