@@ -14,14 +14,15 @@
  *     half an ulp of the exact one; rounded to P digits it is the exact
  *     answer unless it lies within a few ulps of a tie (...5 exactly), and
  *     then, or out of that range (|x| < ~1e-14 or > ~1e30), or for P > 12,
- *     the value goes to CPython's own PyOS_double_to_string, which is what
- *     '%' calls: correct by construction, rare by design.
+ *     the value goes to the C library's snprintf where that is known to be
+ *     correctly rounded (glibc), else to CPython's own PyOS_double_to_string,
+ *     which is what '%' calls: correct by construction, rare by design.
  *
  * The GIL: the caller chooses. The daemon's loop thread formats a few rows
  * in its idle time and keeps the GIL (handing it over can cost a cross-CPU
  * wake-up inside a tick: docs/design.md, "Threads"); a writer thread
  * releases it for the whole block, taking it back only for a value that
- * needs CPython's conversion. mrctl simulate's block writer formats and
+ * needs CPython's conversion (none with glibc). mrctl simulate's block writer formats and
  * write(2)s a block in one call without the GIL (write_columns): the
  * compiled loop beside it holds the GIL for a whole block, and a writer that
  * needed it between formatting and writing would wait for that block.
@@ -189,6 +190,36 @@ typedef struct {
     Py_ssize_t stride;  /* bytes from one row to the next */
 } Column;
 
+/* The C library's conversion of one value, without the GIL, where it is known
+ * to be what '%' writes: glibc's printf converts every double correctly
+ * rounded (ties to even, as CPython's dtoa), and '%g' is '%g' in both.
+ * The text is checked to hold only what '%g' writes in the C locale (a
+ * locale whose decimal point is not '.' fails the check). The end, or NULL
+ * when only CPython's conversion can tell. Why: the rare values (a sine's
+ * zero crossing, ~1e-18, on every cycle) would otherwise take the GIL back,
+ * and mrctl simulate's compiled loop holds it for a whole block. */
+static char *fmt_g_libc(char *p, double x, int prec)
+{
+#if defined(__GLIBC__)
+    char buf[MAX_VALUE_CHARS + 8];
+    int n = snprintf(buf, sizeof buf, "%.*g", prec, x);
+    if (n <= 0 || n > MAX_VALUE_CHARS - 1)
+        return NULL;
+    for (int i = 0; i < n; i++) {
+        char c = buf[i];
+        if (!((c >= '0' && c <= '9') || c == '.' || c == 'e' || c == '-' || c == '+'))
+            return NULL;
+    }
+    memcpy(p, buf, (size_t)n);
+    return p + n;
+#else
+    (void)p;
+    (void)x;
+    (void)prec;
+    return NULL;
+#endif
+}
+
 /* CPython's conversion of one value (needs the GIL); the end, or NULL with an exception set. */
 static char *fmt_g_cpython(char *p, double x, int prec)
 {
@@ -218,6 +249,8 @@ static char *format_into(char *p, const Column *cols, const int *prec, int ncols
             double x;
             memcpy(&x, cols[j].base + r * cols[j].stride, sizeof x);
             char *q = fmt_g(p, x, prec[j]);
+            if (q == NULL)
+                q = fmt_g_libc(p, x, prec[j]);
             if (q == NULL) {
                 if (*ts != NULL)
                     PyEval_RestoreThread(*ts);
