@@ -229,3 +229,16 @@ def test_sweep_a_ctrl_c_inside_a_law_stops_the_sweep_and_records_no_fault(tmp_pa
     rows = table.read_text().splitlines()[1:] if table.exists() else []
     assert all("KeyboardInterrupt" not in r and ",fault," not in r for r in rows), rows
     assert len(rows) < 3
+
+
+def test_run_a_stop_noted_by_an_earlier_command_never_frees_a_laws_keyboard_interrupt(tmp_path, monkeypatch):
+    """The note of a user's stop is for the offline loop only: in the daemon a
+    law's own KeyboardInterrupt is its fault (exit 1, latched, 0 A), even if an
+    earlier command in this process (a test, a script calling cli.main) was
+    stopped by Ctrl-C and left the note set."""
+    from mrctl.util import interrupt
+
+    monkeypatch.setitem(interrupt._state, "signum", 2)
+    svc, code, cols = _run(tmp_path, _cfg(tmp_path, "{law: 'bad_laws:Interrupts', after_ticks: 100}"))
+    assert code == 1 and svc.ctl.law_fault is not None and "KeyboardInterrupt" in svc.ctl.law_fault.detail
+    assert cols["I"][-1] == 0.0 and int(cols["fault"][-1]) & LAW and svc.exit_current_A == 0.0

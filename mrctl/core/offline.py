@@ -24,6 +24,7 @@ from typing import Any
 from mrctl.estimation.observer import KinematicObserver
 from mrctl.laws.base import CurrentLaw, DemandLaw, LawFault, Measurement, clamp_current
 from mrctl.laws.guard import LawCall, law_fault, law_name
+from mrctl.util.interrupt import user_stopped
 
 
 class OfflineLoop:
@@ -106,6 +107,8 @@ class OfflineLoop:
                     I = Ic
                     law.applied(I)
             except BaseException as exc:  # noqa: BLE001 - a law's failure is a fault, not a crash
+                if isinstance(exc, KeyboardInterrupt) and user_stopped():
+                    raise  # the user's Ctrl-C that landed inside the law: not the law's (mrctl/util/interrupt.py)
                 fault = law_fault(exc, law_name(call.who), k, t)
                 I = 0.0  # the run ends at this tick, at 0 A
             if delayed:

@@ -27,6 +27,8 @@ import signal
 import threading
 from typing import Any, Iterator
 
+from mrctl.util import interrupt
+
 __all__ = ["StopSignal", "install_startup", "install_late", "deferred", "take_hup", "restore", "STOP_SIGNALS"]
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -67,7 +69,10 @@ def _on_late(signum: int, _frame: Any) -> None:
 def install_startup() -> dict[int, Any]:
     """Install the start-up handlers (main thread only); returns the ones they
     replace, for :func:`restore` (none if they are in place already: the
-    CLI installs them before anything else, the service again)."""
+    CLI installs them before anything else, the service again). Forgets a
+    stop an earlier offline command in this process noted
+    (:mod:`mrctl.util.interrupt`): the loop's law faults are never a stop."""
+    interrupt.forget()
     if signal.getsignal(signal.SIGTERM) is _on_stop or threading.current_thread() is not threading.main_thread():
         return {}  # in place already, or a service run from a thread (tests): signals are not its to handle
     _state.update(depth=0, pending=None, hup=False)

@@ -19,7 +19,6 @@ import math
 from typing import Final
 
 from mrctl.laws.base import CurrentLaw, DemandLaw, Law, LawFault, Measurement, NonFiniteOutput
-from mrctl.util.interrupt import user_stopped
 
 NAN: Final = math.nan
 
@@ -80,11 +79,7 @@ def law_name(who: Law | None) -> str:
 def law_fault(exc: BaseException, who: str, k: int, t: float) -> LawFault:
     """The fault for ``exc``, caught around the call of law ``who`` at tick
     ``k`` (time ``t``, s): :class:`NonFiniteOutput` (raised on a NaN or inf)
-    is ``non-finite``, anything else ``raised``. A KeyboardInterrupt the user
-    asked for (a stop signal through :mod:`mrctl.util.interrupt`) is not the
-    law's: it is raised again, to stop the command."""
-    if isinstance(exc, KeyboardInterrupt) and user_stopped():
-        raise exc
+    is ``non-finite``, anything else ``raised``."""
     if isinstance(exc, NonFiniteOutput):
         return LawFault("non-finite", who, k, t, str(exc))
     return LawFault("raised", who, k, t, f"{type(exc).__name__}: {_short(exc)}")
