@@ -49,7 +49,6 @@ def test_duration_must_be_a_finite_number_above_zero(tmp_path, cmd, value):
 # -- 5. a bad --out is refused before the link opens ------------------------------------------
 @pytest.mark.parametrize("where", ["a directory", "under a file", "unwritable"])
 def test_bad_out_is_exit_2_before_the_device_is_touched(tmp_path, capsys, where):
-    pytest.importorskip("mrctl.io.registers")
     dev = Listener()
     try:
         cfg = tmp_path / "exp.yaml"

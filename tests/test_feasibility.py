@@ -20,7 +20,6 @@ def test_serial_wire_time_from_frame_sizes():
 
 
 def test_modbus_rtu_115200_cannot_do_1khz():
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.io.registers import default_register_map
 
     cfg = SimpleNamespace(type="modbus-rtu", baudrate=115200, use_fc23=None, register_map=default_register_map())

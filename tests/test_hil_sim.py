@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-serial = pytest.importorskip("serial")
+import serial
 
 from hil_sim.bench import BenchDevice, clamp_setpoint  # noqa: E402
 from hil_sim.config import ConfigError, validate_bench  # noqa: E402

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from mrctl.model.lugre import LuGreModel, advance_z, force
 from mrctl.model.params import TABLE_I
 
-scipy_integrate = pytest.importorskip("scipy.integrate")
+from scipy import integrate as scipy_integrate
 
 DT = 1e-3
 

@@ -40,7 +40,6 @@ def _holder(key: str, lock_dir: Path) -> subprocess.Popen:
 
 
 def test_refused_daemon_sends_nothing_to_the_device(tmp_path, monkeypatch):
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.config import load_experiment
     from mrctl.experiment import build
 
@@ -74,7 +73,6 @@ def test_refused_daemon_sends_nothing_to_the_device(tmp_path, monkeypatch):
 
 def test_lock_is_released_on_every_exit(tmp_path, monkeypatch):
     """A start that fails after taking the lock (nothing listens) releases it."""
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.daemon.ownership import acquire
 
     monkeypatch.setenv("MRCTL_LOCK_DIR", str(tmp_path / "locks"))
@@ -131,7 +129,6 @@ def test_shared_lock_dir_is_sticky_and_world_writable_and_a_foreign_one_is_not_t
 
 
 def test_links_give_stable_device_keys(tmp_path):
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.io.modbus import ModbusLink
     from mrctl.io.serial import SerialLink
 
@@ -152,7 +149,6 @@ def test_a_tcp_device_is_its_endpoint_whatever_the_unit_id_or_spelling():
     """D1: unit id 0 (which a direct device and hil_sim answer) or an
     IPv4-mapped IPv6 spelling took another lock, and a second daemon drove
     the owner's device. One endpoint is one device unless it is a gateway."""
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.io.modbus import ModbusLink
     from mrctl.io.serial import SerialLink
 
@@ -184,7 +180,6 @@ def test_every_local_spelling_of_a_device_served_on_this_host_is_one_key():
 
 
 def test_the_config_says_gateway(tmp_path):
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.config import load_experiment
     from mrctl.experiment import build
 
@@ -196,7 +191,6 @@ def test_the_config_says_gateway(tmp_path):
 
 
 def test_serial_ports_are_opened_exclusively():
-    pytest.importorskip("mrctl.io.registers")
     from mrctl.io.base import Disconnected
     from mrctl.io.modbus import ModbusLink
     from mrctl.io.serial import SerialLink

@@ -30,7 +30,7 @@ def test_linear_laws_match_table_I():
 def test_Fc_exact_and_finite_at_and_near_zero(I):
     """Against a 50-digit evaluation of (6): the naive coth(x) - 1/x loses
     every digit near 0; the series branch must not."""
-    mpmath = pytest.importorskip("mpmath")
+    import mpmath
     mpmath.mp.dps = 50
     x = mpmath.mpf(I) / mpmath.mpf(TABLE_I.Bc)
     L = mpmath.coth(x) - 1 / x

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("matplotlib")
+import matplotlib  # noqa: F401 - a test dependency: missing, the test fails
 
 from mrctl.cli import main  # noqa: E402
 from mrctl.offline.report import QUARTER_CAR_PANELS, ReportError, build_figure  # noqa: E402

@@ -13,7 +13,7 @@ from mrctl.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 EXP = ROOT / "config" / "experiments"
 
-pytest.importorskip("matplotlib")
+import matplotlib  # noqa: E402,F401 - a test dependency: missing, these tests fail
 
 
 def _simulate(tmp_path: Path, name: str, duration: str = "2", text: str | None = None) -> Path:

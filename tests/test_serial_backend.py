@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 
 import pytest
 
-serial = pytest.importorskip("serial")
+import serial
 
 from mrctl.io.base import DeviceError, Disconnected, FrameError, Link, LinkTimeout, Sample, Status  # noqa: E402
 from mrctl.io.protocol import (  # noqa: E402

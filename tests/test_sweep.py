@@ -153,7 +153,7 @@ def test_a_killed_sweep_resumes(tmp_path):
 
 
 def test_local_processes_and_a_dask_cluster_give_the_same_table(tmp_path):
-    distributed = pytest.importorskip("distributed")
+    import distributed
     _base(tmp_path)
     s = load_sweep(_sweep(tmp_path, {"grid": {"inverse.law": ["paper", "closed"]},
                                      "random": {"n": 3, "plant.parameters.Ac": {"factor_uniform": [0.8, 1.2]},
@@ -237,7 +237,7 @@ def test_bad_options_are_refused_before_any_point(tmp_path):
 
 
 def test_a_parquet_table_resumes_and_reads_back(tmp_path, monkeypatch):
-    pytest.importorskip("pyarrow")
+    import pyarrow  # noqa: F401 - a test dependency: missing, the test fails
     _base(tmp_path)
     path = _sweep(tmp_path, {"grid": {"demand.c_des": [200, 300, 400]}})
     out = tmp_path / "r.parquet"
@@ -271,7 +271,7 @@ def test_more_draws_run_only_the_new_ones(tmp_path):
     path = _sweep(tmp_path, body)
     for suffix in ("csv", "parquet"):
         if suffix == "parquet":
-            pytest.importorskip("pyarrow")
+            import pyarrow  # noqa: F401 - a test dependency: missing, the test fails
         out = tmp_path / f"r.{suffix}"
         path.write_text(yaml.safe_dump({"base": "base.yaml", **body}))
         assert run_sweep(load_sweep(path), out, workers=1, progress=False)["ok"] == 2
