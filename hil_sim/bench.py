@@ -222,8 +222,8 @@ class BenchDevice:
         the tick before it; the next tick, a period later, counts it whole, the
         server thread having had that period to read what waited."""
         prev = self._prev_now_ns
-        if now_ns - prev > self._stall_ns:
-            return min(now_ns, prev + self.loop.period_ns) - sp_ns
+        if now_ns - prev > self._stall_ns:  # then now_ns is past prev + one period
+            return prev + self.loop.period_ns - sp_ns
         return now_ns - sp_ns
 
     def _fault_change(self, fbits: int, k: int) -> None:
