@@ -484,3 +484,56 @@ def test_reduce_rate_also_covers_a_probe_whose_failures_are_timeouts(tmp_path, m
     assert code == 3
     said = " ".join(svc.messages)
     assert "refusing to start" in said and "reduce_rate" in said and "cable" in said
+
+
+class LatchingLink(SlowProbeLink):
+    """An exchange device with a latching status, as hil_sim and the reference firmware have: an
+    E-stop or a watchdog trip stays in the status until a CLEAR_FAULTS arrives with the input
+    closed. It records every current it was sent."""
+
+    def __init__(self):
+        super().__init__(probe_exchanges=0, silent_from=10**9, advance=lambda s: None)
+        self.latched = 0
+        self.clear_pending = False
+        self.sent: list[float] = []
+
+    def request_clear_faults(self):
+        self.clear_pending = True
+        return True
+
+    def _transact(self, current_A, deadline, wake_ns):
+        self.n += 1
+        self.sent.append(current_A)
+        if self.clear_pending:
+            self.clear_pending, self.latched = False, 0
+        k = self.n
+        return Sample(k, k * 1e-3, 0.0, 0.06 * math.cos(k * 1e-3 * 2 * math.pi), math.nan, self.latched)
+
+
+@pytest.mark.parametrize("latch, code", [("ESTOP", 3), ("WATCHDOG_TRIPPED", 0)])
+def test_a_latch_between_the_start_up_check_and_the_first_tick(tmp_path, monkeypatch, latch, code):
+    """An E-stop pressed and released while the run is being built (after the start-up check, before
+    the first tick) is still latched in the device: the start is refused (exit 3) and no current but
+    0 A ever goes out; a CLEAR_FAULTS there would have erased the operator's stop. A watchdog that
+    expired meanwhile (no setpoint since the probe) is cleared, and the run goes on."""
+    from mrctl.io.base import Status
+
+    vc = VirtualClock()
+    link = LatchingLink()
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
+    build = Service._build
+
+    def build_then_latch(self, *a, **kw):
+        build(self, *a, **kw)
+        link.latched = int(getattr(Status, latch))
+
+    monkeypatch.setattr(Service, "_build", build_then_latch)
+    cfg = _config(tmp_path, **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    svc, got, out = _run(cfg, tmp_path, duration=0.2, clock_ns=vc.now, sleep=vc.sleep)
+    said = " ".join(svc.messages)
+    assert got == code, said
+    if code == 3:
+        assert "latched an E-stop during start-up" in said
+        assert set(link.sent) == {0.0}
+    else:
+        assert max(link.sent) > 0.0 and not link.latched

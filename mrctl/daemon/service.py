@@ -243,7 +243,8 @@ class Service:
         if err:
             raise LinkFailure(f"could not command 0 A at start: {err}")
         self._zero_error = None
-        if not link.split or ownership.device_key_of(link) is not None:  # every link but the in-process bench
+        checked = not link.split or ownership.device_key_of(link) is not None  # every link but the in-process bench
+        if checked:
             exp = self.exp = self._check_link(exp, link)
             self._check_interlocks(exp, link)
         if exp.config.loop.pacing == "device":
@@ -255,9 +256,12 @@ class Service:
         ctl, loop = self.ctl, self.loop
         assert ctl is not None and loop is not None
         stack.callback(self._zero_on_exit)  # the first thing on the way out of the loop
-        # the device was at 0 A through start-up; its watchdog may have expired meanwhile (no
-        # setpoint since the probe): the first tick clears that, any later trip latches
-        link.request_clear_faults()
+        if checked:
+            # the device was at 0 A through start-up; its watchdog may have expired meanwhile (no
+            # setpoint since the probe): that is cleared, an E-stop latched meanwhile refuses the start
+            self._check_interlocks(exp, link, since_check=True)
+        else:
+            link.request_clear_faults()  # the in-process bench: no E-stop between check and tick
         self.notifier.send("READY=1", f"STATUS=running {exp.name}")
         if exp.config.loop.pacing == "device":
             loop.run_device_paced(ctl.acquire, ctl.tick_paced, duration_s=duration)
@@ -316,12 +320,18 @@ class Service:
             raise LinkFailure(f"refusing to start: {f.message}; or set link.on_infeasible: reduce_rate")
         raise LinkFailure(f"refusing to start: {f.message}")
 
-    def _check_interlocks(self, exp: Experiment, link: Link) -> None:
+    def _check_interlocks(self, exp: Experiment, link: Link, since_check: bool = False) -> None:
         """A real link's E-stop and device watchdog before the first tick: an
         open E-stop refuses the start (exit 3: the run would begin latched);
-        a bench without a software E-stop input is said once."""
+        a bench without a software E-stop input is said once.
+
+        Run twice: after the probe, where a latch left by an earlier run is
+        cleared, and again just before the first tick (``since_check``),
+        where only a watchdog trip is cleared: an E-stop pressed and released
+        in between is still latched in the device and refuses the start,
+        where a blind CLEAR_FAULTS would have erased the operator's stop."""
         estop = exp.config.safety.estop
-        if estop.input is None:
+        if estop.input is None and not since_check:
             self.warn("safety.estop: no E-stop input configured: only the hard-wired E-stop protects this bench "
                       "(docs/hardware.md)", NOTICE)
         # a device clears its latched bits when it acts on the request (hil_sim: at its next tick), so
@@ -338,11 +348,16 @@ class Service:
             except LinkError as exc:
                 last = str(exc)
                 continue
+            if since_check and status & int(Status.ESTOP):
+                break
             if status & LATCH_STATUS:
                 link.request_clear_faults()
                 time.sleep(0.005)
         if status is None:
             raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
+        if status & int(Status.ESTOP) and since_check:
+            raise LinkFailure("refusing to start: the device latched an E-stop during start-up "
+                              f"(safety.estop.input: {estop.input}); reset the E-stop and start again")
         if status & int(Status.ESTOP):
             raise LinkFailure(f"refusing to start: the E-stop input is open (safety.estop.input: {estop.input}); "
                               "close it (reset the E-stop) and start again")
