@@ -225,7 +225,7 @@ def _simulated(args: argparse.Namespace, exp: Any, res: Any, verdict: dict[str, 
     s, law = res.summary, exp.config.inverse.law
     print(f"{exp.name}: law {law}, {int(s['ticks'])} ticks ({s['simulated_s']:.3f} s simulated) "
           f"in {s['wall_s']:.3f} s = {s['realtime_factor']:.0f}x real time")
-    print(format_summary(s, exp.I_max))
+    print(format_summary(s, exp.I_max, exp.dt, exp.excitation.settle_s))
     if "rms_a_sprung_mps2" in s:
         from mrctl.runlog.ride import format_ride
 

@@ -55,3 +55,25 @@ def test_summary_of_a_run_without_a_force_to_track_says_so():
     text = format_summary(s, 0.6)
     assert "nan" not in text and "no varying force demanded" in text
     assert "0.250 %" in format_summary({**s, "force_nrmse": 0.0025}, 0.6)
+
+
+def test_a_run_without_a_settled_window_gives_its_rmse_and_says_the_nrmse_is_not_judged():
+    """Normalised by the few newtons a start-up demands, a 2-tick run's NRMSE read 6225967 %;
+    the summary gives the RMSE and says why the NRMSE is not judged, as the verdict does."""
+    from mrctl.runlog.acceptance import tracking_judged
+    from mrctl.runlog.metrics import format_summary
+
+    t, F_des, F, I = _run()  # 4 s at 1 kHz
+    dt = float(t[1] - t[0])
+    for n, settle, why in ((2, 1.0, "ends before excitation.settle_s (1 s)"),
+                           (1500, 1.0, "0.500 s past excitation.settle_s (1 s), under the 1 s"),
+                           (1500, 0.0, "")):
+        s = tracking_summary(t[:n], F_des[:n], F[:n], I[:n], 0.6, settle)
+        text = format_summary(s, 0.6, dt, settle).splitlines()[0]
+        judged = tracking_judged(s, settle, dt)["force_nrmse"]
+        if why:
+            assert text.startswith("force RMSE") and "%" not in text and why in text, text
+            assert judged is None
+        else:
+            assert text.startswith("force NRMSE (t >= 0.000 s): ") and judged == s["force_nrmse"], text
+    assert format_summary(s, 0.6).startswith("force NRMSE")  # no period given: the figure as it is

@@ -642,7 +642,8 @@ class Service:
             exit_code = close_log(self.rec, self.opts.out or "", summary, exit_code, self.messages,
                                   I_max=self.exp.I_max, settle_s=self.exp.excitation.settle_s, say=self.say,
                                   warn=lambda m: self.warn(m, ERR),
-                                  format_tracking=lambda t: format_summary(t, self.exp.I_max),
+                                  format_tracking=lambda t: format_summary(t, self.exp.I_max, self.exp.dt,
+                                                                               self.exp.excitation.settle_s),
                                   verdict=self._final_verdict, extra=self._duration())
         else:
             exit_code = verdict_exit(self._final_verdict(None, None), exit_code)

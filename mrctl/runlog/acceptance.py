@@ -18,6 +18,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from mrctl.runlog.metrics import settled
+
 OK = "ok"
 DEGRADED = "degraded"
 
@@ -107,22 +109,16 @@ def judge(figures: Mapping[str, Any], bounds: Mapping[str, Any], dt_s: float) ->
     return {"verdict": DEGRADED if reasons else OK, "reasons": reasons, "figures": figs, "bounds": b}
 
 
-#: the shortest settled window a run's tracking is judged on (s): a shorter one is mostly the
-#: law's start (the first ramp from 0 A) and says little about the tracking
-MIN_TRACKING_WINDOW_S = 1.0
-
-
 def tracking_judged(track: Mapping[str, Any] | None, settle_s: float, dt_s: float) -> dict[str, Any]:
     """The tracking figures the verdict judges: the force NRMSE and the share
     at I_max, only over a settled window of at least
-    :data:`MIN_TRACKING_WINDOW_S` (a run shorter than its settling time is
+    :data:`mrctl.runlog.metrics.MIN_TRACKING_WINDOW_S` (a run shorter than its settling time is
     all start-up transient: not judged on them), and the load cell's zero
     error."""
     t = track or {}
-    settled = (float(t.get("window_start_s", math.nan)) >= settle_s - 1e-9
-               and float(t.get("window_ticks", 0.0)) * dt_s >= MIN_TRACKING_WINDOW_S - 1e-9)
-    return {"force_nrmse": t.get("force_nrmse") if settled else None,
-            "share_at_I_max": t.get("share_at_I_max") if settled else None,
+    judged = settled(t, settle_s, dt_s)
+    return {"force_nrmse": t.get("force_nrmse") if judged else None,
+            "share_at_I_max": t.get("share_at_I_max") if judged else None,
             "load_cell_offset": t.get("load_cell_offset")}
 
 

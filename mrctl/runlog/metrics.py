@@ -69,11 +69,33 @@ def tracking_summary(
     }
 
 
-def format_summary(s: Mapping[str, float], I_max: float) -> str:
+#: the shortest settled window a run's tracking is judged on (s): a shorter one is mostly the
+#: law's start (the first ramp from 0 A) and says little about the tracking
+MIN_TRACKING_WINDOW_S = 1.0
+
+
+def settled(track: Mapping[str, float], settle_s: float, dt_s: float) -> bool:
+    """Whether a :func:`tracking_summary` is over a settled window the verdict
+    judges: after ``settle_s`` and at least :data:`MIN_TRACKING_WINDOW_S` long
+    (a run shorter than that is all start-up transient)."""
+    return (float(track.get("window_start_s", math.nan)) >= settle_s - 1e-9
+            and float(track.get("window_ticks", 0.0)) * dt_s >= MIN_TRACKING_WINDOW_S - 1e-9)
+
+
+def format_summary(s: Mapping[str, float], I_max: float, dt_s: float | None = None, settle_s: float = 0.0) -> str:
     """The summary's lines; a run with no force to track (F_des constant, a
-    current schedule) says so instead of ``nan %``."""
+    current schedule) says so instead of ``nan %``. Given the period
+    ``dt_s``, a run too short for a settled window gives its force RMSE
+    only, and says the NRMSE is not judged: normalised by the few newtons
+    a start-up demands, it reads millions of per cent."""
     nrmse = s["force_nrmse"]
-    if math.isfinite(nrmse):
+    if math.isfinite(nrmse) and dt_s is not None and not settled(s, settle_s, dt_s):
+        start, window = float(s["window_start_s"]), float(s.get("window_ticks", 0.0)) * dt_s
+        why = (f"the run ends before excitation.settle_s ({settle_s:g} s)" if start < settle_s - 1e-9 else
+               f"{window:.3f} s past excitation.settle_s ({settle_s:g} s), under the {MIN_TRACKING_WINDOW_S:g} s "
+               "the verdict judges")
+        force = f"force RMSE (t >= {start:.3f} s): {s['force_rmse_N']:.4f} N; NRMSE not judged: {why}"
+    elif math.isfinite(nrmse):
         force = (f"force NRMSE (t >= {s['window_start_s']:.3f} s): {100 * nrmse:.3f} %"
                  f"  (RMSE {s['force_rmse_N']:.4f} N)")
     else:
