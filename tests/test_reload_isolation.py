@@ -39,7 +39,7 @@ def test_an_alias_bomb_is_refused_at_once(tmp_path):
     t0 = time.monotonic()
     with pytest.raises(ConfigError) as e:
         load_experiment(p)
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 5.0  # expanded, the bomb is 387 million nodes: minutes
     assert "more than 64 aliases" in str(e.value) and len(str(e.value)) < 500
 
 
@@ -73,7 +73,7 @@ def test_error_messages_echo_a_bounded_part_of_a_value(tmp_path):
     with pytest.raises(ConfigError) as e:
         load_experiment(p)
     msg = str(e.value)
-    assert time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 < 5.0
     assert "rate_hz: must be a number, got [123456789, 123456789" in msg and len(msg) < 2000, len(msg)
 
 
