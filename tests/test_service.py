@@ -533,7 +533,7 @@ def test_a_latch_between_the_start_up_check_and_the_first_tick(tmp_path, monkeyp
     said = " ".join(svc.messages)
     assert got == code, said
     if code == 3:
-        assert "latched an E-stop during start-up" in said
+        assert "E-stop was pressed during start-up" in said
         assert set(link.sent) == {0.0}
     else:
         assert max(link.sent) > 0.0 and not link.latched

@@ -356,8 +356,8 @@ class Service:
         if status is None:
             raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
         if status & int(Status.ESTOP) and since_check:
-            raise LinkFailure("refusing to start: the device latched an E-stop during start-up "
-                              f"(safety.estop.input: {estop.input}); reset the E-stop and start again")
+            raise LinkFailure("refusing to start: the E-stop was pressed during start-up (the device reports "
+                              f"ESTOP; safety.estop.input: {estop.input}); reset the E-stop and start again")
         if status & int(Status.ESTOP):
             raise LinkFailure(f"refusing to start: the E-stop input is open (safety.estop.input: {estop.input}); "
                               "close it (reset the E-stop) and start again")
