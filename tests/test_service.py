@@ -533,7 +533,8 @@ def test_a_latch_between_the_start_up_check_and_the_first_tick(tmp_path, monkeyp
     said = " ".join(svc.messages)
     assert got == code, said
     if code == 3:
-        assert "E-stop was pressed during start-up" in said
+        assert "E-stop was pressed during start-up" in said and "None" not in said
         assert set(link.sent) == {0.0}
+        assert not out.exists() and not out.with_suffix(".json").exists()  # no run log to mistake for a run
     else:
         assert max(link.sent) > 0.0 and not link.latched

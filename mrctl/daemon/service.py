@@ -119,6 +119,7 @@ class Service:
         self.ctl: Controller | None = None
         self.sup: SafetySupervisor | None = None
         self.rec: Any = None
+        self._ran = False  #: the loop was entered: what follows is a run, with its log and verdict
         self.obs: Observe | None = None
         self.faults: FaultWatch | None = None
         self._stream: tuple[str, int, tuple[str, ...] | None] | None = None
@@ -182,7 +183,10 @@ class Service:
                     code = code or EXIT_LINK
             if stopped is not None:
                 return self._stopped_at_startup(stopped, code)
-            return self._finish(code) if self.ctl is not None and self.loop is not None else code
+            if not self._ran:  # refused before the first tick (after the recorder was built, too)
+                self._drop_run_log()
+                return code
+            return self._finish(code)
         finally:
             signals.restore(old_handlers)
 
@@ -190,6 +194,17 @@ class Service:
         """A stop before the first tick: nothing ran, so no run log is left
         (the recorder's CSV and "incomplete" sidecar are removed); exit 0
         unless 0 A could not be commanded."""
+        self._drop_run_log()
+        self.warn(f"stopped by {stop.name} during start-up: nothing ran"
+                  + ("; 0 A commanded" if self.link is not None and code == EXIT_OK else ""), NOTICE)
+        return code
+
+    def _drop_run_log(self) -> None:
+        """Nothing ran: the recorder's CSV and "incomplete" sidecar, if it
+        was built, are removed (a refusal leaves no run log to mistake for one)."""
+        if self.obs is not None:  # its stream and taps end with the run that did not start
+            with contextlib.suppress(Exception):
+                self.obs.close(self.rec)
         if self.rec is not None:
             with contextlib.suppress(Exception):
                 self.rec.close(write_sidecar=False, timeout=5.0)
@@ -197,9 +212,6 @@ class Service:
                 with contextlib.suppress(OSError):
                     if self.opts.out:
                         os.unlink(q)
-        self.warn(f"stopped by {stop.name} during start-up: nothing ran"
-                  + ("; 0 A commanded" if self.link is not None and code == EXIT_OK else ""), NOTICE)
-        return code
 
     def _run(self, stack: contextlib.ExitStack) -> int:
         o = self.opts
@@ -263,6 +275,7 @@ class Service:
         else:
             link.request_clear_faults()  # the in-process bench: no E-stop between check and tick
         self.notifier.send("READY=1", f"STATUS=running {exp.name}")
+        self._ran = True
         if exp.config.loop.pacing == "device":
             loop.run_device_paced(ctl.acquire, ctl.tick_paced, duration_s=duration)
         else:
@@ -356,8 +369,9 @@ class Service:
         if status is None:
             raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
         if status & int(Status.ESTOP) and since_check:
-            raise LinkFailure("refusing to start: the E-stop was pressed during start-up (the device reports "
-                              f"ESTOP; safety.estop.input: {estop.input}); reset the E-stop and start again")
+            where = f" (safety.estop.input: {estop.input})" if estop.input is not None else ""
+            raise LinkFailure(f"refusing to start: the E-stop was pressed during start-up{where}; the device "
+                              "reports it: reset the E-stop and start again")
         if status & int(Status.ESTOP):
             raise LinkFailure(f"refusing to start: the E-stop input is open (safety.estop.input: {estop.input}); "
                               "close it (reset the E-stop) and start again")
