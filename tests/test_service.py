@@ -510,12 +510,15 @@ class LatchingLink(SlowProbeLink):
         return Sample(k, k * 1e-3, 0.0, 0.06 * math.cos(k * 1e-3 * 2 * math.pi), math.nan, self.latched)
 
 
-@pytest.mark.parametrize("latch, code", [("ESTOP", 3), ("WATCHDOG_TRIPPED", 0)])
+@pytest.mark.parametrize("latch, code", [("ESTOP", 3), ("WATCHDOG_TRIPPED", 0), ("DRIVER_FAULT", 0),
+                                         ("RX_ERROR", 0)])
 def test_a_latch_between_the_start_up_check_and_the_first_tick(tmp_path, monkeypatch, latch, code):
     """An E-stop pressed and released while the run is being built (after the start-up check, before
     the first tick) is still latched in the device: the start is refused (exit 3) and no current but
     0 A ever goes out; a CLEAR_FAULTS there would have erased the operator's stop. A watchdog that
-    expired meanwhile (no setpoint since the probe) is cleared, and the run goes on."""
+    expired meanwhile (no setpoint since the probe), or a driver fault or a receive error that came
+    and went, is cleared, and the run goes on (a driver fault left latched would hold the device at
+    0 A for the whole run)."""
     from mrctl.io.base import Status
 
     vc = VirtualClock()
@@ -538,3 +541,46 @@ def test_a_latch_between_the_start_up_check_and_the_first_tick(tmp_path, monkeyp
         assert not out.exists() and not out.with_suffix(".json").exists()  # no run log to mistake for a run
     else:
         assert max(link.sent) > 0.0 and not link.latched
+
+
+def test_a_stop_signal_in_the_last_check_before_the_first_tick_leaves_no_run_log(tmp_path, monkeypatch):
+    """SIGTERM after the loop's handlers are in place but before its first tick: nothing ran, so,
+    as for a stop earlier in the start-up, exit 0 and no run log (not a 0-row log with 'verdict: ok')."""
+    vc = VirtualClock()
+    link = LatchingLink()
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
+    enter = Service._enter_run
+
+    def enter_then_stop(self, stack):
+        enter(self, stack)
+        os.kill(os.getpid(), signal.SIGTERM)  # the loop's handler: loop.stop()
+
+    monkeypatch.setattr(Service, "_enter_run", enter_then_stop)
+    cfg = _config(tmp_path, **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    svc, code, out = _run(cfg, tmp_path, duration=0.2, clock_ns=vc.now, sleep=vc.sleep)
+    said = " ".join(svc.messages)
+    assert code == 0 and "stopped by SIGTERM during start-up: nothing ran" in said, said
+    assert svc.ctl.ticks == 0 and set(link.sent) == {0.0}
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+class NoClearLink(LatchingLink):
+    """A device whose watchdog bit stays set and a link with no CLEAR_FAULTS (request_clear_faults
+    False, as a Modbus map without an enable register)."""
+
+    def request_clear_faults(self):
+        return False
+
+
+def test_a_tripped_watchdog_a_link_cannot_clear_is_refused_saying_so(tmp_path, monkeypatch):
+    from mrctl.io.base import Status
+
+    vc = VirtualClock()
+    link = NoClearLink()
+    link.latched = int(Status.WATCHDOG_TRIPPED)
+    monkeypatch.setattr(Experiment, "make_link", lambda exp: link)
+    cfg = _config(tmp_path, **{"backend: {type: sim}": "backend: {type: serial, url: /dev/null}"})
+    svc, code, out = _run(cfg, tmp_path, duration=0.2, clock_ns=vc.now, sleep=vc.sleep)
+    said = " ".join(svc.messages)
+    assert code == 3 and "watchdog tripped and this link cannot ask it to clear" in said, said
+    assert set(link.sent) == {0.0} and not out.exists()

@@ -181,6 +181,9 @@ class Service:
                 if self.link is not None and self._zero_error is not None:
                     self.warn(f"could not command 0 A on exit: {self._zero_error}", CRIT)
                     code = code or EXIT_LINK
+            if stopped is None and self.interrupted is not None and self.ctl is not None and self.ctl.ticks == 0:
+                # SIGINT/SIGTERM after the handlers moved to the loop but before its first tick
+                stopped = signals.StopSignal(signal.Signals[self.interrupted].value)
             if stopped is not None:
                 return self._stopped_at_startup(stopped, code)
             if not self._ran:  # refused before the first tick (after the recorder was built, too)
@@ -340,19 +343,25 @@ class Service:
 
         Run twice: after the probe, where a latch left by an earlier run is
         cleared, and again just before the first tick (``since_check``),
-        where only a watchdog trip is cleared: an E-stop pressed and released
-        in between is still latched in the device and refuses the start,
-        where a blind CLEAR_FAULTS would have erased the operator's stop."""
+        where what latched during the start-up's own pauses is cleared (a
+        watchdog that expired, a driver fault or a receive error that came and
+        went) but not an E-stop: one pressed and released in between is still
+        latched in the device and refuses the start, where a blind
+        CLEAR_FAULTS would have erased the operator's stop."""
         estop = exp.config.safety.estop
+        where = f" (safety.estop.input: {estop.input})" if estop.input is not None else ""
         if estop.input is None and not since_check:
             self.warn("safety.estop: no E-stop input configured: only the hard-wired E-stop protects this bench "
                       "(docs/hardware.md)", NOTICE)
+        # what is cleared until the answer is clean: every latch after the probe; past the first
+        # check all but the E-stop (a driver fault still there at the deadline is the supervisor's)
+        clear = _CLEARED_BEFORE_FIRST_TICK if since_check else LATCH_STATUS
         # a device clears its latched bits when it acts on the request (hil_sim: at its next tick), so
         # the answer is read until it is clean, asking again each time, for up to 0.5 s; a lost reply
         # on a busy host is tried again as the start-up 0 A is
-        deadline, n, last = time.monotonic() + 0.5, 0, ""
+        deadline, n, last, asked = time.monotonic() + 0.5, 0, "", False
         status: int | None = None
-        while status is None or status & LATCH_STATUS:
+        while status is None or status & clear:
             if n and time.monotonic() > deadline:
                 break
             n += 1
@@ -363,21 +372,21 @@ class Service:
                 continue
             if since_check and status & int(Status.ESTOP):
                 break
-            if status & LATCH_STATUS:
-                link.request_clear_faults()
+            if status & clear:
+                asked = bool(link.request_clear_faults()) or asked
                 time.sleep(0.005)
         if status is None:
             raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
         if status & int(Status.ESTOP) and since_check:
-            where = f" (safety.estop.input: {estop.input})" if estop.input is not None else ""
             raise LinkFailure(f"refusing to start: the E-stop was pressed during start-up{where}; the device "
                               "reports it: reset the E-stop and start again")
         if status & int(Status.ESTOP):
-            raise LinkFailure(f"refusing to start: the E-stop input is open (safety.estop.input: {estop.input}); "
+            raise LinkFailure(f"refusing to start: the E-stop input is open{where}; "
                               "close it (reset the E-stop) and start again")
         if status & int(Status.WATCHDOG_TRIPPED):
-            raise LinkFailure("refusing to start: the device reports its watchdog tripped and did not clear it "
-                              f"on request (CLEAR_FAULTS, {n} attempts in 0.5 s)")
+            how = (f"did not clear it on request (CLEAR_FAULTS, {n} attempts in 0.5 s)" if asked else
+                   f"this link cannot ask it to clear (no CLEAR_FAULTS; {n} reads in 0.5 s)")
+            raise LinkFailure(f"refusing to start: the device reports its watchdog tripped and {how}")
 
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
         try:
@@ -667,6 +676,10 @@ class Service:
         self.say(f"safety: {_state_text(s)}, faults entered {s.counters().faults_entered}, "
                  f"link errors {self.ctl.link_errors}")
         return exit_code
+
+
+#: what the check just before the first tick clears (all the device latches but the E-stop's)
+_CLEARED_BEFORE_FIRST_TICK = int(Status.WATCHDOG_TRIPPED | Status.DRIVER_FAULT | Status.RX_ERROR)
 
 
 def _state_text(sup: SafetySupervisor) -> str:
