@@ -340,6 +340,28 @@ def test_calibrate_recovers_the_benchs_offsets_and_lag(tmp_path) -> None:
     assert shipped.sensing.x_noise_m == yaml.safe_load(EXPERIMENT.read_text())["sensing"]["x_noise_m"]
 
 
+def test_calibrate_with_the_e_stop_open_is_refused_before_a_current_step(tmp_path) -> None:
+    """The emulated T7's E-stop DIO reads its active level from the start: calibrate exits 3 naming
+    the E-stop, writes nothing, and the emulated driver never saw a current."""
+    data = yaml.safe_load(_bench(tmp_path, rest=True).read_text())
+    data["labjack_t7"]["estop"] = {"dio": 4, "active": "high"}
+    bench = tmp_path / "bench.yaml"
+    bench.write_text(yaml.safe_dump(data, sort_keys=False))
+    truth = tmp_path / "truth.csv"
+    hil, port = _start(tmp_path, bench, "--fault", "estop@0+600", "--truth", str(truth))
+    try:
+        res = _mrctl("calibrate", str(_exp_for(tmp_path, port)), "--out", str(tmp_path / "cal.yaml"))
+    finally:
+        hil.stop()
+    assert res.returncode == 3, res.stderr
+    assert "refusing to start: the E-stop input is open" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "cal.yaml").exists()
+    t7 = json.loads(truth.with_suffix(".json").read_text())["modbus"]
+    assert t7["requests"] > 0 and t7["dac_V"][0] == 0.0
+    I_cmd = np.genfromtxt(truth, delimiter=",", names=True)["I_cmd"]
+    assert len(I_cmd) > 0 and np.nanmax(I_cmd) == 0.0  # the driver never saw a current
+
+
 def _nrmse_load_cell(path: Path) -> float:
     from mrctl.runlog.metrics import tracking_summary
     from mrctl.runlog.read import read_run

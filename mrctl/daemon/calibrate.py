@@ -33,8 +33,9 @@ import numpy as np
 import yaml
 
 from mrctl.daemon import ownership
+from mrctl.daemon.interlocks import CLEAR_WAIT_S, cause_of, read_until_clean
 from mrctl.errors import BadInput, LinkFailure
-from mrctl.io.base import LinkError
+from mrctl.io.base import LinkError, Status
 
 __all__ = ["CalibrationOptions", "calibrate", "fit_lag", "run_from_args", "write_calibration"]
 
@@ -50,6 +51,10 @@ class CalibrationOptions:
     accept_dead_channels: bool = False
     #: what the device lock records as the owner (``mrctl ls``, the busy message)
     note: str = "mrctl calibrate"
+
+
+#: what stops a calibration at once, at 0 A (and refuses one that would start with it)
+_STOPS = int(Status.ESTOP | Status.WATCHDOG_TRIPPED | Status.DRIVER_FAULT)
 
 
 class DeadChannels(BadInput):
@@ -143,14 +148,19 @@ def _fit(t: np.ndarray, y: np.ndarray, t_cmd: np.ndarray, I_cmd: np.ndarray, min
     return tau, d, math.sqrt(err / max(1, len(y)))
 
 
-def _paced(link: Any, period_s: float, schedule: list[float]) -> list[tuple[float, float | None, Any, float]]:
+def _paced(link: Any, period_s: float, schedule: list[float],
+           phase: str) -> list[tuple[float, float | None, Any, float]]:
     """One tick per period with the currents of ``schedule``: [(t the command
     went out, I or None if it did not get through, sample or None, t the
     sample's request went out)], host monotonic seconds. A split link writes,
     then reads, each stamped just before its request leaves (a late reply
     then does not move the stamp); an exchange link's one request carries
-    both (its stamp for both)."""
+    both (its stamp for both). A sample that says the E-stop opened, the
+    device's watchdog tripped or the driver faulted ends it at once
+    (:class:`~mrctl.errors.LinkFailure`: the caller's close commands 0 A,
+    output disabled, before any further step)."""
     out = []
+    t_start = time.monotonic()
     t_next = time.monotonic()
     split = link.split
     for I in schedule:
@@ -171,6 +181,9 @@ def _paced(link: Any, period_s: float, schedule: list[float]) -> list[tuple[floa
                 sent = I
         except LinkError:
             pass
+        if s is not None and int(s.status) & _STOPS:
+            raise LinkFailure(f"calibrate: stopped at 0 A: {cause_of(int(s.status))} ({phase}, "
+                              f"{t0 - t_start:.2f} s in); nothing written")
         out.append((t0, sent, s, t1))
         t_next += period_s
         if t_next < time.monotonic() - period_s:  # fell behind (a stall): do not burst
@@ -209,9 +222,20 @@ def _calibrate_open(link: Any, setup: Any, opts: CalibrationOptions, step_A: flo
     # not a control loop: a late reply is still a reading (its stamp is when it was asked for)
     link.timeout_s = max(link.timeout_s, 0.05)
     try:
+        # as a run starts: what an earlier run left latched is cleared; an E-stop still open, or a
+        # watchdog trip or driver fault that does not clear, refuses before a current step (exit 3)
+        clean = read_until_clean(link, _STOPS)
+        if clean.status is None:
+            raise LinkFailure(f"calibrate: cannot read {link.describe()} ({clean.reads} attempts): "
+                              f"{clean.last_error}")
+        if clean.status & _STOPS:
+            raise LinkFailure(f"calibrate: refusing to start: {cause_of(clean.status)}"
+                              + ("; close it (reset the E-stop) and start again"
+                                 if clean.status & int(Status.ESTOP) else
+                                 f" and did not clear in {CLEAR_WAIT_S:g} s"))
         n_rest = max(10, round(opts.rest_s / period))
         say(f"calibrate: {n_rest} samples at rest, 0 A ({opts.rest_s:g} s at {opts.rate_hz:g} Hz)")
-        rest = [r for r in _paced(link, period, [0.0] * n_rest) if r[2] is not None]
+        rest = [r for r in _paced(link, period, [0.0] * n_rest, "at rest") if r[2] is not None]
         if len(rest) < n_rest // 2:
             raise LinkFailure(f"calibrate: only {len(rest)} of {n_rest} exchanges answered at rest")
         samples = [r[2] for r in rest]
@@ -254,7 +278,7 @@ def _calibrate_open(link: Any, setup: Any, opts: CalibrationOptions, step_A: flo
             for _ in range(opts.steps):
                 sched += [step_A] * n_step + [0.0] * n_step
             say(f"calibrate: {opts.steps} current steps 0 <-> {step_A:g} A, {opts.step_s:g} s each")
-            rows = _paced(link, period, sched)
+            rows = _paced(link, period, sched, "during the current steps")
             t_cmd, I_cmd, prev = [], [], 0.0
             for t0, I, _s, _t1 in rows:  # the changes that got through, when they did
                 if I is not None and I != prev:

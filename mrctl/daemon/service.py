@@ -53,6 +53,7 @@ from mrctl.daemon import ownership
 from mrctl.daemon.arm import ArmServer
 from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
+from mrctl.daemon.interlocks import CLEAR_WAIT_S, read_until_clean
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s, wire_words
 from mrctl.config.acceptance import bounds as acceptance_bounds
 from mrctl.config.saved import saved_config
@@ -355,26 +356,9 @@ class Service:
                       "(docs/hardware.md)", NOTICE)
         # what is cleared until the answer is clean: every latch after the probe; past the first
         # check all but the E-stop (a driver fault still there at the deadline is the supervisor's)
-        clear = _CLEARED_BEFORE_FIRST_TICK if since_check else LATCH_STATUS
-        # a device clears its latched bits when it acts on the request (hil_sim: at its next tick), so
-        # the answer is read until it is clean, asking again each time, for up to 0.5 s; a lost reply
-        # on a busy host is tried again as the start-up 0 A is
-        deadline, n, last, asked = time.monotonic() + 0.5, 0, "", False
-        status: int | None = None
-        while status is None or status & clear:
-            if n and time.monotonic() > deadline:
-                break
-            n += 1
-            try:
-                status = int((link.read() if link.split else link.exchange(0.0)).status)
-            except LinkError as exc:
-                last = str(exc)
-                continue
-            if since_check and status & int(Status.ESTOP):
-                break
-            if status & clear:
-                asked = bool(link.request_clear_faults()) or asked
-                time.sleep(0.005)
+        r = read_until_clean(link, _CLEARED_BEFORE_FIRST_TICK if since_check else LATCH_STATUS,
+                             keep_mask=int(Status.ESTOP) if since_check else 0)
+        status, n, last, asked = r.status, r.reads, r.last_error, r.asked
         if status is None:
             raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
         if status & int(Status.ESTOP) and since_check:
@@ -384,8 +368,8 @@ class Service:
             raise LinkFailure(f"refusing to start: the E-stop input is open{where}; "
                               "close it (reset the E-stop) and start again")
         if status & int(Status.WATCHDOG_TRIPPED):
-            how = (f"did not clear it on request (CLEAR_FAULTS, {n} attempts in 0.5 s)" if asked else
-                   f"this link cannot ask it to clear (no CLEAR_FAULTS; {n} reads in 0.5 s)")
+            how = (f"did not clear it on request (CLEAR_FAULTS, {n} attempts in {CLEAR_WAIT_S:g} s)" if asked else
+                   f"this link cannot ask it to clear (no CLEAR_FAULTS; {n} reads in {CLEAR_WAIT_S:g} s)")
             raise LinkFailure(f"refusing to start: the device reports its watchdog tripped and {how}")
 
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
