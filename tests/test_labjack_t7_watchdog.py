@@ -345,6 +345,38 @@ def test_the_link_sees_the_watchdog_act_and_the_estop_input(served, tmp_path) ->
         link.close()
 
 
+def test_a_reply_lost_at_a_current_change_is_neither_a_watchdog_trip_nor_a_driver_fault(served, tmp_path) -> None:
+    """A tick whose reply came too late had its DAC write applied: the next sample reads it back.
+    That is no mismatch (before, a step up read as another writer, DRIVER_FAULT, and a step down
+    to 0 A as the watchdog's trip, which latches a run); a write by another client still is."""
+    from mrctl.io.base import LinkTimeout
+
+    dev, _state, port = served()
+    link, _ = _link(port, tmp_path)
+    link.open()
+    bad = Status.WATCHDOG_TRIPPED | Status.DRIVER_FAULT
+    try:
+        for _ in range(3):
+            assert not link.exchange(0.0).status & bad
+        for I in (0.5, 0.0):  # a step up, then back to 0 A (the watchdog's own volts)
+            link.timeout_s = 1e-5  # the request goes out, its reply (1.2 ms later) is not waited for
+            with pytest.raises(LinkTimeout):
+                link.exchange(I)
+            deadline = time.monotonic() + 10.0
+            while dev.dac_V[0] != pytest.approx(I * 2.5) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert dev.dac_V[0] == pytest.approx(I * 2.5)  # the write was applied
+            link.timeout_s = 0.05
+            assert not link.exchange(I).status & bad
+        assert link.dac_mismatches == 0 and link.watchdog_trips == 0
+        with socket.create_connection(("127.0.0.1", port)) as other:  # another writer: DAC0 = 1 V
+            pdu = struct.pack(">BHHB", 16, 1000, 2, 4) + struct.pack(">f", 1.0)
+            assert _ask(other, struct.pack(">HHHB", 7, 0, len(pdu) + 1, 1) + pdu)[7] == 16
+        assert link.exchange(0.0).status & Status.DRIVER_FAULT and link.dac_mismatches == 1
+    finally:
+        link.close()
+
+
 class _Wire:
     """A TcpIO stand-in: the requests written, the replies given one segment per recv, what drain drops."""
 

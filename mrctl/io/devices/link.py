@@ -32,7 +32,8 @@ import time
 from typing import Any
 
 from mrctl.io.base import (
-    CounterUnwrap, DeviceError, Disconnected, FrameError, Link, LinkTimeout, Sample, Status, network_device_key,
+    CounterUnwrap, DeviceError, Disconnected, FrameError, Link, LinkError, LinkTimeout, Sample, Status,
+    network_device_key,
 )
 from mrctl.io.devices import DeviceSetup
 from mrctl.io.devices.mbfb import Op, Request, as_stored, mbfb_request, plain_requests
@@ -96,6 +97,9 @@ class PresetLink(Link):
         self._level = 0
         self._t_toggle_ns = 0
         self._last_volts: float | None = None
+        #: DAC volts of ticks that failed since the last sample: each may have reached the device
+        #: (a reply lost or late after the write was applied), so reading one back is no mismatch
+        self._unsure_volts: list[float] = []
         wd = p.watchdog
         self._key = int(wd["strict_key"]) if wd is not None else 0
         self._wd_volts = as_stored("float32", setup.dac_volts(0.0))
@@ -235,6 +239,7 @@ class PresetLink(Link):
         self._io = TcpIO.connect(self.host, self.port, self.open_timeout_s, self.spin_wait)
         self._rx.clear()
         self._last_volts = None
+        self._unsure_volts.clear()
         self._reqs = []
         self._step = "connecting"
         try:
@@ -341,6 +346,14 @@ class PresetLink(Link):
         dreq, dst, doff = self._dac_slot  # type: ignore[misc]
         return self._sample(reads, dst.unpack_from(dreq.adu, doff)[0])  # the volts as written (float32)
 
+    def _note_error(self, e: LinkError) -> None:
+        """A failed tick's DAC write may have been applied (its reply lost or late): the next
+        sample's read-back may show it, which is neither the device's watchdog nor another writer."""
+        super()._note_error(e)
+        if self._dac_slot is not None and len(self._unsure_volts) < 64:
+            dreq, dst, doff = self._dac_slot
+            self._unsure_volts.append(dst.unpack_from(dreq.adu, doff)[0])
+
     def _next_level(self, enabled: bool) -> int:
         if self.setup.enable_dio is None or not enabled:
             return 0
@@ -355,13 +368,15 @@ class PresetLink(Link):
         status = 0
         prev, last = reads[0], self._last_volts
         self._last_volts = volts_written
-        if last is not None and prev != last:
+        if last is not None and prev != last and prev not in self._unsure_volts:
             self.dac_mismatches += 1
             if prev == self._wd_volts:
                 self.watchdog_trips += 1
                 status |= _WD_TRIPPED  # the device's watchdog acted (or it restarted) since the last tick
             else:
                 status |= _DRIVER_FAULT  # someone else writes the DAC
+        if self._unsure_volts:
+            self._unsure_volts.clear()
         i = self._i_after_ain
         if self.setup.estop_dio is not None:
             if (reads[i] == 1) == self._estop_high:
