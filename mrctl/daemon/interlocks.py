@@ -67,5 +67,5 @@ def cause_of(status: int) -> str:
     if status & int(Status.WATCHDOG_TRIPPED):
         return "the device's watchdog tripped"
     if status & int(Status.DRIVER_FAULT):
-        return "the current driver reports a fault"
+        return "the device reports a driver fault (DRIVER_FAULT: a T7 when DAC0 reads back as another writer left it)"
     return f"the device's status is {status:#x}"

@@ -118,9 +118,10 @@ COMMAND_EXITS: dict[str, dict[int, str]] = {
                  2: "bad input: runs or a dataset that cannot be read or fitted, an unphysical fit, an option",
                  130: _INTERRUPTED},
     "calibrate": {0: "the calibration written", 1: _INTERNAL, 2: "bad input: the config, an option, --out",
-                  3: "link failure: the device cannot be opened or is owned by another mrctl; the E-stop is open "
-                     "at start, or it opened, the device's watchdog tripped or the driver faulted during the "
-                     "measurement (stopped at 0 A, nothing written)", 130: _INTERRUPTED},
+                  3: "link failure: the device cannot be opened or read, or is owned by another mrctl; at start "
+                     "the E-stop is open or a watchdog trip or driver fault does not clear; during the measurement "
+                     "the E-stop opened, the device's watchdog tripped or the driver faulted (stopped at 0 A, "
+                     "nothing written)", 130: _INTERRUPTED},
     "check": {0: "the file is valid (and the link can sustain the rate)", 1: _INTERNAL,
               2: "invalid (every error listed with its key path), or the link cannot sustain the rate"},
     "status": {0: "the daemon answered", 1: _INTERNAL, 2: "bad input: an option",
