@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from mrctl.daemon import ownership
-from mrctl.daemon.interlocks import CLEAR_WAIT_S, cause_of, read_until_clean
+from mrctl.daemon.interlocks import cause_of, read_until_clean, start_refusal
 from mrctl.errors import BadInput, LinkFailure
 from mrctl.io.base import LinkError, Status
 
@@ -160,8 +160,7 @@ def _paced(link: Any, period_s: float, schedule: list[float],
     (:class:`~mrctl.errors.LinkFailure`: the caller's close commands 0 A,
     output disabled, before any further step)."""
     out = []
-    t_start = time.monotonic()
-    t_next = time.monotonic()
+    t_start = t_next = time.monotonic()
     split = link.split
     for I in schedule:
         now = time.monotonic()
@@ -224,15 +223,9 @@ def _calibrate_open(link: Any, setup: Any, opts: CalibrationOptions, step_A: flo
     try:
         # as a run starts: what an earlier run left latched is cleared; an E-stop still open, or a
         # watchdog trip or driver fault that does not clear, refuses before a current step (exit 3)
-        clean = read_until_clean(link, _STOPS)
-        if clean.status is None:
-            raise LinkFailure(f"calibrate: cannot read {link.describe()} ({clean.reads} attempts): "
-                              f"{clean.last_error}")
-        if clean.status & _STOPS:
-            raise LinkFailure(f"calibrate: refusing to start: {cause_of(clean.status)}"
-                              + ("; close it (reset the E-stop) and start again"
-                                 if clean.status & int(Status.ESTOP) else
-                                 f" and did not clear in {CLEAR_WAIT_S:g} s"))
+        why = start_refusal(read_until_clean(link, _STOPS), _STOPS, "the current steps")
+        if why:
+            raise LinkFailure(f"calibrate: {why}")
         n_rest = max(10, round(opts.rest_s / period))
         say(f"calibrate: {n_rest} samples at rest, 0 A ({opts.rest_s:g} s at {opts.rate_hz:g} Hz)")
         rest = [r for r in _paced(link, period, [0.0] * n_rest, "at rest") if r[2] is not None]

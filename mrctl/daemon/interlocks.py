@@ -18,7 +18,7 @@ from typing import Any
 
 from mrctl.io.base import LinkError, Status
 
-__all__ = ["CLEAR_WAIT_S", "Cleared", "cause_of", "read_until_clean"]
+__all__ = ["CLEAR_WAIT_S", "Cleared", "cause_of", "read_until_clean", "start_refusal"]
 
 #: how long the status is read, asking the device to clear it, until it is clean (s)
 CLEAR_WAIT_S = 0.5
@@ -69,3 +69,20 @@ def cause_of(status: int) -> str:
     if status & int(Status.DRIVER_FAULT):
         return "the device reports a driver fault (DRIVER_FAULT: a T7 when DAC0 reads back as another writer left it)"
     return f"the device's status is {status:#x}"
+
+
+def start_refusal(found: Cleared, clear_mask: int, before: str, where: str = "") -> str | None:
+    """Why nothing may start on what :func:`read_until_clean` found (None: it
+    may): no read answered (``before`` what: "the first tick"); the E-stop
+    still open (``where`` names its input); a bit of ``clear_mask`` that did
+    not clear, or that this link cannot ask the device to clear."""
+    status, n = found.status, found.reads
+    if status is None:
+        return f"cannot read the device before {before} ({n} attempts): {found.last_error}"
+    if status & int(Status.ESTOP):
+        return f"refusing to start: the E-stop input is open{where}; close it (reset the E-stop) and start again"
+    if status & clear_mask:
+        how = (f"did not clear on request (CLEAR_FAULTS, {n} attempts in {CLEAR_WAIT_S:g} s)" if found.asked else
+               f"this link cannot ask it to clear (no CLEAR_FAULTS; {n} reads in {CLEAR_WAIT_S:g} s)")
+        return f"refusing to start: {cause_of(status)} and {how}"
+    return None

@@ -53,7 +53,7 @@ from mrctl.daemon import ownership
 from mrctl.daemon.arm import ArmServer
 from mrctl.daemon import signals
 from mrctl.daemon.faultwatch import FaultWatch
-from mrctl.daemon.interlocks import CLEAR_WAIT_S, read_until_clean
+from mrctl.daemon.interlocks import read_until_clean, start_refusal
 from mrctl.daemon.feasibility import assess, check_device_pacing, probe, wire_time_s, wire_words
 from mrctl.config.acceptance import bounds as acceptance_bounds
 from mrctl.config.saved import saved_config
@@ -355,22 +355,17 @@ class Service:
             self.warn("safety.estop: no E-stop input configured: only the hard-wired E-stop protects this bench "
                       "(docs/hardware.md)", NOTICE)
         # what is cleared until the answer is clean: every latch after the probe; past the first
-        # check all but the E-stop (a driver fault still there at the deadline is the supervisor's)
-        r = read_until_clean(link, _CLEARED_BEFORE_FIRST_TICK if since_check else LATCH_STATUS,
-                             keep_mask=int(Status.ESTOP) if since_check else 0)
-        status, n, last, asked = r.status, r.reads, r.last_error, r.asked
-        if status is None:
-            raise LinkFailure(f"cannot read the device before the first tick ({n} attempts): {last}")
-        if status & int(Status.ESTOP) and since_check:
+        # check all but the E-stop
+        mask = _CLEARED_BEFORE_FIRST_TICK if since_check else LATCH_STATUS
+        found = read_until_clean(link, mask, keep_mask=int(Status.ESTOP) if since_check else 0)
+        if since_check and found.status is not None and found.status & int(Status.ESTOP):
             raise LinkFailure(f"refusing to start: the E-stop was pressed during start-up{where}; the device "
                               "reports it: reset the E-stop and start again")
-        if status & int(Status.ESTOP):
-            raise LinkFailure(f"refusing to start: the E-stop input is open{where}; "
-                              "close it (reset the E-stop) and start again")
-        if status & int(Status.WATCHDOG_TRIPPED):
-            how = (f"did not clear it on request (CLEAR_FAULTS, {n} attempts in {CLEAR_WAIT_S:g} s)" if asked else
-                   f"this link cannot ask it to clear (no CLEAR_FAULTS; {n} reads in {CLEAR_WAIT_S:g} s)")
-            raise LinkFailure(f"refusing to start: the device reports its watchdog tripped and {how}")
+        # past the first check a driver fault still there at the deadline is the supervisor's: only a
+        # watchdog trip that does not clear refuses (the first check's own mask has no driver fault)
+        why = start_refusal(found, int(Status.WATCHDOG_TRIPPED), "the first tick", where)
+        if why:
+            raise LinkFailure(why)
 
     def _set_device_pacing(self, exp: Experiment, link: Link) -> None:
         try:
